@@ -1,0 +1,123 @@
+//! Strip-mask geometry: which samples a mask level keeps and how it triangulates them.
+//!
+//! Mask level `l` of a tile of `n x n` samples keeps the samples whose row and column
+//! indices are multiples of `l + 1`, and always the last row and column, so every mask
+//! covers the whole tile and meets its neighbours' borders (strip-mask paper, section
+//! 5.1: a tile has `n - 1` masks). Level 0 is the full tile.
+//!
+//! The builder uses this module to tabulate, per tile and level, the largest vertical
+//! error of the mask against the full tile; the renderer uses it to build the strips.
+//! Both must triangulate identically, so the convention lives here, once:
+//!
+//! **Invariant:** each cell between kept rows `r0 < r1` and kept columns `c0 < c1` is
+//! split along the diagonal from `(c0, r1)` to `(c1, r0)`: the one a triangle strip walking
+//! a row pair west to east, north vertex first, produces.
+
+/// Number of mask levels of a tile with `tile_size` samples per side.
+pub fn level_count(tile_size: u32) -> u32 {
+    tile_size.saturating_sub(1)
+}
+
+/// Sample indices along one side kept by mask `level`: multiples of `level + 1`, then the last.
+pub fn kept_indices(tile_size: u32, level: u32) -> Vec<u32> {
+    if tile_size == 0 {
+        return Vec::new();
+    }
+    let last = tile_size - 1;
+    let step = level.saturating_add(1);
+    let mut kept: Vec<u32> = (0..=last).step_by(step as usize).collect();
+    if kept.last() != Some(&last) {
+        kept.push(last);
+    }
+    kept
+}
+
+/// Triangles drawn by mask `level` (strip joins not counted).
+pub fn triangle_count(tile_size: u32, level: u32) -> u32 {
+    let cells = kept_indices(tile_size, level).len().saturating_sub(1) as u32;
+    2 * cells * cells
+}
+
+/// Largest vertical distance, in the units of `samples`, between the full tile and mask
+/// `level`, over every sample of the tile. `samples` is row-major `tile_size^2`.
+///
+/// Panics if `samples.len() != tile_size^2` (a caller bug, never data-dependent).
+pub fn max_vertical_error(samples: &[f32], tile_size: u32, level: u32) -> f32 {
+    let n = tile_size as usize;
+    assert_eq!(samples.len(), n * n, "samples must be tile_size^2");
+    if level == 0 {
+        return 0.0;
+    }
+    let at = |x: usize, y: usize| samples[y * n + x];
+    let kept = kept_indices(tile_size, level);
+    let mut worst = 0.0f32;
+    for rows in kept.windows(2) {
+        let (r0, r1) = (rows[0] as usize, rows[1] as usize);
+        for cols in kept.windows(2) {
+            let (c0, c1) = (cols[0] as usize, cols[1] as usize);
+            let (h00, h10, h01, h11) = (at(c0, r0), at(c1, r0), at(c0, r1), at(c1, r1));
+            let (du, dv) = ((c1 - c0) as f32, (r1 - r0) as f32);
+            for y in r0..=r1 {
+                let v = (y - r0) as f32 / dv;
+                for x in c0..=c1 {
+                    let u = (x - c0) as f32 / du;
+                    // The diagonal (c0, r1)-(c1, r0) is u + v = 1.
+                    let surface = if u + v <= 1.0 {
+                        h00 + u * (h10 - h00) + v * (h01 - h00)
+                    } else {
+                        h11 + (1.0 - u) * (h01 - h11) + (1.0 - v) * (h10 - h11)
+                    };
+                    worst = worst.max((at(x, y) - surface).abs());
+                }
+            }
+        }
+    }
+    worst
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kept_indices_follow_the_papers_figure_4() {
+        // A 6x6 grid: levels 2 and 3 both keep three indices per side, so both draw 8 triangles.
+        assert_eq!(kept_indices(6, 0), vec![0, 1, 2, 3, 4, 5]);
+        assert_eq!(kept_indices(6, 1), vec![0, 2, 4, 5]);
+        assert_eq!(kept_indices(6, 2), vec![0, 3, 5]);
+        assert_eq!(kept_indices(6, 3), vec![0, 4, 5]);
+        assert_eq!(kept_indices(6, 4), vec![0, 5]);
+        assert_eq!(level_count(6), 5);
+        let counts: Vec<u32> = (0..5).map(|l| triangle_count(6, l)).collect();
+        assert_eq!(counts, vec![50, 18, 8, 8, 2]);
+    }
+
+    #[test]
+    fn planes_have_no_error_at_any_level() {
+        let n = 17u32;
+        let plane: Vec<f32> =
+            (0..n * n).map(|i| 3.0 * (i % n) as f32 - 2.0 * (i / n) as f32).collect();
+        for level in 0..level_count(n) {
+            assert!(max_vertical_error(&plane, n, level) < 1e-3, "level {level}");
+        }
+    }
+
+    #[test]
+    fn a_single_spike_is_the_error_of_every_mask_that_drops_it() {
+        let n = 9u32;
+        let mut samples = vec![0.0f32; 81];
+        samples[4 * 9 + 3] = 10.0; // (x 3, y 4): dropped by level 1 (even indices), kept by level 2
+        assert_eq!(max_vertical_error(&samples, n, 0), 0.0);
+        assert_eq!(max_vertical_error(&samples, n, 1), 10.0);
+        assert_eq!(max_vertical_error(&samples, n, 3), 10.0);
+    }
+
+    #[test]
+    fn the_diagonal_runs_from_south_west_to_north_east() {
+        // One 3x3 cell at level 1 with the north-west and south-east corners lifted to 8.
+        // Split along south-west/north-east the centre lies on a diagonal of zeros, so these
+        // samples are exactly the mask's surface; the other diagonal would put 8 at the centre.
+        let samples = [8.0, 4.0, 0.0, 4.0, 0.0, 4.0, 0.0, 4.0, 8.0];
+        assert_eq!(max_vertical_error(&samples, 3, 1), 0.0);
+    }
+}
