@@ -1,0 +1,535 @@
+//! The tile-database builder: DEM (and texture) in, database out.
+//!
+//! Steps, one module each: [`input`] reads the raster and its metadata, [`voids`] fills
+//! no-data, [`tiles`] cuts tiles and computes their metadata, [`texture`] makes each
+//! tile's mip chain, and [`crate::db::DbWriter`] writes everything atomically. This module
+//! merges flags with what the files say, runs the steps (tiles in parallel, one row of
+//! tiles at a time so memory stays bounded) and reports.
+//!
+//! Precedence of metadata: command-line flags, then the file itself (GeoTIFF tags, `.hgt`
+//! name), then a `dataset.json` beside the input, then defaults (with a warning).
+
+pub mod input;
+pub mod texture;
+pub mod tiles;
+pub mod voids;
+
+use crate::db::{DbWriter, WriteError};
+use anyhow::Context as _;
+use clap::Args;
+use rayon::prelude::*;
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+use terrain_shared::manifest::{
+    self, Georeference, GridSize, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource,
+};
+use terrain_shared::{EncodeError, Manifest, TileRecord, heights, mask};
+use thiserror::Error;
+
+pub use input::{InputError, Raster};
+pub use texture::Registration;
+
+/// Default samples per tile side: 2^7 + 1, as in the strip-mask paper's experiments.
+pub const DEFAULT_TILE_SIZE: u32 = 129;
+/// Precision kept for floating-point heights that are not whole numbers.
+pub const DEFAULT_FLOAT_QUANTUM_M: f64 = 0.01;
+
+/// `terrain-server build`: the command-line face of [`BuildOptions`].
+#[derive(Debug, Clone, Args)]
+pub struct BuildArgs {
+    /// Height raster: 16- or 8-bit greyscale PNG, GeoTIFF (int16, uint16, float32) or SRTM .hgt.
+    /// A dataset.json beside it supplies spacing, height scale, no-data and texture.
+    pub heights: PathBuf,
+    /// Texture image (RGB) covering the raster. Default: the texture named by dataset.json,
+    /// else one computed from the heights (hypsometric tint with hill shading).
+    #[arg(long)]
+    pub texture: Option<PathBuf>,
+    /// Compute the texture from the heights even when an image is available.
+    #[arg(long, conflicts_with = "texture")]
+    pub generated_texture: bool,
+    /// How the texture image sits on the raster (default: dataset.json's, else edge-aligned).
+    #[arg(long, value_enum)]
+    pub texture_registration: Option<Registration>,
+    /// Output directory. Default: db/<dataset name>.
+    #[arg(long, short)]
+    pub out: Option<PathBuf>,
+    /// Replace an existing database at the output path.
+    #[arg(long)]
+    pub force: bool,
+    /// Dataset name in the manifest. Default: the folder name when a dataset.json is beside
+    /// the input, else the file name.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Samples per tile side, 2^n + 1 (tiles share their border samples).
+    #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
+    pub tile_size: u32,
+    /// Sample spacing in metres: one value, or east-west,north-south.
+    #[arg(long, value_delimiter = ',', num_args = 1..=2)]
+    pub spacing: Option<Vec<f64>>,
+    /// Metres per height unit of the raster.
+    #[arg(long)]
+    pub height_scale: Option<f64>,
+    /// Metres added to every height after scaling.
+    #[arg(long)]
+    pub height_offset: Option<f64>,
+    /// Raster value meaning "no data" (GeoTIFF: read from the file; .hgt: -32768).
+    #[arg(long, allow_hyphen_values = true)]
+    pub nodata: Option<f64>,
+    /// Precision in metres kept for float heights that are not whole numbers.
+    #[arg(long, default_value_t = DEFAULT_FLOAT_QUANTUM_M)]
+    pub float_quantum: f64,
+    /// Texture image format: jpeg for photographs and tints, png for lossless.
+    #[arg(long, value_enum, default_value_t = TextureFormatArg::Jpeg)]
+    pub texture_format: TextureFormatArg,
+    /// Finest texture side per tile in texels, a power of two. Default: the source image's
+    /// density, or one texel per cell for computed textures.
+    #[arg(long)]
+    pub texture_size: Option<u32>,
+    /// JPEG quality, 1-100.
+    #[arg(long, default_value_t = texture::DEFAULT_JPEG_QUALITY, value_parser = clap::value_parser!(u8).range(1..=100))]
+    pub jpeg_quality: u8,
+    /// zstd level for heights (1-22); decoding speed does not depend on it.
+    #[arg(long, default_value_t = heights::DEFAULT_ZSTD_LEVEL, value_parser = clap::value_parser!(i32).range(1..=22))]
+    pub zstd_level: i32,
+    /// No progress bar.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TextureFormatArg {
+    Jpeg,
+    Png,
+}
+
+/// Everything a build needs, resolved. [`BuildOptions::from_args`] fills it from flags.
+#[derive(Debug, Clone)]
+pub struct BuildOptions {
+    pub heights: PathBuf,
+    pub texture: TextureChoice,
+    pub texture_registration: Option<Registration>,
+    pub out: PathBuf,
+    pub force: bool,
+    pub name: Option<String>,
+    pub tile_size: u32,
+    pub spacing_m: Option<[f64; 2]>,
+    pub height_scale: Option<f64>,
+    pub height_offset: Option<f64>,
+    pub nodata: Option<f64>,
+    pub float_quantum_m: f64,
+    pub texture_format: ImageFormat,
+    pub texture_size: Option<u32>,
+    pub jpeg_quality: u8,
+    pub zstd_level: i32,
+}
+
+/// Where the texture comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TextureChoice {
+    /// The given image, or dataset.json's, or computed when there is none.
+    Auto,
+    Image(PathBuf),
+    Generated,
+}
+
+impl BuildOptions {
+    /// Options with defaults for `heights` written to `out`.
+    pub fn new(heights: impl Into<PathBuf>, out: impl Into<PathBuf>) -> BuildOptions {
+        BuildOptions {
+            heights: heights.into(),
+            texture: TextureChoice::Auto,
+            texture_registration: None,
+            out: out.into(),
+            force: false,
+            name: None,
+            tile_size: DEFAULT_TILE_SIZE,
+            spacing_m: None,
+            height_scale: None,
+            height_offset: None,
+            nodata: None,
+            float_quantum_m: DEFAULT_FLOAT_QUANTUM_M,
+            texture_format: ImageFormat::Jpeg,
+            texture_size: None,
+            jpeg_quality: texture::DEFAULT_JPEG_QUALITY,
+            zstd_level: heights::DEFAULT_ZSTD_LEVEL,
+        }
+    }
+
+    pub fn from_args(args: &BuildArgs) -> Result<BuildOptions, BuildError> {
+        let spacing_m = match args.spacing.as_deref() {
+            None => None,
+            Some([s]) => Some([*s, *s]),
+            Some([x, y]) => Some([*x, *y]),
+            Some(_) => return Err(BuildError::BadOption("--spacing takes one or two values".into())),
+        };
+        let name = args.name.clone();
+        let out = match &args.out {
+            Some(out) => out.clone(),
+            None => Path::new("db").join(name.clone().unwrap_or_else(|| default_name(&args.heights))),
+        };
+        Ok(BuildOptions {
+            texture: match (&args.texture, args.generated_texture) {
+                (Some(path), _) => TextureChoice::Image(path.clone()),
+                (None, true) => TextureChoice::Generated,
+                (None, false) => TextureChoice::Auto,
+            },
+            texture_registration: args.texture_registration,
+            force: args.force,
+            name,
+            tile_size: args.tile_size,
+            spacing_m,
+            height_scale: args.height_scale,
+            height_offset: args.height_offset,
+            nodata: args.nodata,
+            float_quantum_m: args.float_quantum,
+            texture_format: match args.texture_format {
+                TextureFormatArg::Jpeg => ImageFormat::Jpeg,
+                TextureFormatArg::Png => ImageFormat::Png,
+            },
+            texture_size: args.texture_size,
+            jpeg_quality: args.jpeg_quality,
+            zstd_level: args.zstd_level,
+            ..BuildOptions::new(&args.heights, out)
+        })
+    }
+}
+
+/// The dataset name: the folder's when a dataset.json describes it, else the file stem.
+fn default_name(heights: &Path) -> String {
+    let folder = heights.parent().filter(|p| p.join("dataset.json").exists()).and_then(|p| p.file_name());
+    folder
+        .or_else(|| heights.file_stem())
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "terrain".into())
+}
+
+/// Why a build failed. Nothing is left at the output path in any of these cases.
+#[derive(Debug, Error)]
+pub enum BuildError {
+    #[error(transparent)]
+    Input(#[from] InputError),
+    #[error(transparent)]
+    Write(#[from] WriteError),
+    #[error("texture {path}: {message}")]
+    Texture { path: PathBuf, message: String },
+    #[error("cannot encode tile {tile}: {source}")]
+    Encode { tile: terrain_shared::TileId, source: EncodeError },
+    #[error("cannot encode a texture level: {0}")]
+    TextureEncode(String),
+    #[error("tile size {0} is not 2^n + 1 between 3 and 4097")]
+    BadTileSize(u32),
+    #[error("invalid option: {0}")]
+    BadOption(String),
+    #[error("build cancelled; nothing was written to the output")]
+    Cancelled,
+}
+
+/// Something a user should know about a finished build; the database is still complete.
+#[derive(Debug, Clone, PartialEq)]
+pub enum BuildWarning {
+    FilledVoids(voids::FillReport),
+    SpacingUnknown,
+    TextureAspect { texture: [u32; 2], raster: [u32; 2] },
+}
+
+impl fmt::Display for BuildWarning {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            BuildWarning::FilledVoids(r) => write!(
+                f,
+                "filled {} no-data samples in {} voids (largest: {} samples) from their neighbours",
+                r.samples, r.regions, r.largest_region
+            ),
+            BuildWarning::SpacingUnknown => {
+                write!(f, "sample spacing unknown: assumed 1 m (give --spacing or a dataset.json)")
+            }
+            BuildWarning::TextureAspect { texture, raster } => write!(
+                f,
+                "texture is {}x{} but the raster {}x{}: its aspect differs, it is stretched to fit",
+                texture[0], texture[1], raster[0], raster[1]
+            ),
+        }
+    }
+}
+
+/// What a finished build made.
+#[derive(Debug, Clone)]
+pub struct BuildReport {
+    pub out: PathBuf,
+    pub manifest: Manifest,
+    pub warnings: Vec<BuildWarning>,
+    pub heights_bytes: u64,
+    pub texture_bytes: u64,
+    /// Samples stored in tiles (shared borders and padding included).
+    pub tile_samples: u64,
+    pub source_bytes: u64,
+    pub elapsed: Duration,
+}
+
+/// Progress of a build, for a bar: tiles done out of the total.
+pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
+
+/// Builds the database described by `options`. Checks `cancel` between tiles; a cancelled
+/// or failed build leaves nothing at `options.out`.
+pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBool) -> Result<BuildReport, BuildError> {
+    let started = Instant::now();
+    let n = options.tile_size;
+    if !(3..=4097).contains(&n) || !(n - 1).is_power_of_two() {
+        return Err(BuildError::BadTileSize(n));
+    }
+    if let Some(size) = options.texture_size {
+        if !size.is_power_of_two() || size > 4096 {
+            return Err(BuildError::BadOption(format!("--texture-size {size} is not a power of two up to 4096")));
+        }
+    }
+    let mut warnings = Vec::new();
+    let dataset = input::DatasetInfo::beside(&options.heights)?;
+    let (dataset_dir, info) = match dataset {
+        Some((path, info)) => (path.parent().map(Path::to_path_buf), info),
+        None => (None, input::DatasetInfo::default()),
+    };
+    let mut raster = input::read_heights(&options.heights, options.nodata.or(info.nodata), options.float_quantum_m)?;
+    let source_bytes = std::fs::metadata(&options.heights).map(|m| m.len()).unwrap_or(0);
+
+    let scale = options.height_scale.or(info.height_scale_m).unwrap_or(1.0);
+    let offset = options.height_offset.or(info.height_offset_m).unwrap_or(0.0);
+    if !(scale.is_finite() && scale > 0.0 && offset.is_finite()) {
+        return Err(BuildError::BadOption(format!("height scale {scale} and offset {offset} must be finite, scale positive")));
+    }
+    let quantum_m = raster.quantum_m * scale;
+    let offset_m = raster.offset_m * scale + offset;
+    let spacing_m = match options.spacing_m.or(raster.spacing_m).or_else(|| info.spacing(raster.height)) {
+        Some(s) if s.iter().all(|v| v.is_finite() && *v > 0.0) => s,
+        Some(s) => return Err(BuildError::BadOption(format!("spacing {s:?} must be positive"))),
+        None => {
+            warnings.push(BuildWarning::SpacingUnknown);
+            [1.0, 1.0]
+        }
+    };
+    let georeference: Option<Georeference> = raster.georeference.clone().or_else(|| info.georeference());
+
+    let (width, height) = (raster.width, raster.height);
+    let voids = std::mem::take(&mut raster.voids);
+    let filled = voids::fill(&mut raster.codes, &voids, width as usize, height as usize);
+    drop(voids);
+    let filled_voids = filled.as_ref().map_or(0, |r| r.samples as u64);
+    warnings.extend(filled.map(BuildWarning::FilledVoids));
+    let codes = raster.codes;
+    let (min_code, max_code) = codes.iter().fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+    let (min_m, max_m) = (offset_m + quantum_m * f64::from(min_code), offset_m + quantum_m * f64::from(max_code));
+
+    // The texture source.
+    let texture_path = match &options.texture {
+        TextureChoice::Image(path) => Some(path.clone()),
+        TextureChoice::Generated => None,
+        TextureChoice::Auto => info.texture.as_ref().zip(dataset_dir.as_ref()).map(|(t, dir)| dir.join(t)),
+    };
+    let source_image = match &texture_path {
+        Some(path) => {
+            let image = image::ImageReader::open(path)
+                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .with_guessed_format()
+                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .decode()
+                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .into_rgb8();
+            let (tw, th) = (f64::from(image.width()), f64::from(image.height()));
+            let (rw, rh) = (f64::from(width - 1), f64::from(height - 1));
+            if ((tw / th) / (rw / rh) - 1.0).abs() > 0.02 {
+                warnings.push(BuildWarning::TextureAspect { texture: [image.width(), image.height()], raster: [width, height] });
+            }
+            Some(image)
+        }
+        None => None,
+    };
+    let registration = options
+        .texture_registration
+        .or_else(|| info.texture_registration.as_deref().and_then(Registration::from_dataset))
+        .unwrap_or(Registration::EdgeAligned);
+    let texture_size = options.texture_size.unwrap_or_else(|| match &source_image {
+        Some(image) => texture::size_for_source(image.width(), width, n),
+        None => n - 1,
+    });
+    let texture_levels = texture::level_count(texture_size);
+    let field = texture::HeightField { codes: &codes, width, height, quantum_m, offset_m, spacing_m, min_m, max_m };
+
+    let grid = tiles::Grid::covering(width, height, n);
+    let mut writer = DbWriter::create(&options.out, options.force)?;
+    let done = AtomicUsize::new(0);
+    let mut records = Vec::with_capacity(grid.len());
+    for row in 0..grid.rows {
+        let made: Vec<Result<(TileRecord, Vec<u8>, Vec<Vec<u8>>), BuildError>> = (0..grid.columns)
+            .into_par_iter()
+            .map(|column| {
+                if cancel.load(Ordering::Relaxed) {
+                    return Err(BuildError::Cancelled);
+                }
+                let id = terrain_shared::TileId::new(column, row);
+                let cut = tiles::cut(&codes, width, height, grid, id, quantum_m, offset_m);
+                let encoded = cut
+                    .heights
+                    .encode_with_level(options.zstd_level)
+                    .map_err(|source| BuildError::Encode { tile: id, source })?;
+                let stats = tiles::stats(&cut);
+                let finest = match &source_image {
+                    Some(image) => texture::from_image(image, registration, (width, height), grid, id, texture_size),
+                    None => texture::generated(&field, grid, id, texture_size),
+                };
+                let levels = texture::mip_chain(finest)
+                    .iter()
+                    .map(|level| texture::encode(level, options.texture_format, options.jpeg_quality))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
+                let record = TileRecord {
+                    x: id.x,
+                    y: id.y,
+                    valid: cut.valid,
+                    min_m: stats.min_m,
+                    max_m: stats.max_m,
+                    roughness_m: stats.roughness_m,
+                    mask_errors_m: stats.mask_errors_m,
+                    heights: manifest::Blob::of(&encoded),
+                    texture: Vec::new(),
+                };
+                progress(done.fetch_add(1, Ordering::Relaxed) + 1, grid.len());
+                Ok((record, encoded, levels))
+            })
+            .collect();
+        for result in made {
+            let (mut record, encoded, levels) = result?;
+            record.heights = writer.add_heights(&encoded)?;
+            for level in &levels {
+                record.texture.push(writer.add_texture(level)?);
+            }
+            records.push(record);
+        }
+    }
+
+    let heights_bytes = records.iter().map(|r| r.heights.bytes).sum();
+    let texture_bytes = records.iter().flat_map(|r| &r.texture).map(|b| b.bytes).sum();
+    let name = options.name.clone().unwrap_or_else(|| default_name(&options.heights));
+    let mut manifest = Manifest {
+        format: manifest::FORMAT.into(),
+        version: manifest::VERSION,
+        dataset: name,
+        content_version: String::new(),
+        raster: RasterSize { width, height },
+        tile_size: n,
+        grid: GridSize { columns: grid.columns, rows: grid.rows },
+        spacing_m,
+        extent_m: [f64::from(width - 1) * spacing_m[0], f64::from(height - 1) * spacing_m[1]],
+        heights: HeightsInfo {
+            codec: heights::CODEC_NAME.into(),
+            quantum_m,
+            offset_m,
+            min_m,
+            max_m,
+            filled_voids,
+        },
+        texture: TextureInfo {
+            format: options.texture_format,
+            source: if source_image.is_some() { TextureSource::Image } else { TextureSource::Generated },
+            size: texture_size,
+            levels: texture_levels,
+        },
+        georeference,
+        mask_levels: mask::level_count(n),
+        tiles: records,
+    };
+    manifest.content_version = manifest.compute_content_version();
+    if cancel.load(Ordering::Relaxed) {
+        return Err(BuildError::Cancelled);
+    }
+    let out = writer.finish(&manifest)?;
+    Ok(BuildReport {
+        out,
+        tile_samples: grid.len() as u64 * u64::from(n) * u64::from(n),
+        manifest,
+        warnings,
+        heights_bytes,
+        texture_bytes,
+        source_bytes,
+        elapsed: started.elapsed(),
+    })
+}
+
+/// Runs `terrain-server build`: progress bar, Ctrl-C cancels cleanly, summary at the end.
+pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
+    let options = BuildOptions::from_args(&args)?;
+    let cancel = std::sync::Arc::new(AtomicBool::new(false));
+    {
+        let cancel = cancel.clone();
+        // A second Ctrl-C while the build winds down still kills the process: the temporary
+        // directory then stays behind under a hidden name, never at the output path.
+        let _ = ctrlc::set_handler(move || {
+            if cancel.swap(true, Ordering::Relaxed) {
+                std::process::exit(130);
+            }
+        });
+    }
+    let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} building [{elapsed_precise}] {wide_bar} {pos}/{len} tiles ({per_sec}, {eta} left)")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let on_progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    };
+    let report = build(&options, &on_progress, &cancel).with_context(|| format!("building {}", options.heights.display()))?;
+    bar.finish_and_clear();
+    print!("{}", Summary(&report));
+    Ok(())
+}
+
+/// The end-of-build summary.
+#[derive(Debug)]
+pub struct Summary<'a>(pub &'a BuildReport);
+
+impl fmt::Display for Summary<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let r = self.0;
+        let m = &r.manifest;
+        let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+        writeln!(f, "built {} ({}) in {:.1} s", r.out.display(), m.dataset, r.elapsed.as_secs_f64())?;
+        writeln!(
+            f,
+            "  raster    {} x {} samples, spacing {:.1} x {:.1} m, heights {:.1} .. {:.1} m in steps of {} m",
+            m.raster.width, m.raster.height, m.spacing_m[0], m.spacing_m[1], m.heights.min_m, m.heights.max_m, m.heights.quantum_m
+        )?;
+        writeln!(
+            f,
+            "  tiles     {} x {} = {} tiles of {}^2 samples",
+            m.grid.columns, m.grid.rows, m.tiles.len(), m.tile_size
+        )?;
+        writeln!(
+            f,
+            "  heights   {:.2} MiB, {:.3} bytes/sample: {:.2}x smaller than 16-bit samples, {:.2}x smaller than the source file",
+            mib(r.heights_bytes),
+            r.heights_bytes as f64 / r.tile_samples as f64,
+            (2 * r.tile_samples) as f64 / r.heights_bytes as f64,
+            r.source_bytes as f64 / r.heights_bytes as f64,
+        )?;
+        writeln!(
+            f,
+            "  textures  {:.2} MiB, {} levels of {:?} per tile up to {}^2 texels, {}",
+            mib(r.texture_bytes),
+            m.texture.levels,
+            m.texture.format,
+            m.texture.size,
+            match m.texture.source {
+                TextureSource::Image => "from the texture image",
+                TextureSource::Generated => "computed from the heights",
+            }
+        )?;
+        if r.warnings.is_empty() {
+            writeln!(f, "  warnings  none")?;
+        }
+        for w in &r.warnings {
+            writeln!(f, "  warning   {w}")?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,265 @@
+//! Per-tile textures: resampled from a source image or computed from the heights, then
+//! cut into a mip chain stored coarsest first, so a client can fetch level by level
+//! (the strip-mask paper's progressive texture transfer).
+//!
+//! **Texel registration.** A tile's texture covers the square from its first sample to its
+//! last, edge to edge; texel `i` of `size` has its centre at sample coordinate
+//! `x0 + (i + 0.5) * (tile_size - 1) / size`, exactly what a GPU sampler does with
+//! `u = (x - x0) / (tile_size - 1)`. A source image is located on the raster in one of
+//! two ways ([`Registration`]):
+//! - *edge-aligned* (`cell-centred`, `same extent`): the image spans the raster's first to
+//!   last sample; with `width - 1` texels, each texel fills the cell between four samples
+//!   (Puget Sound's texture);
+//! - *sample-centred*: texel centres sit on samples, so the image reaches half a sample
+//!   beyond the raster on every side.
+
+use image::{Rgb, RgbImage};
+use terrain_shared::TileId;
+use terrain_shared::manifest::ImageFormat;
+
+use super::tiles::Grid;
+
+/// Coarsest level's side, or the finest's if smaller: 8 texels still show a tile's main colour.
+pub const COARSEST_SIZE: u32 = 8;
+/// Default JPEG quality: visually clean for terrain at a third of PNG's size.
+pub const DEFAULT_JPEG_QUALITY: u8 = 85;
+
+/// Where a source image sits on the raster. See the module docs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Registration {
+    /// Image edges on the first and last samples (`cell-centred`, `same extent`).
+    EdgeAligned,
+    /// Texel centres on samples.
+    SampleCentred,
+}
+
+impl Registration {
+    /// Reads the `texture_registration` of a `dataset.json`.
+    pub fn from_dataset(text: &str) -> Option<Registration> {
+        match text.to_ascii_lowercase().replace(['_', ' '], "-").as_str() {
+            "cell-centred" | "cell-centered" | "same-extent" | "edge-aligned" => Some(Registration::EdgeAligned),
+            "sample-centred" | "sample-centered" | "point" => Some(Registration::SampleCentred),
+            _ => None,
+        }
+    }
+}
+
+/// Number of levels for a finest side of `size` texels.
+pub fn level_count(size: u32) -> u32 {
+    let coarsest = COARSEST_SIZE.min(size);
+    (size / coarsest).trailing_zeros() + 1
+}
+
+/// The finest side that keeps a source image's detail: its texels per raster cell times
+/// the tile's cells, rounded to a power of two, between 16 and 1024.
+pub fn size_for_source(image_width: u32, raster_width: u32, tile_size: u32) -> u32 {
+    let per_cell = f64::from(image_width) / f64::from(raster_width.saturating_sub(1).max(1));
+    let texels = (per_cell * f64::from(tile_size - 1)).max(1.0);
+    (2f64.powf(texels.log2().round()) as u32).clamp(16, 1024)
+}
+
+/// Resamples the part of `source` over tile `id` to `size x size` texels (bilinear).
+pub fn from_image(source: &RgbImage, registration: Registration, raster: (u32, u32), grid: Grid, id: TileId, size: u32) -> RgbImage {
+    let (rw, rh) = (f64::from(raster.0), f64::from(raster.1));
+    let (iw, ih) = (f64::from(source.width()), f64::from(source.height()));
+    let cells = f64::from(grid.tile_size - 1);
+    let (x0, y0) = (f64::from(id.x) * cells, f64::from(id.y) * cells);
+    RgbImage::from_fn(size, size, |i, j| {
+        // Sample coordinates of this texel's centre, then the image's continuous texel
+        // coordinates of that point (texel k spans [k, k + 1]).
+        let sx = x0 + (f64::from(i) + 0.5) * cells / f64::from(size);
+        let sy = y0 + (f64::from(j) + 0.5) * cells / f64::from(size);
+        let (px, py) = match registration {
+            Registration::EdgeAligned => (sx / (rw - 1.0) * iw, sy / (rh - 1.0) * ih),
+            Registration::SampleCentred => ((sx + 0.5) / rw * iw, (sy + 0.5) / rh * ih),
+        };
+        bilinear(source, px - 0.5, py - 0.5)
+    })
+}
+
+fn bilinear(image: &RgbImage, x: f64, y: f64) -> Rgb<u8> {
+    let max_x = f64::from(image.width() - 1);
+    let max_y = f64::from(image.height() - 1);
+    let (x, y) = (x.clamp(0.0, max_x), y.clamp(0.0, max_y));
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let (x0, y0) = (x0 as u32, y0 as u32);
+    let (x1, y1) = ((x0 + 1).min(image.width() - 1), (y0 + 1).min(image.height() - 1));
+    let p = |x, y| image.get_pixel(x, y).0.map(f64::from);
+    let (a, b, c, d) = (p(x0, y0), p(x1, y0), p(x0, y1), p(x1, y1));
+    Rgb(std::array::from_fn(|k| {
+        let top = a[k] + (b[k] - a[k]) * fx;
+        let bottom = c[k] + (d[k] - c[k]) * fx;
+        (top + (bottom - top) * fy).round().clamp(0.0, 255.0) as u8
+    }))
+}
+
+/// The whole raster in metres, for computed textures.
+#[derive(Debug, Clone, Copy)]
+pub struct HeightField<'a> {
+    pub codes: &'a [i32],
+    pub width: u32,
+    pub height: u32,
+    pub quantum_m: f64,
+    pub offset_m: f64,
+    pub spacing_m: [f64; 2],
+    /// The dataset's range, so tint colours agree across tiles.
+    pub min_m: f64,
+    pub max_m: f64,
+}
+
+impl HeightField<'_> {
+    fn at(&self, x: i64, y: i64) -> f64 {
+        let x = x.clamp(0, i64::from(self.width) - 1) as usize;
+        let y = y.clamp(0, i64::from(self.height) - 1) as usize;
+        self.offset_m + self.quantum_m * f64::from(self.codes[y * self.width as usize + x])
+    }
+
+    /// Hypsometric tint shaded by a light from the north-west, 45 degrees up (the
+    /// cartographic convention), at sample `(x, y)`.
+    fn colour(&self, x: i64, y: i64) -> [f64; 3] {
+        let h = self.at(x, y);
+        let dzdx = (self.at(x + 1, y) - self.at(x - 1, y)) / (2.0 * self.spacing_m[0]);
+        let dzdy = (self.at(x, y + 1) - self.at(x, y - 1)) / (2.0 * self.spacing_m[1]);
+        // Axes: x east, y south, z up. Light azimuth 315 degrees, altitude 45 degrees.
+        let (alt, az) = (45f64.to_radians(), 315f64.to_radians());
+        let light = [alt.cos() * az.sin(), -alt.cos() * az.cos(), alt.sin()];
+        let normal = [-dzdx, -dzdy, 1.0];
+        let len = (normal[0] * normal[0] + normal[1] * normal[1] + 1.0).sqrt();
+        let lambert = ((normal[0] * light[0] + normal[1] * light[1] + normal[2] * light[2]) / len).max(0.0);
+        // Flat ground gets 0.25 + 0.75 = full tint; slopes facing away darken to 0.25.
+        let shade = 0.25 + 0.75 * (lambert / alt.sin()).min(1.3);
+        let tint = tint(h, self.min_m, self.max_m);
+        tint.map(|c| c * shade)
+    }
+}
+
+/// Colour of height `h` on a hypsometric ramp over `[min, max]`; at or below 0 m on a
+/// dataset that also has land, water.
+fn tint(h: f64, min: f64, max: f64) -> [f64; 3] {
+    const WATER: [f64; 3] = [59.0, 110.0, 168.0];
+    const RAMP: [(f64, [f64; 3]); 7] = [
+        (0.00, [58.0, 125.0, 68.0]),
+        (0.15, [106.0, 168.0, 79.0]),
+        (0.35, [200.0, 192.0, 106.0]),
+        (0.55, [176.0, 132.0, 76.0]),
+        (0.75, [140.0, 106.0, 85.0]),
+        (0.90, [184.0, 176.0, 168.0]),
+        (1.00, [255.0, 255.0, 255.0]),
+    ];
+    if h <= 0.0 && max > 0.0 && min <= 0.0 {
+        return WATER;
+    }
+    let t = if max > min { ((h - min) / (max - min)).clamp(0.0, 1.0) } else { 0.0 };
+    let i = RAMP.iter().rposition(|(stop, _)| *stop <= t).unwrap_or(0).min(RAMP.len() - 2);
+    let ((t0, c0), (t1, c1)) = (RAMP[i], RAMP[i + 1]);
+    let f = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+    std::array::from_fn(|k| c0[k] + (c1[k] - c0[k]) * f)
+}
+
+/// Computes tile `id`'s texture from the heights at `size x size` texels: colours at the
+/// samples around each texel centre, blended bilinearly.
+pub fn generated(field: &HeightField<'_>, grid: Grid, id: TileId, size: u32) -> RgbImage {
+    let cells = f64::from(grid.tile_size - 1);
+    let (x0, y0) = (f64::from(id.x) * cells, f64::from(id.y) * cells);
+    RgbImage::from_fn(size, size, |i, j| {
+        let sx = x0 + (f64::from(i) + 0.5) * cells / f64::from(size);
+        let sy = y0 + (f64::from(j) + 0.5) * cells / f64::from(size);
+        let (fx, fy) = (sx.floor(), sy.floor());
+        let (tx, ty) = (sx - fx, sy - fy);
+        let (ix, iy) = (fx as i64, fy as i64);
+        let (a, b, c, d) = (field.colour(ix, iy), field.colour(ix + 1, iy), field.colour(ix, iy + 1), field.colour(ix + 1, iy + 1));
+        Rgb(std::array::from_fn(|k| {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            (top + (bottom - top) * ty).round().clamp(0.0, 255.0) as u8
+        }))
+    })
+}
+
+/// The mip chain of `finest`, coarsest first, by 2x2 box filtering.
+pub fn mip_chain(finest: RgbImage) -> Vec<RgbImage> {
+    let levels = level_count(finest.width());
+    let mut chain = vec![finest];
+    for _ in 1..levels {
+        let Some(prev) = chain.last() else { break };
+        let half = prev.width() / 2;
+        let next = RgbImage::from_fn(half, half, |x, y| {
+            let p = |dx, dy| prev.get_pixel(2 * x + dx, 2 * y + dy).0.map(u32::from);
+            let (a, b, c, d) = (p(0, 0), p(1, 0), p(0, 1), p(1, 1));
+            Rgb(std::array::from_fn(|k| ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8))
+        });
+        chain.push(next);
+    }
+    chain.reverse();
+    chain
+}
+
+/// Encodes one level.
+pub fn encode(image: &RgbImage, format: ImageFormat, jpeg_quality: u8) -> Result<Vec<u8>, image::ImageError> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    match format {
+        ImageFormat::Jpeg => {
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, jpeg_quality).encode_image(image)?;
+        }
+        ImageFormat::Png => {
+            image.write_with_encoder(image::codecs::png::PngEncoder::new(&mut out))?;
+        }
+    }
+    Ok(out.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn level_counts_reach_down_to_the_coarsest_size() {
+        assert_eq!(level_count(128), 5); // 8, 16, 32, 64, 128
+        assert_eq!(level_count(8), 1);
+        assert_eq!(level_count(4), 1);
+    }
+
+    #[test]
+    fn source_density_sets_the_finest_size() {
+        assert_eq!(size_for_source(1024, 1025, 129), 128); // Puget Sound: one texel per cell
+        assert_eq!(size_for_source(1024, 1200, 129), 128); // Grand Canyon: 0.85 per cell
+        assert_eq!(size_for_source(4096, 1025, 129), 512);
+    }
+
+    #[test]
+    fn mip_chains_are_coarsest_first_and_average() {
+        let finest = RgbImage::from_fn(16, 16, |x, _| if x < 8 { Rgb([0, 0, 0]) } else { Rgb([200, 100, 50]) });
+        let chain = mip_chain(finest);
+        assert_eq!(chain.iter().map(|l| l.width()).collect::<Vec<_>>(), vec![8, 16]);
+        assert_eq!(chain[0].get_pixel(0, 0).0, [0, 0, 0]);
+        assert_eq!(chain[0].get_pixel(7, 0).0, [200, 100, 50]);
+    }
+
+    #[test]
+    fn cell_centred_texels_land_on_their_cells() {
+        // A 4x4-sample raster with a 3x3 cell-centred image: texel (i, j) covers the cell
+        // between samples i..i+1, j..j+1. One tile of 5 samples (4 cells) covers cells 0..4,
+        // of which 3 are real; with 4 texels per side tile texel k is cell k.
+        let source = RgbImage::from_fn(3, 3, |x, y| Rgb([(x * 80) as u8, (y * 80) as u8, 7]));
+        let grid = Grid { tile_size: 5, columns: 1, rows: 1 };
+        let tile = from_image(&source, Registration::EdgeAligned, (4, 4), grid, TileId::new(0, 0), 4);
+        for k in 0..3 {
+            assert_eq!(tile.get_pixel(k, k).0, [(k * 80) as u8, (k * 80) as u8, 7], "texel {k}");
+        }
+    }
+
+    #[test]
+    fn generated_textures_tint_low_green_high_white_and_sea_blue() {
+        assert_eq!(tint(0.0, -10.0, 100.0), [59.0, 110.0, 168.0]);
+        assert_eq!(tint(100.0, 10.0, 100.0), [255.0, 255.0, 255.0]);
+        assert_eq!(tint(10.0, 10.0, 100.0), [58.0, 125.0, 68.0]);
+        // Shading: a slope facing the north-west light is brighter than one facing away.
+        let codes: Vec<i32> = (0..25).map(|i| (i % 5) * 10).collect(); // rises to the east
+        let field = HeightField { codes: &codes, width: 5, height: 5, quantum_m: 1.0, offset_m: 1.0, spacing_m: [10.0, 10.0], min_m: 0.0, max_m: 1000.0 };
+        let west_facing = field.colour(2, 2);
+        let mirrored: Vec<i32> = (0..25).map(|i| (4 - i % 5) * 10).collect();
+        let east_facing = HeightField { codes: &mirrored, ..field }.colour(2, 2);
+        assert!(west_facing[1] > east_facing[1]);
+    }
+}

@@ -1,0 +1,312 @@
+//! The tile database on disk and its read side.
+//!
+//! A database is a directory of three files:
+//!
+//! ```text
+//! manifest.json   the manifest (shared::Manifest), as served
+//! heights.pack    every tile's encoded heights, back to back, in manifest tile order
+//! textures.pack   every tile's texture levels, coarsest first, tiles in manifest order
+//! ```
+//!
+//! Nothing else locates a blob: its offset is the sum of the sizes before it in the
+//! manifest, so the manifest alone describes the packs and cannot disagree with an index.
+//! [`TileDb::open`] checks that the sizes add up to the pack lengths and, by default,
+//! that every blob matches its hash, so a damaged database is refused at start-up
+//! rather than served.
+//!
+//! **Invariant:** a database directory is never written after the builder renames it into
+//! place, which is what makes memory-mapping its packs sound. Serving a tile is a slice of
+//! a map: nothing is decoded, copied or re-encoded per request.
+
+use bytes::Bytes;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use terrain_shared::manifest::{ManifestError, content_hash};
+use terrain_shared::{Blob, Manifest, TileId};
+use thiserror::Error;
+
+pub const MANIFEST_FILE: &str = "manifest.json";
+pub const HEIGHTS_PACK: &str = "heights.pack";
+pub const TEXTURES_PACK: &str = "textures.pack";
+
+/// Why a database could not be opened.
+#[derive(Debug, Error)]
+pub enum DbError {
+    #[error("cannot read {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path} is not a usable manifest: {source}")]
+    Manifest { path: PathBuf, source: ManifestError },
+    #[error("{pack} is {found} bytes but the manifest lists {expected} bytes of blobs: the database is damaged or incomplete")]
+    PackSize { pack: PathBuf, expected: u64, found: u64 },
+    #[error("{what} of tile {id} in {pack} does not match its hash (expected {expected}, found {found}): the database is damaged")]
+    HashMismatch { pack: PathBuf, id: TileId, what: String, expected: String, found: String },
+}
+
+/// Whether [`TileDb::open`] hashes every blob (a full read of the packs) before serving.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verify {
+    Hashes,
+    SizesOnly,
+}
+
+/// One stored object ready to send: the bytes (a slice of the map) and its content hash.
+#[derive(Debug, Clone)]
+pub struct StoredBlob {
+    pub bytes: Bytes,
+    pub hash: String,
+}
+
+/// An opened, checked database. Cheap to share behind an `Arc`.
+#[derive(Debug)]
+pub struct TileDb {
+    dir: PathBuf,
+    manifest: Manifest,
+    manifest_json: Bytes,
+    manifest_hash: String,
+    heights: Vec<StoredBlob>,
+    /// Per tile, its texture levels coarsest first.
+    textures: Vec<Vec<StoredBlob>>,
+}
+
+impl TileDb {
+    /// Opens the database in `dir`, checking pack sizes and, with [`Verify::Hashes`], every hash.
+    pub fn open(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
+        let manifest_path = dir.join(MANIFEST_FILE);
+        let manifest_json = std::fs::read(&manifest_path)
+            .map_err(|source| DbError::Io { path: manifest_path.clone(), source })?;
+        let manifest = Manifest::from_json(&manifest_json)
+            .map_err(|source| DbError::Manifest { path: manifest_path.clone(), source })?;
+
+        let heights_path = dir.join(HEIGHTS_PACK);
+        let heights_pack = map_file(&heights_path)?;
+        let textures_path = dir.join(TEXTURES_PACK);
+        let textures_pack = map_file(&textures_path)?;
+
+        let heights = slice_pack(&heights_pack, &heights_path, manifest.tiles.iter().map(|t| {
+            (t.id(), "heights".to_string(), &t.heights)
+        }), verify)?;
+        let flat_textures = slice_pack(&textures_pack, &textures_path, manifest.tiles.iter().flat_map(|t| {
+            t.texture.iter().enumerate().map(move |(level, blob)| (t.id(), format!("texture level {level}"), blob))
+        }), verify)?;
+        let levels = manifest.texture.levels as usize;
+        let mut flat = flat_textures.into_iter();
+        let textures = (0..manifest.tiles.len()).map(|_| flat.by_ref().take(levels).collect()).collect();
+
+        Ok(TileDb {
+            dir: dir.to_path_buf(),
+            manifest_hash: content_hash(&manifest_json),
+            manifest,
+            manifest_json: Bytes::from(manifest_json),
+            heights,
+            textures,
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// The manifest exactly as stored, for serving.
+    pub fn manifest_json(&self) -> &Bytes {
+        &self.manifest_json
+    }
+
+    /// Content hash of [`Self::manifest_json`], for its entity tag.
+    pub fn manifest_hash(&self) -> &str {
+        &self.manifest_hash
+    }
+
+    /// The encoded heights of tile `id`, if it lies in the grid.
+    pub fn heights(&self, id: TileId) -> Option<&StoredBlob> {
+        self.heights.get(self.index(id)?)
+    }
+
+    /// Texture `level` (0 = coarsest) of tile `id`, if both exist.
+    pub fn texture(&self, id: TileId, level: u32) -> Option<&StoredBlob> {
+        self.textures.get(self.index(id)?)?.get(level as usize)
+    }
+
+    fn index(&self, id: TileId) -> Option<usize> {
+        let grid = self.manifest.grid;
+        (id.x < grid.columns && id.y < grid.rows).then(|| id.y as usize * grid.columns as usize + id.x as usize)
+    }
+}
+
+/// Maps a pack read-only. An empty file cannot be mapped and needs no map.
+#[allow(unsafe_code)]
+fn map_file(path: &Path) -> Result<Bytes, DbError> {
+    let io = |source| DbError::Io { path: path.to_path_buf(), source };
+    let file = File::open(path).map_err(io)?;
+    if file.metadata().map_err(io)?.len() == 0 {
+        return Ok(Bytes::new());
+    }
+    // SAFETY: the map is read-only and the file belongs to a finished database, which
+    // nothing writes after the builder's rename (module invariant). A file truncated
+    // behind our back by another program would be a bug outside this process's control,
+    // as with any memory-mapped reader.
+    let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+    Ok(Bytes::from_owner(map))
+}
+
+/// Cuts a pack into the blobs the manifest lists, in order, checking sizes and hashes.
+fn slice_pack<'a>(
+    pack: &Bytes,
+    path: &Path,
+    blobs: impl Iterator<Item = (TileId, String, &'a Blob)>,
+    verify: Verify,
+) -> Result<Vec<StoredBlob>, DbError> {
+    let listed: Vec<_> = blobs.collect();
+    let expected: u64 = listed.iter().map(|(_, _, b)| b.bytes).sum();
+    if expected != pack.len() as u64 {
+        return Err(DbError::PackSize { pack: path.to_path_buf(), expected, found: pack.len() as u64 });
+    }
+    let mut offset = 0usize;
+    let mut out = Vec::with_capacity(listed.len());
+    for (id, what, blob) in listed {
+        let bytes = pack.slice(offset..offset + blob.bytes as usize);
+        offset += blob.bytes as usize;
+        if verify == Verify::Hashes {
+            let found = content_hash(&bytes);
+            if found != blob.hash {
+                return Err(DbError::HashMismatch {
+                    pack: path.to_path_buf(),
+                    id,
+                    what,
+                    expected: blob.hash.clone(),
+                    found,
+                });
+            }
+        }
+        out.push(StoredBlob { bytes, hash: blob.hash.clone() });
+    }
+    Ok(out)
+}
+
+/// Why a database could not be written.
+#[derive(Debug, Error)]
+pub enum WriteError {
+    #[error("{0} already exists: pass --force to replace it")]
+    Exists(PathBuf),
+    #[error("cannot write the database at {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("the manifest lists {listed} bytes of {pack} but {written} were written")]
+    Mismatch { pack: &'static str, listed: u64, written: u64 },
+}
+
+/// Writes a database into a hidden temporary directory beside its destination and
+/// renames it into place in [`DbWriter::finish`]. Dropped unfinished (an error, a panic),
+/// it removes the temporary directory: an interrupted build never leaves a directory
+/// that looks like a database, and the manifest, which makes one, is written last.
+///
+/// Blobs must be added in manifest order (tile by tile, row-major; texture levels
+/// coarsest first), the order [`TileDb::open`] reads them back in.
+#[derive(Debug)]
+pub struct DbWriter {
+    out: PathBuf,
+    force: bool,
+    tmp: tempfile::TempDir,
+    heights: std::io::BufWriter<File>,
+    textures: std::io::BufWriter<File>,
+    heights_written: u64,
+    textures_written: u64,
+}
+
+impl DbWriter {
+    /// Starts a database that will appear at `out`. Refuses an existing `out` unless `force`.
+    pub fn create(out: &Path, force: bool) -> Result<DbWriter, WriteError> {
+        if out.exists() && !force {
+            return Err(WriteError::Exists(out.to_path_buf()));
+        }
+        let io = |source| WriteError::Io { path: out.to_path_buf(), source };
+        let parent = match out.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        std::fs::create_dir_all(&parent).map_err(io)?;
+        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let tmp = tempfile::Builder::new()
+            .prefix(&format!(".{name}.building-"))
+            .tempdir_in(&parent)
+            .map_err(io)?;
+        let heights = File::create(tmp.path().join(HEIGHTS_PACK)).map_err(io)?;
+        let textures = File::create(tmp.path().join(TEXTURES_PACK)).map_err(io)?;
+        Ok(DbWriter {
+            out: out.to_path_buf(),
+            force,
+            tmp,
+            heights: std::io::BufWriter::new(heights),
+            textures: std::io::BufWriter::new(textures),
+            heights_written: 0,
+            textures_written: 0,
+        })
+    }
+
+    /// The temporary directory being written (for tests of interrupted builds).
+    pub fn temporary_dir(&self) -> &Path {
+        self.tmp.path()
+    }
+
+    /// Appends the next tile's heights.
+    pub fn add_heights(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
+        use std::io::Write;
+        self.heights.write_all(bytes).map_err(|source| WriteError::Io { path: self.out.clone(), source })?;
+        self.heights_written += bytes.len() as u64;
+        Ok(Blob::of(bytes))
+    }
+
+    /// Appends the next texture level (coarsest first within a tile).
+    pub fn add_texture(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
+        use std::io::Write;
+        self.textures.write_all(bytes).map_err(|source| WriteError::Io { path: self.out.clone(), source })?;
+        self.textures_written += bytes.len() as u64;
+        Ok(Blob::of(bytes))
+    }
+
+    /// Writes the manifest, syncs everything and renames the directory to its destination.
+    pub fn finish(mut self, manifest: &Manifest) -> Result<PathBuf, WriteError> {
+        use std::io::Write;
+        let listed_heights: u64 = manifest.tiles.iter().map(|t| t.heights.bytes).sum();
+        let listed_textures: u64 = manifest.tiles.iter().flat_map(|t| &t.texture).map(|b| b.bytes).sum();
+        if listed_heights != self.heights_written {
+            return Err(WriteError::Mismatch { pack: HEIGHTS_PACK, listed: listed_heights, written: self.heights_written });
+        }
+        if listed_textures != self.textures_written {
+            return Err(WriteError::Mismatch { pack: TEXTURES_PACK, listed: listed_textures, written: self.textures_written });
+        }
+        let out = self.out.clone();
+        let io = |source| WriteError::Io { path: out.clone(), source };
+        for pack in [&mut self.heights, &mut self.textures] {
+            pack.flush().map_err(io)?;
+            pack.get_ref().sync_all().map_err(io)?;
+        }
+        let manifest_path = self.tmp.path().join(MANIFEST_FILE);
+        let mut file = File::create(&manifest_path).map_err(io)?;
+        file.write_all(&manifest.to_json()).map_err(io)?;
+        file.sync_all().map_err(io)?;
+
+        let tmp = self.tmp.keep();
+        // An existing database is moved aside first and removed only once the new one is
+        // in place, so `out` holds either the old database or the new one, never a mix.
+        let mut old = None;
+        if self.force && out.exists() {
+            let aside = tmp.with_extension("replaced");
+            std::fs::rename(&out, &aside).map_err(io)?;
+            old = Some(aside);
+        }
+        if let Err(source) = std::fs::rename(&tmp, &out) {
+            let _ = std::fs::remove_dir_all(&tmp);
+            if let Some(aside) = &old {
+                let _ = std::fs::rename(aside, &out);
+            }
+            return Err(WriteError::Io { path: out, source });
+        }
+        if let Some(aside) = old {
+            std::fs::remove_dir_all(&aside).map_err(io)?;
+        }
+        Ok(out)
+    }
+}
