@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# The main job: build a tile database from the bundled jacksboro DEM (once), serve it on
+# a free local port, stream every tile through the client (verified against the manifest
+# and decoded), and write to out/: an overview picture of the terrain, per-tile CSV, the
+# server's Prometheus metrics, and a summary.
+#
+#   bash scripts/demo.sh            # everything under out/
+#   OUT=/tmp/run bash scripts/demo.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=${OUT:-out}
+mkdir -p "$out"
+
+cargo build --release --workspace --locked
+bin=target/release
+db="$out/db/jacksboro"
+if [ ! -f "$db/manifest.json" ]; then
+  "$bin/terrain-server" build tests/fixtures/jacksboro/jacksboro_fault_dem.png --out "$db"
+else
+  echo "reusing the database in $db (delete it to rebuild)"
+fi
+
+"$bin/terrain-server" serve "$db" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
+server=$!
+trap 'kill "$server" 2>/dev/null || true' EXIT
+url=
+for _ in $(seq 200); do
+  url=$(sed -n 's/^listening on //p' "$out/server.stdout")
+  [ -n "$url" ] && break
+  kill -0 "$server" 2>/dev/null || { cat "$out/server.log" >&2; exit 1; }
+  sleep 0.05
+done
+[ -n "$url" ] || { echo "error: the server did not start" >&2; exit 1; }
+echo "serving $db at $url"
+
+"$bin/terrain-client" fetch --server "$url" --out "$out/fetch"
+curl -fsS "$url/metrics" >"$out/metrics.txt"
+kill -TERM "$server"
+wait "$server" || true
+trap - EXIT
+
+echo
+echo "wrote:"
+echo "  $out/fetch/overview.png   the whole terrain, from the served textures"
+echo "  $out/fetch/tiles.csv      per tile: bytes, bounds, roughness, fetch and decode times"
+echo "  $out/metrics.txt          the server's Prometheus metrics after the run"
+echo "  $out/server.log           the server's log"

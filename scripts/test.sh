@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The test command: builds the workspace in release (the end-to-end tests run its
+# binaries), runs every test, and checks that docker-compose.yml parses.
+# Installs what it needs when missing (Debian: docker-compose).
+#
+# The data-hungry tests read the data kit from $TERRAIN_DATA_DIR; without it they print
+# "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+install_if_missing() { # command package
+  command -v "$1" >/dev/null 2>&1 && return 0
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "installing $2 (for $1)"
+    apt-get -o DPkg::Lock::Timeout=600 update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 install -y -qq --no-install-recommends "$2" >/dev/null
+  else
+    echo "error: $1 is missing; install the Debian package $2" >&2
+    return 1
+  fi
+}
+
+if [ -z "${TERRAIN_DATA_DIR:-}" ]; then
+  echo "note: TERRAIN_DATA_DIR is not set: tests that need the data kit will say NOT RUN"
+fi
+
+cargo build --release --workspace --locked
+cargo test --release --workspace --locked
+
+install_if_missing docker-compose docker-compose
+docker-compose -f docker-compose.yml config -q
+echo "docker-compose.yml: parses"
