@@ -1,0 +1,366 @@
+//! One HTTP request per call against a tile server: the manifest, a tile's heights, a
+//! tile's texture level. Owns URL building, status handling and content verification:
+//! every tile body is checked against the hash the manifest records for it, so a caller
+//! never sees bytes the manifest does not vouch for.
+//!
+//! Left to callers: retries, backoff, cancellation and the order in which tiles are
+//! fetched (the belt order of the later pager). Each call here is one attempt, and
+//! [`FetchError::is_transient`] tells such a caller which failures are worth another.
+
+use bytes::Bytes;
+use std::time::{Duration, Instant};
+use terrain_shared::manifest::{ManifestError, content_hash};
+use terrain_shared::{Blob, DecodeError, Heights, Manifest, TileId, routes};
+use thiserror::Error;
+
+/// Longest wait for a TCP connection. A tile server is usually near (same host, LAN or a
+/// CDN edge), where a connection takes milliseconds; 5 s separates "slow" from "not there".
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// Longest time for one whole request, body included. The largest blob (a finest texture
+/// level of a 4097-sample tile, a few MB) takes well under a second on a LAN; 30 s leaves
+/// room for a slow link without letting a stuck server hold a request forever.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
+/// How much of an error response's body goes into [`FetchError::Http`]. The server's
+/// bodies are one short JSON object; anything longer is not meant for a person.
+pub const MAX_ERROR_BODY: usize = 512;
+
+const USER_AGENT: &str = concat!("terrain-client/", env!("CARGO_PKG_VERSION"));
+
+/// A client for one tile server. Cheap to clone (the connection pool is shared), so hand
+/// a clone to each task.
+///
+/// ```no_run
+/// # async fn demo() -> Result<(), terrain_client::fetch::FetchError> {
+/// use terrain_client::fetch::TileClient;
+/// use terrain_shared::TileId;
+///
+/// let client = TileClient::new("http://127.0.0.1:8080")?;
+/// let manifest = client.manifest().await?;
+/// let heights = client.heights(&manifest, TileId::new(0, 0)).await?;
+/// let coarsest = client.texture(&manifest, TileId::new(0, 0), 0).await?;
+/// # Ok(()) }
+/// ```
+#[derive(Debug, Clone)]
+pub struct TileClient {
+    /// Scheme, host, port and any path prefix, without a trailing slash: route paths
+    /// (which start with `/`) are appended as they are, so a server mounted under a prefix
+    /// (`http://host/terrain`) works too.
+    base: String,
+    http: reqwest::Client,
+}
+
+/// Why a request did not produce verified content.
+#[derive(Debug, Error)]
+pub enum FetchError {
+    #[error("invalid server URL {url:?}: {reason}")]
+    BadUrl { url: String, reason: String },
+    #[error("could not set up the HTTP client")]
+    ClientSetup {
+        #[source]
+        source: reqwest::Error,
+    },
+    /// No usable response: connection refused or reset, timeout, body cut short.
+    #[error("GET {url} failed")]
+    Transport {
+        url: String,
+        #[source]
+        source: reqwest::Error,
+    },
+    /// The server answered 4xx or 5xx; `body` is the start of its JSON error body.
+    #[error("GET {url}: {status}: {body}")]
+    Http {
+        url: String,
+        status: reqwest::StatusCode,
+        body: String,
+    },
+    #[error("GET {url}: body has content hash {found}, the manifest says {expected}")]
+    HashMismatch {
+        url: String,
+        expected: String,
+        found: String,
+    },
+    #[error("GET {url}: body is not a valid heights tile")]
+    Decode {
+        url: String,
+        #[source]
+        source: DecodeError,
+    },
+    #[error("GET {url}: unusable manifest")]
+    Manifest {
+        url: String,
+        #[source]
+        source: ManifestError,
+    },
+    #[error("tile {id} is not in the {columns}x{rows} grid")]
+    NotInGrid { id: TileId, columns: u32, rows: u32 },
+    #[error("tile {id} has texture levels 0 to {}, not {level}", levels.saturating_sub(1))]
+    NoSuchTextureLevel { id: TileId, level: u32, levels: u32 },
+    /// The runtime shut down before the work finished (it never panics: decoding returns
+    /// errors for any input).
+    #[error("{url}: cancelled before it finished")]
+    Cancelled { url: String },
+}
+
+impl FetchError {
+    /// Whether the same request may succeed if tried again later: transport failures,
+    /// timeouts, and the statuses that say "not now" (408, 429, 5xx). Everything else is
+    /// a property of the request or the content and repeats on every attempt.
+    pub fn is_transient(&self) -> bool {
+        match self {
+            FetchError::Transport { .. } => true,
+            FetchError::Http { status, .. } => {
+                status.is_server_error()
+                    || *status == reqwest::StatusCode::REQUEST_TIMEOUT
+                    || *status == reqwest::StatusCode::TOO_MANY_REQUESTS
+            }
+            _ => false,
+        }
+    }
+}
+
+impl TileClient {
+    /// A client for the server at `base_url`, e.g. `http://127.0.0.1:8080`. Only plain
+    /// `http` is supported: this build has no TLS (put a TLS-terminating proxy in front).
+    pub fn new(base_url: &str) -> Result<TileClient, FetchError> {
+        let bad = |reason: &str| FetchError::BadUrl {
+            url: base_url.to_string(),
+            reason: reason.to_string(),
+        };
+        let url = reqwest::Url::parse(base_url).map_err(|e| bad(&e.to_string()))?;
+        match url.scheme() {
+            "http" => {}
+            "https" => {
+                return Err(bad(
+                    "https is not supported by this build (no TLS); use http",
+                ));
+            }
+            other => return Err(bad(&format!("scheme {other:?} is not http"))),
+        }
+        if url.host_str().is_none_or(str::is_empty) {
+            return Err(bad("no host"));
+        }
+        if url.query().is_some() || url.fragment().is_some() {
+            return Err(bad("a server URL takes no query or fragment"));
+        }
+        let http = reqwest::Client::builder()
+            .connect_timeout(CONNECT_TIMEOUT)
+            .timeout(REQUEST_TIMEOUT)
+            .user_agent(USER_AGENT)
+            .build()
+            .map_err(|source| FetchError::ClientSetup { source })?;
+        Ok(TileClient {
+            base: url.as_str().trim_end_matches('/').to_string(),
+            http,
+        })
+    }
+
+    /// The server's base URL, without a trailing slash.
+    pub fn base_url(&self) -> &str {
+        &self.base
+    }
+
+    /// The absolute URL of a route path from [`terrain_shared::routes`].
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    /// Fetches and validates the manifest.
+    pub async fn manifest(&self) -> Result<Manifest, FetchError> {
+        let url = self.url(routes::MANIFEST);
+        let body = self.get(&url).await?;
+        Manifest::from_json(&body).map_err(|source| FetchError::Manifest { url, source })
+    }
+
+    /// Fetches one tile's heights, verifies them and decodes them off the async threads.
+    pub async fn heights(&self, manifest: &Manifest, id: TileId) -> Result<Heights, FetchError> {
+        let body = self.heights_bytes(manifest, id).await?;
+        decode_heights(
+            self.url(&routes::heights(&manifest.content_version, id)),
+            body,
+        )
+        .await
+    }
+
+    /// Fetches one tile's encoded heights and verifies their hash, without decoding: for
+    /// callers that decode elsewhere or time the two steps apart.
+    pub async fn heights_bytes(
+        &self,
+        manifest: &Manifest,
+        id: TileId,
+    ) -> Result<Bytes, FetchError> {
+        let blob = &record(manifest, id)?.heights;
+        let url = self.url(&routes::heights(&manifest.content_version, id));
+        self.get_verified(url, blob).await
+    }
+
+    /// Fetches one texture level (0 = coarsest) of one tile and verifies its hash. Returns
+    /// the encoded image, in the manifest's `texture.format`.
+    pub async fn texture(
+        &self,
+        manifest: &Manifest,
+        id: TileId,
+        level: u32,
+    ) -> Result<Bytes, FetchError> {
+        let tile = record(manifest, id)?;
+        let Some(blob) = tile.texture.get(level as usize) else {
+            return Err(FetchError::NoSuchTextureLevel {
+                id,
+                level,
+                levels: tile.texture.len() as u32,
+            });
+        };
+        let url = self.url(&routes::texture(&manifest.content_version, id, level));
+        self.get_verified(url, blob).await
+    }
+
+    async fn get_verified(&self, url: String, blob: &Blob) -> Result<Bytes, FetchError> {
+        let body = self.get(&url).await?;
+        let found = content_hash(&body);
+        if found != blob.hash {
+            return Err(FetchError::HashMismatch {
+                url,
+                expected: blob.hash.clone(),
+                found,
+            });
+        }
+        Ok(body)
+    }
+
+    /// One GET; a 4xx/5xx becomes [`FetchError::Http`] carrying the server's error body.
+    #[tracing::instrument(level = "debug", skip(self), fields(status, bytes, ms))]
+    async fn get(&self, url: &str) -> Result<Bytes, FetchError> {
+        let start = Instant::now();
+        let transport = |source| FetchError::Transport {
+            url: url.to_string(),
+            source,
+        };
+        let response = self.http.get(url).send().await.map_err(transport)?;
+        let status = response.status();
+        let span = tracing::Span::current();
+        span.record("status", status.as_u16());
+        if status.is_client_error() || status.is_server_error() {
+            // The error body is best effort: the status alone already says what happened.
+            let body = response.bytes().await.unwrap_or_default();
+            let body = error_body_text(&body);
+            tracing::debug!(%status, body, "error response");
+            return Err(FetchError::Http {
+                url: url.to_string(),
+                status,
+                body,
+            });
+        }
+        let body = response.bytes().await.map_err(transport)?;
+        span.record("bytes", body.len());
+        span.record("ms", start.elapsed().as_millis() as u64);
+        tracing::debug!("fetched");
+        Ok(body)
+    }
+}
+
+/// Decodes heights fetched from `url` on tokio's blocking pool: a large tile takes
+/// milliseconds of CPU, which would stall every other request sharing the async thread.
+pub async fn decode_heights(url: String, body: Bytes) -> Result<Heights, FetchError> {
+    match tokio::task::spawn_blocking(move || Heights::decode(&body)).await {
+        Ok(decoded) => decoded.map_err(|source| FetchError::Decode { url, source }),
+        Err(join) => match join.try_into_panic() {
+            Ok(panic) => std::panic::resume_unwind(panic),
+            Err(_) => Err(FetchError::Cancelled { url }),
+        },
+    }
+}
+
+fn record(manifest: &Manifest, id: TileId) -> Result<&terrain_shared::TileRecord, FetchError> {
+    manifest.tile(id).ok_or(FetchError::NotInGrid {
+        id,
+        columns: manifest.grid.columns,
+        rows: manifest.grid.rows,
+    })
+}
+
+/// The start of an error body as one line of text, cut at a character boundary.
+fn error_body_text(body: &[u8]) -> String {
+    let text = String::from_utf8_lossy(body);
+    let text = text.trim();
+    if text.is_empty() {
+        return "(empty body)".to_string();
+    }
+    if text.len() <= MAX_ERROR_BODY {
+        return text.replace(['\r', '\n'], " ");
+    }
+    let mut end = MAX_ERROR_BODY;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!("{}…", text[..end].replace(['\r', '\n'], " "))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check_bad_url(url: &str, reason_contains: &str) {
+        match TileClient::new(url) {
+            Err(FetchError::BadUrl { reason, .. }) => {
+                assert!(reason.contains(reason_contains), "{url}: reason {reason:?}");
+            }
+            other => panic!("{url}: expected BadUrl, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn server_urls_without_http_or_host_are_refused() {
+        check_bad_url("127.0.0.1:8080", "");
+        check_bad_url("not a url", "");
+        check_bad_url("https://example.org", "https");
+        check_bad_url("ftp://example.org", "scheme");
+        check_bad_url("http://example.org/?a=1", "query");
+    }
+
+    #[test]
+    fn route_paths_are_appended_to_the_base_url_and_its_prefix() {
+        let client = TileClient::new("http://127.0.0.1:8080/").expect("valid url");
+        assert_eq!(
+            client.url(routes::MANIFEST),
+            "http://127.0.0.1:8080/v1/manifest.json"
+        );
+        let client = TileClient::new("http://host/terrain/").expect("valid url");
+        assert_eq!(client.base_url(), "http://host/terrain");
+        assert_eq!(
+            client.url(&routes::heights("abc", TileId::new(1, 2))),
+            "http://host/terrain/v1/abc/tiles/1/2/heights"
+        );
+    }
+
+    #[test]
+    fn error_messages_name_the_request_status_and_server_reason() {
+        let error = FetchError::Http {
+            url: "http://h/v1/x/tiles/9/9/heights".into(),
+            status: reqwest::StatusCode::NOT_FOUND,
+            body: error_body_text(br#"{"error":"tile 9/9 is outside the 2x2 grid","status":404}"#),
+        };
+        assert_eq!(
+            error.to_string(),
+            r#"GET http://h/v1/x/tiles/9/9/heights: 404 Not Found: {"error":"tile 9/9 is outside the 2x2 grid","status":404}"#
+        );
+        assert!(!error.is_transient());
+        let overloaded = FetchError::Http {
+            url: "u".into(),
+            status: reqwest::StatusCode::SERVICE_UNAVAILABLE,
+            body: String::new(),
+        };
+        assert!(overloaded.is_transient());
+    }
+
+    #[test]
+    fn long_or_empty_error_bodies_are_shortened_or_named() {
+        assert_eq!(error_body_text(b"  "), "(empty body)");
+        let long = "é".repeat(MAX_ERROR_BODY);
+        let text = error_body_text(long.as_bytes());
+        assert!(
+            text.len() <= MAX_ERROR_BODY + '…'.len_utf8(),
+            "{} bytes",
+            text.len()
+        );
+        assert!(text.ends_with('…'));
+    }
+}

@@ -1,0 +1,48 @@
+//! `terrain-client`: talk to a terrain tile server. Thin on purpose: argument parsing,
+//! logging set-up and the exit code; the library does the work.
+
+use clap::{Parser, Subcommand};
+use std::io::IsTerminal;
+use std::process::ExitCode;
+
+/// Fetch and inspect terrain tiles from a terrain-server.
+#[derive(Debug, Parser)]
+#[command(name = "terrain-client", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Fetch every tile (heights and all texture levels), verify and decode it, and write
+    /// overview.png and tiles.csv.
+    Fetch(terrain_client::cli::FetchArgs),
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        // Colour codes only where a person reads them, not in files or CI logs.
+        .with_ansi(std::io::stderr().is_terminal())
+        .init();
+    let result: anyhow::Result<()> = match cli.command {
+        Command::Fetch(args) => terrain_client::cli::run_fetch(&args)
+            .await
+            .map(|summary| println!("{summary}"))
+            .map_err(anyhow::Error::from),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
