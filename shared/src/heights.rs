@@ -346,7 +346,7 @@ impl Header {
         if header.width > MAX_SIDE || header.height > MAX_SIDE {
             return Err(DecodeError::BadHeader("tile side above the decoder's limit"));
         }
-        if !(header.quantum_m.is_finite() && header.quantum_m > 0.0) || !header.offset_m.is_finite() {
+        if !(header.quantum_m.is_finite() && header.quantum_m > 0.0 && header.offset_m.is_finite()) {
             return Err(DecodeError::BadHeader("quantum or offset is not a usable number"));
         }
         if header.min > header.max {

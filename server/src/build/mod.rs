@@ -268,6 +268,14 @@ pub struct BuildReport {
     pub elapsed: Duration,
 }
 
+/// One tile's output, made in parallel and written in order.
+struct MadeTile {
+    record: TileRecord,
+    heights: Vec<u8>,
+    /// Encoded texture levels, coarsest first.
+    texture_levels: Vec<Vec<u8>>,
+}
+
 /// Progress of a build, for a bar: tiles done out of the total.
 pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
 
@@ -279,10 +287,10 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     if !(3..=4097).contains(&n) || !(n - 1).is_power_of_two() {
         return Err(BuildError::BadTileSize(n));
     }
-    if let Some(size) = options.texture_size {
-        if !size.is_power_of_two() || size > 4096 {
-            return Err(BuildError::BadOption(format!("--texture-size {size} is not a power of two up to 4096")));
-        }
+    if let Some(size) = options.texture_size
+        && (!size.is_power_of_two() || size > 4096)
+    {
+        return Err(BuildError::BadOption(format!("--texture-size {size} is not a power of two up to 4096")));
     }
     let mut warnings = Vec::new();
     let dataset = input::DatasetInfo::beside(&options.heights)?;
@@ -360,7 +368,7 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     let done = AtomicUsize::new(0);
     let mut records = Vec::with_capacity(grid.len());
     for row in 0..grid.rows {
-        let made: Vec<Result<(TileRecord, Vec<u8>, Vec<Vec<u8>>), BuildError>> = (0..grid.columns)
+        let made: Vec<Result<MadeTile, BuildError>> = (0..grid.columns)
             .into_par_iter()
             .map(|column| {
                 if cancel.load(Ordering::Relaxed) {
@@ -394,13 +402,13 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
                     texture: Vec::new(),
                 };
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1, grid.len());
-                Ok((record, encoded, levels))
+                Ok(MadeTile { record, heights: encoded, texture_levels: levels })
             })
             .collect();
         for result in made {
-            let (mut record, encoded, levels) = result?;
-            record.heights = writer.add_heights(&encoded)?;
-            for level in &levels {
+            let MadeTile { mut record, heights, texture_levels } = result?;
+            record.heights = writer.add_heights(&heights)?;
+            for level in &texture_levels {
                 record.texture.push(writer.add_texture(level)?);
             }
             records.push(record);
