@@ -1,0 +1,126 @@
+//! `terrain-server serve`: arguments, the tokio runtime, the one stdout line, the signals.
+//!
+//! Standard output carries exactly one line, `listening on http://ADDR`, flushed at once:
+//! scripts and the benchmark start the server on port 0 and read the port from it.
+//! Everything else (logs) goes to standard error.
+
+use super::{AppState, ServeOptions, serve, shutdown_signal};
+use crate::db::{TileDb, Verify};
+use anyhow::Context;
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Where the server listens unless told otherwise: loopback only, so exposing it is a
+/// deliberate `--addr 0.0.0.0:8080`.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
+
+/// Arguments of `terrain-server serve`.
+#[derive(clap::Args, Debug)]
+pub struct ServeArgs {
+    /// Tile database directory, as written by `terrain-server build`.
+    pub db: PathBuf,
+    /// Address to listen on. Port 0 picks a free port; the line on stdout names it.
+    #[arg(long, default_value = DEFAULT_ADDR)]
+    pub addr: SocketAddr,
+    /// Skip hashing every blob at start-up and only check pack sizes (faster start on large
+    /// databases, but a damaged blob would be served).
+    #[arg(long)]
+    pub no_verify: bool,
+    /// Seconds a client has to send its request head; also the keep-alive idle timeout.
+    #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_HEADER_READ_TIMEOUT.as_secs_f64(), value_parser = seconds)]
+    pub header_read_timeout: f64,
+    /// Seconds from routing a request to its response head before it is answered 503.
+    #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_REQUEST_TIMEOUT.as_secs_f64(), value_parser = seconds)]
+    pub request_timeout: f64,
+    /// Requests handled at once; more are refused with 503 instead of queued.
+    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONCURRENT_REQUESTS)]
+    pub max_concurrent_requests: usize,
+    /// Connections open at once; more wait in the kernel's accept backlog.
+    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONNECTIONS)]
+    pub max_connections: usize,
+    /// Seconds shutdown waits for responses in flight after SIGINT or SIGTERM.
+    #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_SHUTDOWN_DEADLINE.as_secs_f64(), value_parser = seconds)]
+    pub shutdown_deadline: f64,
+    /// Runtime worker threads; 0 means one per CPU core.
+    #[arg(long, default_value_t = 0)]
+    pub worker_threads: usize,
+}
+
+impl ServeArgs {
+    pub fn options(&self) -> ServeOptions {
+        ServeOptions {
+            header_read_timeout: Duration::from_secs_f64(self.header_read_timeout),
+            request_timeout: Duration::from_secs_f64(self.request_timeout),
+            max_concurrent_requests: self.max_concurrent_requests,
+            max_connections: self.max_connections,
+            shutdown_deadline: Duration::from_secs_f64(self.shutdown_deadline),
+        }
+    }
+}
+
+/// Opens the database, binds, prints the address and serves until SIGINT or SIGTERM.
+pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
+    let verify = if args.no_verify {
+        Verify::SizesOnly
+    } else {
+        Verify::Hashes
+    };
+    let started = std::time::Instant::now();
+    let db = TileDb::open(&args.db, verify)
+        .with_context(|| format!("cannot serve {}", args.db.display()))?;
+    let manifest = db.manifest();
+    tracing::info!(
+        db = %args.db.display(),
+        dataset = %manifest.dataset,
+        content_version = %manifest.content_version,
+        tiles = manifest.tiles.len(),
+        ?verify,
+        elapsed_ms = started.elapsed().as_millis() as u64,
+        "database opened"
+    );
+    let state = Arc::new(AppState::new(db));
+    let options = args.options();
+
+    let mut runtime = tokio::runtime::Builder::new_multi_thread();
+    runtime.enable_all();
+    if args.worker_threads > 0 {
+        runtime.worker_threads(args.worker_threads);
+    }
+    let runtime = runtime.build().context("cannot start the async runtime")?;
+    runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(args.addr)
+            .await
+            .with_context(|| format!("cannot listen on {}", args.addr))?;
+        let local = listener
+            .local_addr()
+            .context("cannot read the bound address")?;
+        let mut stdout = std::io::stdout().lock();
+        writeln!(stdout, "listening on http://{local}")
+            .and_then(|()| stdout.flush())
+            .context("cannot write to stdout")?;
+        drop(stdout);
+        tracing::info!(addr = %local, ?options, "serving");
+        serve(listener, state, options, shutdown_signal())
+            .await
+            .context("server failed")
+    })?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+/// A non-negative, finite number of seconds.
+fn seconds(text: &str) -> Result<f64, String> {
+    let value: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number of seconds"))?;
+    if value.is_finite() && value >= 0.0 && Duration::try_from_secs_f64(value).is_ok() {
+        Ok(value)
+    } else {
+        Err(format!(
+            "{text:?} is not a non-negative, finite number of seconds"
+        ))
+    }
+}

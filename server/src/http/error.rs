@@ -1,0 +1,105 @@
+//! Every way a request can fail, and the one place that turns a failure into a response.
+//!
+//! Handlers and middleware return [`HttpError`]; its [`IntoResponse`] picks the status and
+//! writes the same short JSON body for all of them, `{"error":"...","status":404}`, so a
+//! client (or a person with curl) always gets a machine-readable reason and never axum's
+//! plain-text rejections.
+
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use std::time::Duration;
+use terrain_shared::TileId;
+use terrain_shared::routes::MANIFEST;
+use thiserror::Error;
+
+/// Why a request was not answered with the resource it asked for.
+#[derive(Debug, Error)]
+pub enum HttpError {
+    /// A path segment that must be a tile coordinate or a texture level is not one.
+    #[error(
+        "malformed {segment} {value:?}: expected a decimal integer from 0 to 4294967295 without sign or leading zeros"
+    )]
+    MalformedNumber {
+        segment: &'static str,
+        value: String,
+    },
+    /// The path could not be split into its parameters (e.g. invalid percent-encoding).
+    #[error("malformed path: {reason}")]
+    MalformedPath { reason: String },
+    #[error("tile {id} is outside the {columns}x{rows} grid")]
+    TileOutsideGrid { id: TileId, columns: u32, rows: u32 },
+    #[error("tile {id} has texture levels 0 to {last}, not {level}")]
+    NoSuchTextureLevel { id: TileId, level: u32, last: u32 },
+    /// The URL names a database this server does not serve (usually the previous build):
+    /// the client should fetch the manifest again.
+    #[error(
+        "content version {requested:?} is not served; the current one is {current:?} (see {MANIFEST})"
+    )]
+    UnknownContentVersion { requested: String, current: String },
+    #[error("no such route")]
+    NoRoute,
+    #[error("method not allowed: this API only answers GET and HEAD")]
+    MethodNotAllowed,
+    /// Load shedding: the concurrency limit is reached, and waiting in a queue would only
+    /// add latency for every client, so the request is refused at once.
+    #[error("the server is at its limit of concurrent requests; retry shortly")]
+    Overloaded,
+    #[error("the request took longer than {0:?}")]
+    Timeout(Duration),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl HttpError {
+    pub fn status(&self) -> StatusCode {
+        match self {
+            HttpError::MalformedNumber { .. } | HttpError::MalformedPath { .. } => {
+                StatusCode::BAD_REQUEST
+            }
+            HttpError::TileOutsideGrid { .. }
+            | HttpError::NoSuchTextureLevel { .. }
+            | HttpError::UnknownContentVersion { .. }
+            | HttpError::NoRoute => StatusCode::NOT_FOUND,
+            HttpError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            // 503 rather than 408 for a timeout: 408 says the *client* was too slow to send
+            // its request, while here the server was too slow to answer it.
+            HttpError::Overloaded | HttpError::Timeout(_) => StatusCode::SERVICE_UNAVAILABLE,
+            HttpError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+}
+
+#[derive(serde::Serialize)]
+struct ErrorBody<'a> {
+    error: &'a str,
+    status: u16,
+}
+
+impl IntoResponse for HttpError {
+    fn into_response(self) -> Response {
+        let status = self.status();
+        let message = self.to_string();
+        // Serialising two plain fields cannot fail; the fallback keeps the body JSON anyway.
+        let body = serde_json::to_vec(&ErrorBody {
+            error: &message,
+            status: status.as_u16(),
+        })
+        .unwrap_or_else(|_| format!("{{\"status\":{}}}", status.as_u16()).into_bytes());
+        let mut response = (status, body).into_response();
+        let headers = response.headers_mut();
+        headers.insert(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        );
+        // Errors describe this server's state at this moment (a stale version, overload),
+        // not a resource: no cache should keep them.
+        headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+        if matches!(self, HttpError::Overloaded | HttpError::Timeout(_)) {
+            headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+        }
+        if matches!(self, HttpError::MethodNotAllowed) {
+            headers.insert(header::ALLOW, HeaderValue::from_static("GET, HEAD"));
+        }
+        response
+    }
+}

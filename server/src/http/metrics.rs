@@ -1,0 +1,210 @@
+//! Request metrics in the Prometheus/OpenMetrics text format, and the per-request span.
+//!
+//! `observe` is the outermost middleware, so it sees every answer, load-shedding 503s
+//! and 404s included. It labels by route *template* (axum's `MatchedPath`, e.g.
+//! `/v1/{content_version}/tiles/{x}/{y}/heights`), never by the raw URL: one time series
+//! per route and status, however many tiles or hostile paths there are.
+//!
+//! What is counted:
+//! - `http_requests_total{route,status}`: answers, counted when the response head is ready;
+//! - `http_request_duration_seconds{route}`: time from routing to response head;
+//! - `http_response_body_bytes_total{route,status}`: body bytes handed to the connection
+//!   (after gzip, so the manifest counts what went on the wire);
+//! - `http_requests_in_flight`: requests between routing and the end of their body.
+
+use super::AppState;
+use axum::body::{Body, HttpBody};
+use axum::extract::{MatchedPath, Request, State};
+use axum::middleware::Next;
+use axum::response::Response;
+use bytes::Bytes;
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::Instant;
+use tracing::Instrument;
+
+/// Content type of [`Metrics::encode`]'s output.
+pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+/// Route label of requests that matched no route (the 404 fallback).
+pub const UNMATCHED_ROUTE: &str = "unmatched";
+
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RouteLabels {
+    route: String,
+}
+
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RouteStatusLabels {
+    route: String,
+    status: u16,
+}
+
+/// The server's counters, shared by every request through [`AppState`].
+#[derive(Debug)]
+pub struct Metrics {
+    registry: Registry,
+    requests: Family<RouteStatusLabels, Counter>,
+    body_bytes: Family<RouteStatusLabels, Counter>,
+    latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
+    in_flight: Gauge,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Metrics {
+        let requests = Family::<RouteStatusLabels, Counter>::default();
+        let body_bytes = Family::<RouteStatusLabels, Counter>::default();
+        let latency = Family::<RouteLabels, Histogram, fn() -> Histogram>::new_with_constructor(
+            latency_histogram,
+        );
+        let in_flight = Gauge::default();
+        let mut registry = Registry::default();
+        registry.register(
+            "http_requests",
+            "HTTP requests answered, by route template and status",
+            requests.clone(),
+        );
+        registry.register(
+            "http_response_body_bytes",
+            "Response body bytes sent, by route template and status",
+            body_bytes.clone(),
+        );
+        registry.register(
+            "http_request_duration_seconds",
+            "Time from routing to response head, by route template",
+            latency.clone(),
+        );
+        registry.register(
+            "http_requests_in_flight",
+            "Requests being answered, bodies included",
+            in_flight.clone(),
+        );
+        Metrics {
+            registry,
+            requests,
+            body_bytes,
+            latency,
+            in_flight,
+        }
+    }
+
+    /// The whole registry in the OpenMetrics text format.
+    pub fn encode(&self) -> Result<String, std::fmt::Error> {
+        let mut text = String::new();
+        prometheus_client::encoding::text::encode(&mut text, &self.registry)?;
+        Ok(text)
+    }
+}
+
+/// Buckets from 50 us (a tile answered from the map) doubling to about 1.6 s (a request
+/// stuck behind an overloaded runtime): 16 buckets, one decade every ~3.3 of them.
+fn latency_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(50e-6, 2.0, 16))
+}
+
+/// Middleware: one span per request, the counters above, and one log line per answer.
+pub(super) async fn observe(
+    State(state): State<Arc<AppState>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let started = Instant::now();
+    let route = match request.extensions().get::<MatchedPath>() {
+        Some(path) => path.as_str().to_owned(),
+        None => UNMATCHED_ROUTE.to_owned(),
+    };
+    let method = request.method().clone();
+    let span = tracing::debug_span!("request", %method, %route);
+    let metrics = &state.metrics;
+    metrics.in_flight.inc();
+    let in_flight = InFlight(metrics.in_flight.clone());
+
+    let response = next.run(request).instrument(span.clone()).await;
+
+    let latency = started.elapsed();
+    let status = response.status();
+    let labels = RouteStatusLabels {
+        route,
+        status: status.as_u16(),
+    };
+    metrics.requests.get_or_create(&labels).inc();
+    let bytes = metrics.body_bytes.get_or_create_owned(&labels);
+    metrics
+        .latency
+        .get_or_create(&RouteLabels {
+            route: labels.route,
+        })
+        .observe(latency.as_secs_f64());
+
+    let _entered = span.enter();
+    let latency_us = latency.as_micros() as u64;
+    if status.is_server_error() {
+        tracing::warn!(status = status.as_u16(), latency_us, "answered");
+    } else {
+        tracing::debug!(status = status.as_u16(), latency_us, "answered");
+    }
+    response.map(|body| {
+        Body::new(CountedBody {
+            inner: body,
+            bytes,
+            _in_flight: in_flight,
+        })
+    })
+}
+
+/// Decrements the in-flight gauge when the response body is finished or dropped.
+#[derive(Debug)]
+struct InFlight(Gauge);
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        self.0.dec();
+    }
+}
+
+/// A response body that counts the bytes the connection takes from it.
+#[derive(Debug)]
+struct CountedBody {
+    inner: Body,
+    bytes: Counter,
+    _in_flight: InFlight,
+}
+
+impl HttpBody for CountedBody {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<Bytes>, axum::Error>>> {
+        // `Body` is `Unpin` (it boxes its inner body), so no pin projection is needed.
+        let polled = Pin::new(&mut self.inner).poll_frame(cx);
+        if let Poll::Ready(Some(Ok(frame))) = &polled
+            && let Some(data) = frame.data_ref()
+        {
+            self.bytes.inc_by(data.len() as u64);
+        }
+        polled
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
+}

@@ -1,0 +1,196 @@
+//! Serves an opened [`TileDb`] over HTTP: the versioned tile API, health and metrics.
+//!
+//! - [`routes`]: the handlers, entity tags and caching headers;
+//! - [`error`]: every failure and its one JSON response;
+//! - [`metrics`]: counters by route template and the per-request span;
+//! - [`serve`](mod@serve): the hardened accept loop and graceful shutdown;
+//! - [`cli`]: `terrain-server serve`, the runtime and the signal handling.
+//!
+//! The layers, outermost first, and why in that order:
+//!
+//! 1. metrics and tracing, so every answer is counted, 503s from shedding included;
+//! 2. CORS, so error answers carry the CORS headers too and browsers can read them;
+//! 3. ETag weakening, then gzip (for JSON only): gzip makes a different representation,
+//!    which must not share the identity body's *strong* tag (RFC 9110 section 8.8.1; nginx
+//!    does the same);
+//! 4. only on the tile API: load shedding, the concurrency limit and the request timeout.
+//!    `/healthz` and `/metrics` stay outside, so an overloaded server can still be watched.
+//!
+//! **Invariant:** nothing from a URL is used as a file path; every lookup goes through
+//! [`TileDb`], by parsed tile id and level.
+
+pub mod cli;
+pub mod error;
+#[cfg(feature = "test-hooks")]
+#[doc(hidden)]
+pub mod hooks;
+pub mod metrics;
+pub mod routes;
+pub mod serve;
+
+pub use cli::{ServeArgs, run_cli};
+pub use error::HttpError;
+pub use metrics::Metrics;
+pub use serve::{ServeOptions, serve, shutdown_signal};
+
+use crate::db::TileDb;
+use axum::Router;
+use axum::error_handling::HandleErrorLayer;
+use axum::http::{Extensions, HeaderMap, HeaderValue, Method, StatusCode, Version, header};
+use axum::response::Response;
+use axum::routing::get;
+use std::sync::Arc;
+use terrain_shared::TileId;
+use terrain_shared::routes::{HEALTHZ, MANIFEST, METRICS};
+use tower::ServiceBuilder;
+use tower_http::compression::CompressionLayer;
+use tower_http::compression::predicate::{Predicate, SizeAbove};
+use tower_http::cors::{Any, CorsLayer};
+
+/// Everything a request may need, shared by all of them.
+#[derive(Debug)]
+pub struct AppState {
+    pub db: TileDb,
+    pub metrics: Metrics,
+}
+
+impl AppState {
+    pub fn new(db: TileDb) -> AppState {
+        AppState {
+            db,
+            metrics: Metrics::new(),
+        }
+    }
+
+    /// The content version in a tile URL must be the one served: an old one names tiles
+    /// this server no longer has, whatever their coordinates.
+    fn check_content_version(&self, requested: &str) -> Result<(), HttpError> {
+        let current = &self.db.manifest().content_version;
+        if requested == current {
+            return Ok(());
+        }
+        Err(HttpError::UnknownContentVersion {
+            requested: routes::truncated(requested),
+            current: current.clone(),
+        })
+    }
+
+    fn check_in_grid(&self, id: TileId) -> Result<(), HttpError> {
+        match self.db.manifest().tile(id) {
+            Some(_) => Ok(()),
+            None => Err(self.outside_grid(id)),
+        }
+    }
+
+    fn outside_grid(&self, id: TileId) -> HttpError {
+        let grid = self.db.manifest().grid;
+        HttpError::TileOutsideGrid {
+            id,
+            columns: grid.columns,
+            rows: grid.rows,
+        }
+    }
+}
+
+/// The application with the default [`ServeOptions`] limits.
+pub fn app(state: Arc<AppState>) -> Router {
+    app_with(state, &ServeOptions::default())
+}
+
+/// The application: routes and every layer, with the per-request limits of `options`.
+pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
+    let tile_api = Router::new()
+        .route(MANIFEST, get(routes::manifest))
+        .route(&routes::heights_template(), get(routes::heights))
+        .route(&routes::texture_template(), get(routes::texture));
+    #[cfg(feature = "test-hooks")]
+    let tile_api = tile_api.route(hooks::SLEEP, get(hooks::sleep));
+
+    let request_timeout = options.request_timeout;
+    // `Router::layer` wraps each route separately; the *global* limit layer shares one
+    // semaphore between them, so the limit is per server, not per route.
+    let tile_api = tile_api.layer(
+        ServiceBuilder::new()
+            .layer(HandleErrorLayer::new(
+                move |error: tower::BoxError| async move { limit_error(&error, request_timeout) },
+            ))
+            .layer(tower::load_shed::LoadShedLayer::new())
+            .layer(tower::limit::GlobalConcurrencyLimitLayer::new(
+                options.max_concurrent_requests.max(1),
+            ))
+            .layer(tower::timeout::TimeoutLayer::new(request_timeout)),
+    );
+
+    let operations = Router::new()
+        .route(HEALTHZ, get(routes::healthz))
+        .route(METRICS, get(routes::metrics));
+
+    tile_api
+        .merge(operations)
+        .fallback(routes::no_route)
+        .method_not_allowed_fallback(routes::method_not_allowed)
+        .layer(
+            ServiceBuilder::new()
+                .layer(axum::middleware::from_fn_with_state(
+                    Arc::clone(&state),
+                    metrics::observe,
+                ))
+                .layer(cors())
+                .layer(axum::middleware::map_response(weaken_etag_when_encoded))
+                .layer(CompressionLayer::new().compress_when(json_only())),
+        )
+        .with_state(state)
+}
+
+fn limit_error(error: &tower::BoxError, request_timeout: std::time::Duration) -> HttpError {
+    if error.is::<tower::load_shed::error::Overloaded>() {
+        HttpError::Overloaded
+    } else if error.is::<tower::timeout::error::Elapsed>() {
+        HttpError::Timeout(request_timeout)
+    } else {
+        HttpError::Internal(error.to_string())
+    }
+}
+
+/// Any origin may read tiles (they are public), with GET and HEAD only. `ETag` is exposed
+/// so a web client can revalidate the manifest itself, and `If-None-Match` allowed for it.
+fn cors() -> CorsLayer {
+    CorsLayer::new()
+        .allow_origin(Any)
+        .allow_methods([Method::GET, Method::HEAD])
+        .allow_headers([header::IF_NONE_MATCH])
+        .expose_headers([header::ETAG])
+        .max_age(std::time::Duration::from_secs(24 * 60 * 60))
+}
+
+/// Only JSON (the manifest, errors) is worth compressing: heights are zstd inside and
+/// textures are JPEG or PNG, so gzip would spend CPU to make them larger. Below 1 KiB
+/// (a short error body) the gzip framing outweighs the gain.
+fn json_only() -> impl Predicate {
+    const MIN_COMPRESSED_BYTES: u64 = 1024;
+    let is_json = |_: StatusCode, _: Version, headers: &HeaderMap, _: &Extensions| {
+        headers
+            .get(header::CONTENT_TYPE)
+            .and_then(|value| value.to_str().ok())
+            .is_some_and(|value| value.starts_with(routes::JSON_CONTENT_TYPE))
+    };
+    SizeAbove::new(MIN_COMPRESSED_BYTES).and(is_json)
+}
+
+/// A gzip body is a different representation from the stored bytes, so its entity tag
+/// is made weak (`W/"hash"`); `If-None-Match` compares weakly, so it still revalidates.
+async fn weaken_etag_when_encoded<B>(mut response: Response<B>) -> Response<B> {
+    if !response.headers().contains_key(header::CONTENT_ENCODING) {
+        return response;
+    }
+    let weak = response
+        .headers()
+        .get(header::ETAG)
+        .and_then(|tag| tag.to_str().ok())
+        .filter(|tag| tag.starts_with('"'))
+        .and_then(|tag| HeaderValue::from_str(&format!("W/{tag}")).ok());
+    if let Some(weak) = weak {
+        response.headers_mut().insert(header::ETAG, weak);
+    }
+    response
+}

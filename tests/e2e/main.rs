@@ -1,0 +1,5 @@
+//! End-to-end tests: one binary, linked once.
+
+mod http;
+mod build;
+mod round_trip;
