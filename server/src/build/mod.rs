@@ -52,7 +52,7 @@ pub struct BuildArgs {
     /// How the texture image sits on the raster (default: dataset.json's, else edge-aligned).
     #[arg(long, value_enum)]
     pub texture_registration: Option<Registration>,
-    /// Output directory. Default: db/<dataset name>.
+    /// Output directory. Default: db/NAME, NAME being the dataset name.
     #[arg(long, short)]
     pub out: Option<PathBuf>,
     /// Replace an existing database at the output path.
