@@ -17,5 +17,6 @@
 
 pub mod cli;
 pub mod fetch;
+pub mod fetcher;
 pub mod overview;
 pub mod report;

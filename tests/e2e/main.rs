@@ -3,3 +3,4 @@
 mod http;
 mod build;
 mod round_trip;
+mod fetcher;

@@ -3,3 +3,4 @@
 pub mod server;
 pub mod synthetic;
 pub mod data;
+pub mod proxy;

@@ -1,0 +1,625 @@
+//! The [`Fetcher`] over real sockets: a real server with the jacksboro database, reached
+//! directly or through a [`FaultyProxy`] that corrupts, truncates, resets and slows down
+//! responses; a server stopped and started again on the same port. Every delivered tile is
+//! compared with the same tile fetched directly from the server.
+
+use std::collections::{HashMap, HashSet};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use terrain_client::fetch::{FetchError, TileClient};
+use terrain_client::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
+use terrain_server::build::{BuildOptions, build};
+use terrain_server::db::{TileDb, Verify};
+use terrain_server::http::{AppState, ServeOptions, serve};
+use terrain_shared::{Heights, Manifest, TileId};
+use terrain_tests::data::jacksboro;
+use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
+use terrain_tests::server::TestServer;
+use tokio::sync::oneshot;
+
+/// Smaller than the default tiles, so the 403x344 fixture makes a 7x6 grid: 42 tiles give
+/// the fault schedules many tiles to land on.
+const TILE_SIZE: u32 = 65;
+/// Backoff of these tests: short, so a test with retries still takes well under a second.
+const BACKOFF_BASE: Duration = Duration::from_millis(10);
+const BACKOFF_MAX: Duration = Duration::from_millis(200);
+/// No test should come near this; it turns a hang into a failure that shows the state.
+const IDLE_TIMEOUT: Duration = Duration::from_secs(20);
+
+#[test]
+fn through_a_proxy_that_corrupts_truncates_and_resets_every_tile_still_arrives_intact() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    // One response in two is faulted, the three faults in turn; each URL is faulted once at
+    // most, so every blob arrives on its second try at the latest.
+    let plan = FaultPlan::rotation(&[
+        Fault::Pass,
+        Fault::Corrupt,
+        Fault::Pass,
+        Fault::Truncate,
+        Fault::Pass,
+        Fault::Reset,
+    ])
+    .at_most_per_path(1);
+    let proxy = FaultyProxy::start(server.addr(), plan);
+    let runtime = runtime();
+    let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
+    let mut fetcher = fetcher(&runtime, proxy.base_url(), &db.manifest, quick_config());
+
+    let finest = db.manifest.texture.levels - 1;
+    for (priority, id) in db.ids().enumerate() {
+        fetcher.request(id, Want::Tile, priority as u64);
+        fetcher.request(id, Want::TextureLevel(finest), priority as u64);
+    }
+    let events = run_until_idle(&mut fetcher);
+
+    let delivered = reference.check_delivered(&events);
+    assert_eq!(delivered.tiles, db.ids().collect(), "every tile arrived");
+    assert_eq!(delivered.levels, db.ids().map(|id| (id, finest)).collect());
+    assert_eq!(delivered.failed, Vec::<TileId>::new());
+
+    let (stats, faults) = (fetcher.stats(), proxy.stats());
+    assert!(
+        faults.corrupted > 0 && faults.truncated > 0 && faults.reset > 0,
+        "{faults:?}"
+    );
+    // Each faulted response costs exactly one more try: corrupt bodies a refetch, cut or
+    // reset connections a retry.
+    assert_eq!(
+        stats.corrupt_refetches, faults.corrupted,
+        "{stats:?} {faults:?}"
+    );
+    assert_eq!(
+        stats.retries,
+        faults.truncated + faults.reset,
+        "{stats:?} {faults:?}"
+    );
+    assert_eq!(
+        stats.requests_started,
+        3 * db.manifest.tiles.len() as u64 + stats.retries + stats.corrupt_refetches
+    );
+    assert_eq!((stats.delivered, stats.failures), (2 * 42, 0));
+}
+
+#[test]
+fn a_tile_that_is_always_corrupt_is_reported_after_its_refetch_and_the_others_arrive() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    let bad = TileId::new(2, 1);
+    let plan = FaultPlan::rotation(&[Fault::Corrupt]).only_paths_containing("/tiles/2/1/heights");
+    let proxy = FaultyProxy::start(server.addr(), plan);
+    let runtime = runtime();
+    let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
+    let config = quick_config();
+    let mut fetcher = fetcher(&runtime, proxy.base_url(), &db.manifest, config.clone());
+
+    request_all_tiles(&mut fetcher, &db.manifest);
+    let events = run_until_idle(&mut fetcher);
+
+    let delivered = reference.check_delivered(&events);
+    let mut others: HashSet<TileId> = db.ids().collect();
+    others.remove(&bad);
+    assert_eq!(delivered.tiles, others);
+    assert_eq!(delivered.failed, [bad]);
+    let (error, attempts) = events
+        .iter()
+        .find_map(|event| match event {
+            FetchEvent::Failed {
+                error, attempts, ..
+            } => Some((error, *attempts)),
+            _ => None,
+        })
+        .expect("a failure");
+    assert_eq!(attempts, config.corrupt_attempts);
+    assert!(matches!(error, FetchError::HashMismatch { .. }), "{error}");
+    assert!(error.to_string().contains("/tiles/2/1/heights"), "{error}");
+    assert_eq!(proxy.stats().corrupted, u64::from(config.corrupt_attempts));
+    let stats = fetcher.stats();
+    assert_eq!(
+        (stats.corrupt_refetches, stats.retries),
+        (1, 0),
+        "{stats:?}"
+    );
+    assert_eq!((stats.delivered, stats.failures), (41, 1), "{stats:?}");
+}
+
+#[test]
+fn a_server_stopped_mid_fetch_and_started_again_on_the_same_port_gets_every_tile_delivered() {
+    let db = JacksboroDb::build();
+    let mut server = RestartableServer::start(&db.dir);
+    let runtime = runtime();
+    let reference = Reference::fetch(&runtime, &server.base_url(), &db.manifest);
+    // Enough tries that the backoff outlasts the outage: the caps 20, 40, ... 200 ms add
+    // up to about 4 s over 30 tries, and full jitter halves that on average.
+    let config = FetcherConfig {
+        concurrency: 2,
+        max_attempts: 30,
+        backoff_base: Duration::from_millis(20),
+        ..quick_config()
+    };
+    let mut fetcher = fetcher(&runtime, &server.base_url(), &db.manifest, config);
+    request_all_tiles(&mut fetcher, &db.manifest);
+
+    let mut events = Vec::new();
+    let deadline = Instant::now() + IDLE_TIMEOUT;
+    while events.len() < 5 {
+        events.extend(fetcher.poll());
+        assert!(Instant::now() < deadline, "no tiles before the stop");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    // Requests start only in `poll`, so everything not yet running meets a stopped server.
+    server.stop();
+    let outage = Instant::now() + Duration::from_millis(300);
+    while Instant::now() < outage {
+        events.extend(fetcher.poll());
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let during_outage = fetcher.stats();
+    assert!(during_outage.retries > 0, "{during_outage:?}");
+    server.restart();
+    events.extend(run_until_idle(&mut fetcher));
+
+    let delivered = reference.check_delivered(&events);
+    assert_eq!(delivered.failed, Vec::<TileId>::new());
+    assert_eq!(delivered.tiles, db.ids().collect());
+}
+
+#[test]
+fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    let runtime = runtime();
+    let current = db.manifest.content_version.clone();
+    let levels = db.manifest.texture.levels;
+
+    let mut stale = db.manifest.clone();
+    stale.content_version = "0123456789abcdef".into();
+    // A manifest promising one texture level more than the server has.
+    let mut extra_level = db.manifest.clone();
+    let finest = extra_level.tiles[0].texture[levels as usize - 1].clone();
+    extra_level.tiles[0].texture.push(finest);
+
+    struct Case<'a> {
+        manifest: &'a Manifest,
+        id: TileId,
+        want: Want,
+        /// Parts the error's message must contain.
+        message: &'a [&'a str],
+        /// HTTP requests the failure costs: 1 when the server refused, 0 when the manifest did.
+        requests: u64,
+    }
+    let cases = [
+        Case {
+            manifest: &stale,
+            id: TileId::new(0, 0),
+            want: Want::Tile,
+            message: &["404", "not served", &current],
+            requests: 1,
+        },
+        Case {
+            manifest: &stale,
+            id: TileId::new(1, 0),
+            want: Want::TextureLevel(1),
+            message: &["404", "not served", &current],
+            requests: 1,
+        },
+        Case {
+            manifest: &extra_level,
+            id: TileId::new(0, 0),
+            want: Want::TextureLevel(levels),
+            message: &["404", &format!("not {levels}")],
+            requests: 1,
+        },
+        Case {
+            manifest: &db.manifest,
+            id: TileId::new(99, 0),
+            want: Want::Tile,
+            message: &["not in the 7x6 grid"],
+            requests: 0,
+        },
+        Case {
+            manifest: &db.manifest,
+            id: TileId::new(0, 0),
+            want: Want::TextureLevel(levels),
+            message: &["texture levels 0 to"],
+            requests: 0,
+        },
+    ];
+    for case in cases {
+        let mut fetcher = fetcher(&runtime, server.base_url(), case.manifest, quick_config());
+        fetcher.request(case.id, case.want, 0);
+        let events = run_until_idle(&mut fetcher);
+        let [
+            FetchEvent::Failed {
+                id,
+                want,
+                error,
+                attempts,
+            },
+        ] = events.as_slice()
+        else {
+            panic!(
+                "{} {:?}: expected one failure, got {events:?}",
+                case.id, case.want
+            );
+        };
+        let message = error.to_string();
+        assert_eq!(
+            (*id, *want, *attempts),
+            (case.id, case.want, 1),
+            "{message}"
+        );
+        for part in case.message {
+            assert!(message.contains(part), "{message:?} lacks {part:?}");
+        }
+        let stats = fetcher.stats();
+        assert_eq!(
+            (stats.requests_started, stats.retries, stats.failures),
+            (case.requests, 0, 1),
+            "{message}"
+        );
+    }
+}
+
+#[test]
+fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_empties() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    // About 100 ms a tile on the link, so the whole grid would take about 4 s.
+    let tile_bytes: u64 = db
+        .manifest
+        .tiles
+        .iter()
+        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .sum();
+    let per_tile = tile_bytes / db.manifest.tiles.len() as u64;
+    let proxy = FaultyProxy::start(
+        server.addr(),
+        FaultPlan::pass_through().with_bandwidth(per_tile * 10),
+    );
+    let runtime = runtime();
+    let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
+    let config = FetcherConfig {
+        concurrency: 1,
+        ..quick_config()
+    };
+    let mut fetcher = fetcher(&runtime, proxy.base_url(), &db.manifest, config);
+    let ids: Vec<TileId> = db.ids().collect();
+    request_all_tiles(&mut fetcher, &db.manifest);
+
+    let mut events = Vec::new();
+    let deadline = Instant::now() + IDLE_TIMEOUT;
+    while events.is_empty() {
+        events.extend(fetcher.poll());
+        assert!(Instant::now() < deadline, "nothing delivered");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert_eq!(
+        events.iter().map(FetchEvent::id).collect::<Vec<_>>(),
+        [ids[0]]
+    );
+    // The second tile is on the link now: it is cancelled with all but two of the rest.
+    assert_eq!(fetcher.running_count(), 1);
+    let keep = [ids[5], ids[41]];
+    let cancelled: Vec<TileId> = ids[1..]
+        .iter()
+        .copied()
+        .filter(|id| !keep.contains(id))
+        .collect();
+    fetcher.cancel(&cancelled);
+    let mut pending: Vec<TileId> = fetcher.pending().collect();
+    pending.sort();
+    assert_eq!(pending, keep);
+    let mut marks = vec![true; 42];
+    fetcher.mark_pending(&mut marks, 7);
+    assert_eq!(marks.iter().filter(|pending| **pending).count(), 2);
+    assert!(marks[5] && marks[41]);
+    events.extend(run_until_idle(&mut fetcher));
+
+    let delivered = reference.check_delivered(&events);
+    assert_eq!(delivered.tiles, HashSet::from([ids[0], keep[0], keep[1]]));
+    assert_eq!((fetcher.pending_count(), fetcher.running_count()), (0, 0));
+    let stats = fetcher.stats();
+    assert_eq!(
+        (stats.cancelled, stats.delivered, stats.failures),
+        (39, 3, 0),
+        "{stats:?}"
+    );
+    // The cancelled tile on the link was dropped, not downloaded to the end for nobody;
+    // the other cancelled ones were never asked for.
+    assert!(stats.requests_started <= 2 * 4, "{stats:?}");
+    let sent = proxy.stats().bytes_sent;
+    assert!(
+        sent < tile_bytes / 4,
+        "{sent} of {tile_bytes} bytes went over the link"
+    );
+}
+
+#[test]
+fn results_that_finished_before_their_cancel_are_never_delivered() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    let runtime = runtime();
+    let mut fetcher = fetcher(&runtime, server.base_url(), &db.manifest, quick_config());
+    let ids: Vec<TileId> = db.ids().take(8).collect();
+    for (priority, id) in ids.iter().enumerate() {
+        fetcher.request(*id, Want::Tile, priority as u64);
+    }
+    assert!(
+        fetcher.poll().is_empty(),
+        "nothing can have finished before it started"
+    );
+    assert_eq!(fetcher.running_count(), 8);
+    // Every body counted means every task is done with the network; the results are
+    // waiting for the next poll.
+    let expected: u64 = ids
+        .iter()
+        .filter_map(|id| db.manifest.tile(*id))
+        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .sum();
+    let deadline = Instant::now() + IDLE_TIMEOUT;
+    while fetcher.stats().bytes_downloaded < expected {
+        assert!(Instant::now() < deadline, "{:?}", fetcher.stats());
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    fetcher.cancel(&ids);
+    assert_eq!(fetcher.pending_count(), 0);
+    let events = fetcher.poll();
+    assert!(events.is_empty(), "{events:?}");
+    let stats = fetcher.stats();
+    assert_eq!((stats.cancelled, stats.delivered), (8, 0), "{stats:?}");
+}
+
+// ---- harness ----
+
+/// The jacksboro fixture built with [`TILE_SIZE`]; deleted on drop.
+struct JacksboroDb {
+    _tmp: tempfile::TempDir,
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl JacksboroDb {
+    fn build() -> JacksboroDb {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let mut options = BuildOptions::new(jacksboro(), tmp.path().join("db"));
+        options.tile_size = TILE_SIZE;
+        let report =
+            build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("jacksboro builds");
+        let manifest = report.manifest;
+        assert_eq!((manifest.grid.columns, manifest.grid.rows), (7, 6));
+        JacksboroDb {
+            _tmp: tmp,
+            dir: report.out,
+            manifest,
+        }
+    }
+
+    /// Every tile, row-major.
+    fn ids(&self) -> impl Iterator<Item = TileId> + '_ {
+        self.manifest.tiles.iter().map(|tile| tile.id())
+    }
+}
+
+/// The fetcher's runtime: two workers, as the servers', on a 2-core machine.
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("tokio runtime")
+}
+
+fn quick_config() -> FetcherConfig {
+    FetcherConfig {
+        backoff_base: BACKOFF_BASE,
+        backoff_max: BACKOFF_MAX,
+        ..FetcherConfig::default()
+    }
+}
+
+fn fetcher(
+    runtime: &tokio::runtime::Runtime,
+    base_url: &str,
+    manifest: &Manifest,
+    config: FetcherConfig,
+) -> Fetcher {
+    let client = TileClient::new(base_url).expect("client");
+    Fetcher::new(
+        client,
+        Arc::new(manifest.clone()),
+        config,
+        runtime.handle().clone(),
+    )
+}
+
+/// Every tile, nearest the north-west corner first (row-major order as the priority).
+fn request_all_tiles(fetcher: &mut Fetcher, manifest: &Manifest) {
+    for (priority, tile) in manifest.tiles.iter().enumerate() {
+        fetcher.request(tile.id(), Want::Tile, priority as u64);
+    }
+}
+
+/// Polls, as a frame loop would, until nothing is pending; everything delivered.
+fn run_until_idle(fetcher: &mut Fetcher) -> Vec<FetchEvent> {
+    let deadline = Instant::now() + IDLE_TIMEOUT;
+    let mut events = fetcher.poll();
+    while fetcher.pending_count() > 0 {
+        assert!(
+            Instant::now() < deadline,
+            "still {} pending after {IDLE_TIMEOUT:?}: {:?}",
+            fetcher.pending_count(),
+            fetcher.stats()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+        events.extend(fetcher.poll());
+    }
+    events
+}
+
+/// Every tile's heights and texture levels, fetched directly from the server.
+struct Reference {
+    heights: HashMap<TileId, Heights>,
+    textures: HashMap<(TileId, u32), Vec<u8>>,
+}
+
+/// What a run delivered, checked against the [`Reference`].
+#[derive(Debug)]
+struct Delivered {
+    tiles: HashSet<TileId>,
+    levels: HashSet<(TileId, u32)>,
+    failed: Vec<TileId>,
+}
+
+impl Reference {
+    fn fetch(runtime: &tokio::runtime::Runtime, base_url: &str, manifest: &Manifest) -> Reference {
+        let client = TileClient::new(base_url).expect("client");
+        runtime.block_on(async {
+            let mut heights = HashMap::new();
+            let mut textures = HashMap::new();
+            for tile in &manifest.tiles {
+                let id = tile.id();
+                let tile_heights = client
+                    .heights(manifest, id)
+                    .await
+                    .unwrap_or_else(|e| panic!("reference {id}: {e}"));
+                heights.insert(id, tile_heights);
+                for level in 0..manifest.texture.levels {
+                    let bytes = client
+                        .texture(manifest, id, level)
+                        .await
+                        .unwrap_or_else(|e| panic!("reference {id} level {level}: {e}"));
+                    textures.insert((id, level), bytes.to_vec());
+                }
+            }
+            Reference { heights, textures }
+        })
+    }
+
+    /// Checks every delivered tile and level against the reference (and that none came
+    /// twice); what was delivered and what failed.
+    fn check_delivered(&self, events: &[FetchEvent]) -> Delivered {
+        let mut delivered = Delivered {
+            tiles: HashSet::new(),
+            levels: HashSet::new(),
+            failed: Vec::new(),
+        };
+        for event in events {
+            match event {
+                FetchEvent::Tile {
+                    id,
+                    heights,
+                    heights_bytes,
+                    coarsest_texture,
+                    attempts,
+                } => {
+                    assert_eq!(Some(heights), self.heights.get(id), "tile {id} heights");
+                    assert!(*heights_bytes > 0 && *attempts >= 1);
+                    assert_eq!(
+                        Some(&coarsest_texture.to_vec()),
+                        self.textures.get(&(*id, 0)),
+                        "tile {id} coarsest texture"
+                    );
+                    assert!(delivered.tiles.insert(*id), "tile {id} delivered twice");
+                }
+                FetchEvent::TextureLevel { id, level, bytes } => {
+                    assert_eq!(
+                        Some(&bytes.to_vec()),
+                        self.textures.get(&(*id, *level)),
+                        "tile {id} level {level}"
+                    );
+                    assert!(delivered.levels.insert((*id, *level)), "{id} {level} twice");
+                }
+                FetchEvent::Failed { id, .. } => delivered.failed.push(*id),
+            }
+        }
+        delivered
+    }
+}
+
+/// A server that can be stopped and started again on the same address, which
+/// [`TestServer`] (a fresh port each time) cannot do.
+struct RestartableServer {
+    db_dir: PathBuf,
+    addr: SocketAddr,
+    running: Option<(oneshot::Sender<()>, JoinHandle<std::io::Result<()>>)>,
+}
+
+impl RestartableServer {
+    fn start(db_dir: &Path) -> RestartableServer {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind 127.0.0.1:0");
+        let addr = listener.local_addr().expect("bound address");
+        let mut server = RestartableServer {
+            db_dir: db_dir.to_path_buf(),
+            addr,
+            running: None,
+        };
+        server.serve(listener);
+        server
+    }
+
+    fn base_url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    fn stop(&mut self) {
+        if let Some((shutdown, thread)) = self.running.take() {
+            let _ = shutdown.send(());
+            match thread.join() {
+                Ok(result) => result.expect("the server failed"),
+                Err(_) => panic!("the server thread panicked"),
+            }
+        }
+    }
+
+    /// Binds the same address again: the standard library sets `SO_REUSEADDR` on Unix, so
+    /// the old connections in TIME_WAIT do not block it.
+    fn restart(&mut self) {
+        let listener = std::net::TcpListener::bind(self.addr)
+            .unwrap_or_else(|error| panic!("cannot bind {} again: {error}", self.addr));
+        self.serve(listener);
+    }
+
+    fn serve(&mut self, listener: std::net::TcpListener) {
+        listener
+            .set_nonblocking(true)
+            .expect("non-blocking listener");
+        let db = TileDb::open(&self.db_dir, Verify::SizesOnly).expect("the database opens");
+        let state = Arc::new(AppState::new(db));
+        // Shutdown drains for at most this long: the test stops the server mid-fetch and
+        // should not wait the default 8 s for a connection that never ends.
+        let options = ServeOptions {
+            shutdown_deadline: Duration::from_millis(200),
+            ..ServeOptions::default()
+        };
+        let (shutdown, stop) = oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            runtime.block_on(async move {
+                let listener = tokio::net::TcpListener::from_std(listener)?;
+                serve(listener, state, options, async move {
+                    let _ = stop.await;
+                })
+                .await
+            })
+        });
+        self.running = Some((shutdown, thread));
+    }
+}
+
+impl Drop for RestartableServer {
+    fn drop(&mut self) {
+        if let Some((shutdown, thread)) = self.running.take() {
+            let _ = shutdown.send(());
+            let _ = thread.join();
+        }
+    }
+}
