@@ -15,8 +15,13 @@
 //!
 //! **Invariant:** nothing downstream of [`fetch`] sees bytes whose hash was not checked.
 
+pub mod charts;
 pub mod cli;
 pub mod fetch;
 pub mod fetcher;
+pub mod flight;
+pub mod memory;
 pub mod overview;
+pub mod page;
+pub mod path;
 pub mod report;

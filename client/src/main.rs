@@ -18,6 +18,9 @@ enum Command {
     /// Fetch every tile (heights and all texture levels), verify and decode it, and write
     /// overview.png and tiles.csv.
     Fetch(terrain_client::cli::FetchArgs),
+    /// Fly a camera path headless: page tiles in belts around the viewpoint within a memory
+    /// budget, and write flight.csv (one row per frame) and flight.png (charts).
+    Fly(terrain_client::flight::FlightArgs),
 }
 
 #[tokio::main]
@@ -36,6 +39,10 @@ async fn main() -> ExitCode {
         Command::Fetch(args) => terrain_client::cli::run_fetch(&args)
             .await
             .map(|summary| println!("{summary}"))
+            .map_err(anyhow::Error::from),
+        Command::Fly(args) => terrain_client::flight::fly(&args)
+            .await
+            .map(|summary| print!("{summary}"))
             .map_err(anyhow::Error::from),
     };
     match result {

@@ -4,3 +4,4 @@ mod http;
 mod build;
 mod round_trip;
 mod fetcher;
+mod flight;
