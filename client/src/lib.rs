@@ -2,18 +2,25 @@
 //!
 //! The data path runs in steps, one module each, and a tile travels through them in order:
 //!
-//! 1. **fetch** ([`fetch`]): the manifest, then tiles by URL; every body is checked against
-//!    the manifest's content hash before anything else sees it, and heights are decoded off
-//!    the async threads.
-//! 2. **page** (later): which belts of tiles around the viewpoint to hold, fetch and drop.
-//! 3. **choose LOD** (later): the mask level and texture level each held tile draws with.
-//! 4. **render** (later): upload and draw.
+//! 1. **fetch** ([`fetch`], [`fetcher`]): the manifest, then tiles by URL; every body is
+//!    checked against the manifest's content hash before anything else sees it, and
+//!    heights are decoded off the async threads. The [`fetcher`] carries out the pager's
+//!    requests: bounded concurrency, priority order, cancellation, retries with backoff.
+//! 2. **page** ([`page`]): which belts of tiles around the viewpoint to hold, fetch and
+//!    drop within the memory limit ([`memory`]), Algorithm 1 of the strip-mask paper.
+//! 3. **choose LOD** (not yet): the mask level and texture level each held tile draws with.
+//! 4. **render** (not yet): upload and draw.
 //!
-//! Deciding code (paging, LOD choice, the [`overview`] mosaic, the [`report`] of a fetch) is
-//! pure: values in, values out, no sockets, clocks or GPU, so it is tested with plain data.
-//! IO sits at the rim: [`fetch`] talks HTTP, [`cli`] writes files and draws progress.
+//! [`flight`] drives the steps frame by frame along a camera path ([`path`]) and records
+//! each frame; [`charts`] draws the records.
+//!
+//! Deciding code (paging, camera paths, the [`overview`] mosaic, the [`report`] of a fetch)
+//! is pure: values in, values out, no sockets, clocks or GPU, so it is tested with plain
+//! data. IO sits at the rim: [`fetch`] and [`fetcher`] talk HTTP, [`cli`] and [`flight`]
+//! write files and draw progress.
 //!
 //! **Invariant:** nothing downstream of [`fetch`] sees bytes whose hash was not checked.
+//! **Invariant:** the pager never awaits, reads a clock or touches the GPU.
 
 pub mod charts;
 pub mod cli;

@@ -133,8 +133,11 @@ pub struct Decision {
 /// Algorithm 1 for one frame: from the viewpoint and the state of every tile, what to fetch,
 /// evict and cancel.
 ///
-/// 1. In-flight tiles outside belt `complete_belts` (the belt being built around the
-///    current tile) go in `cancel`, so a jump does not wait for the old belt.
+/// 1. In-flight tiles more than one belt beyond belt `complete_belts` (the belt being built
+///    around the current tile) go in `cancel`, so a jump does not wait for the old belt. The
+///    belt after the one being built is kept: a one-tile step moves tiles of the old belt
+///    there, and they are wanted next (cancelling them cost 5% of all fetches, 779 of
+///    15,500, in the pager bench's flight).
 /// 2. If in-flight tiles remain, the pager is loading: nothing else happens.
 /// 3. Else, over the limit: the farthest belt holding a resident tile is evicted whole if it
 ///    lies beyond the farthest complete belt; complete belts stay, even over the limit.
@@ -222,8 +225,8 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
     }
     let farthest_resident_belt = resident_reach.checked_sub(1);
 
-    // The tiles of the belt being built stay in flight; any other in-flight tile belongs to a
-    // square the viewpoint has left. In-flight tiles are few (one belt at most), so the flags
+    // The tiles of the belt being built, and of the one after it, stay in flight; any other
+    // in-flight tile belongs to a square the viewpoint has left. In-flight tiles are few (one belt at most), so the flags
     // are scanned a block at a time: an OR over a block is branch-free and cheap.
     let mut in_flight = 0;
     let mut cancel = Vec::new();
@@ -235,7 +238,7 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
             let i = block * IN_FLIGHT_BLOCK + offset;
             let id = TileId::new((i % columns) as u32, (i / columns) as u32);
             in_flight += 1;
-            if belt_of(current, id) != complete_belts {
+            if belt_of(current, id) > complete_belts + 1 {
                 cancel.push(id);
             }
         }
@@ -728,8 +731,8 @@ mod tests {
             cancel 3/0 3/1
             ",
         );
-        // A step to the next tile keeps what the new belt still needs: around 2/2, 3/1 is in
-        // belt 1, the belt being built, and stays; 3/0 is in belt 2 and goes.
+        // A step to the next tile keeps what the new square still needs: around 2/2, 3/1 is
+        // in belt 1, the belt being built, and 3/0 in belt 2, the next one: both stay.
         check(
             "
             111~..
@@ -745,7 +748,7 @@ mod tests {
             current 2/2 complete 1 of 4 used 9
             fetch -
             evict -
-            cancel 3/0
+            cancel -
             ",
         );
     }
@@ -973,12 +976,12 @@ mod tests {
                     .windows(2)
                     .all(|w| distance(&w[0]) <= distance(&w[1]) + 1e-9)
             );
-            // Cancel: exactly the in-flight tiles outside the belt being built.
+            // Cancel: exactly the in-flight tiles beyond the belt after the one being built.
             let in_flight: Vec<TileId> = (0..config.rows)
                 .flat_map(|y| (0..config.columns).map(move |x| TileId::new(x, y)))
                 .filter(|&id| view.in_flight[config.index(id)])
                 .collect();
-            let unwanted = |id: &&TileId| belt_of(d.current, **id) != d.complete_belts;
+            let unwanted = |id: &&TileId| belt_of(d.current, **id) > d.complete_belts + 1;
             assert_eq!(
                 d.cancel,
                 in_flight
