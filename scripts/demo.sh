@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The main job: build a tile database from the bundled jacksboro DEM (once), serve it on
 # a free local port, stream every tile through the client (verified against the manifest
-# and decoded), and write to out/: an overview picture of the terrain, per-tile CSV, the
-# server's Prometheus metrics, and a summary.
+# and decoded), fly the default camera path with a memory budget that holds about half the
+# tiles (so the belt pager has to evict), and write to out/: an overview picture of the
+# terrain, per-tile CSV, the flight's per-frame CSV and charts, the server's Prometheus
+# metrics, and summaries.
 #
 #   bash scripts/demo.sh            # everything under out/
 #   OUT=/tmp/run bash scripts/demo.sh
@@ -34,6 +36,7 @@ done
 echo "serving $db at $url"
 
 "$bin/terrain-client" fetch --server "$url" --out "$out/fetch"
+"$bin/terrain-client" fly --server "$url" --memory 400KiB --out "$out/flight"
 curl -fsS "$url/metrics" >"$out/metrics.txt"
 kill -TERM "$server"
 wait "$server" || true
@@ -43,5 +46,7 @@ echo
 echo "wrote:"
 echo "  $out/fetch/overview.png   the whole terrain, from the served textures"
 echo "  $out/fetch/tiles.csv      per tile: bytes, bounds, roughness, fetch and decode times"
+echo "  $out/flight/flight.csv    per frame of the flight: viewpoint, belts, resident bytes, downloads"
+echo "  $out/flight/flight.png    the flight's charts: memory against the limit, tiles, belts, download rate"
 echo "  $out/metrics.txt          the server's Prometheus metrics after the run"
 echo "  $out/server.log           the server's log"

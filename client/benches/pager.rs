@@ -68,10 +68,12 @@ fn main() {
             centre + 0.4 * f64::from(SIDE) * (3.0 * phase).cos(),
         ];
 
+        // Sizes known before fetching, as the flight passes them from the manifest.
         let view = PagerView {
             viewpoint,
             resident_bytes: &resident,
             in_flight: &in_flight,
+            expected_bytes: Some(&sizes),
         };
         let started = Instant::now();
         let decision = black_box(decide(&config, black_box(&view)));

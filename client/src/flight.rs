@@ -289,6 +289,9 @@ struct FlightState {
     pager: PagerConfig,
     tiles: Vec<Option<ResidentTile>>,
     resident_bytes: Vec<u64>,
+    /// What each tile will hold once resident, from the manifest's sizes: the pager admits a
+    /// belt only if it fits.
+    expected_bytes: Vec<u64>,
     in_flight: Vec<bool>,
     tiles_fetched: u64,
     evicted_unused_bytes: u64,
@@ -304,6 +307,7 @@ impl FlightState {
             pager,
             tiles: vec![None; count],
             resident_bytes: vec![0; count],
+            expected_bytes: manifest.tiles.iter().map(|t| expected_tile_bytes(manifest, t).total()).collect(),
             in_flight: vec![false; count],
             tiles_fetched: 0,
             evicted_unused_bytes: 0,
@@ -359,7 +363,13 @@ impl FlightState {
         self.in_flight.fill(false);
         fetcher.mark_pending(&mut self.in_flight, self.columns);
         let viewpoint = [position[0] / self.tile_extent_m[0], position[1] / self.tile_extent_m[1]];
-        let decision = page::decide(&self.pager, &PagerView { viewpoint, resident_bytes: &self.resident_bytes, in_flight: &self.in_flight });
+        let view = PagerView {
+            viewpoint,
+            resident_bytes: &self.resident_bytes,
+            in_flight: &self.in_flight,
+            expected_bytes: Some(&self.expected_bytes),
+        };
+        let decision = page::decide(&self.pager, &view);
 
         fetcher.cancel(&decision.cancel);
         for &id in &decision.evict {
@@ -399,6 +409,17 @@ impl FlightState {
             retries: stats.retries,
             evicted_unused_bytes: self.evicted_unused_bytes,
         })
+    }
+}
+
+/// What a tile holds once resident, known from the manifest before it is fetched: the same
+/// accounting as a delivered tile's (compressed heights, decoded codes, coarsest texture).
+pub fn expected_tile_bytes(manifest: &Manifest, tile: &terrain_shared::TileRecord) -> TileBytes {
+    TileBytes {
+        compressed_heights: tile.heights.bytes,
+        decoded_heights: u64::from(manifest.tile_size).pow(2) * std::mem::size_of::<i32>() as u64,
+        textures: tile.texture.first().map_or(0, |level| level.bytes),
+        ..TileBytes::default()
     }
 }
 

@@ -77,6 +77,12 @@ pub struct PagerView<'a> {
     pub resident_bytes: &'a [u64],
     /// Requested and not yet delivered (nor cancelled).
     pub in_flight: &'a [bool],
+    /// Bytes each tile will hold once resident, when the caller knows them before fetching
+    /// (the manifest lists every blob's size). With them, a belt is fetched only if it fits
+    /// under the limit whole, so resident bytes stay under the limit except for the current
+    /// tile alone (which is always fetched); without them, the paper's rule: a belt is
+    /// fetched whenever used bytes are under the limit, and may overspend by that belt.
+    pub expected_bytes: Option<&'a [u64]>,
 }
 
 /// The tile the belts are counted from: a grid tile, or with
@@ -163,6 +169,9 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
         tiles,
         "in_flight needs one entry per tile, row-major"
     );
+    if let Some(expected) = view.expected_bytes {
+        assert_eq!(expected.len(), tiles, "expected_bytes needs one entry per tile, row-major");
+    }
     let current = current_tile(config, view.viewpoint);
     let belt_count = belt_count(config, current);
     if tiles == 0 {
@@ -285,6 +294,25 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
                 .total_cmp(&squared_distance(b))
                 .then((a.y, a.x).cmp(&(b.y, b.x)))
         });
+        // Predicted admission: a belt beyond the current tile starts only if all of it fits.
+        // When it does not, the farthest belt beyond it (cached tiles the square does not
+        // use) makes room, one belt a frame; when nothing is left to drop, the square has
+        // reached the largest size that fits and stays.
+        if let Some(expected) = view.expected_bytes
+            && complete_belts > 0
+        {
+            let needed: u64 = fetch.iter().map(|&id| expected[config.index(id)]).sum();
+            if used_bytes.saturating_add(needed) > config.memory_limit {
+                if let Some(farthest) = farthest_resident_belt
+                    && farthest > complete_belts
+                {
+                    decision.evict = belt_tiles(config, current, farthest)
+                        .filter(|&id| view.resident_bytes[config.index(id)] > 0)
+                        .collect();
+                }
+                return decision;
+            }
+        }
         decision.fetch = fetch;
     }
     decision
@@ -440,6 +468,7 @@ mod tests {
                 viewpoint,
                 resident_bytes: &resident,
                 in_flight: &in_flight,
+                expected_bytes: None,
             },
         );
         assert_eq!(summary(&decision), normalize(expect), "picture:\n{picture}");
@@ -797,6 +826,7 @@ mod tests {
             viewpoint: [1.0, 1.0],
             resident_bytes: &[],
             in_flight: &[],
+            expected_bytes: None,
         };
         let decision = decide(&empty, &view);
         assert_eq!((decision.belt_count, decision.fetch.len()), (0, 0));
@@ -816,6 +846,8 @@ mod tests {
         arrives_in: Vec<u32>,
         /// Bytes of the latest non-empty fetch list.
         latest_fetch_bytes: u64,
+        /// Whether the pager is told `sizes` before fetching (predicted admission).
+        predict: bool,
     }
 
     impl World {
@@ -828,6 +860,7 @@ mod tests {
                 in_flight: vec![false; tiles],
                 arrives_in: vec![0; tiles],
                 latest_fetch_bytes: 0,
+                predict: false,
             }
         }
 
@@ -848,6 +881,7 @@ mod tests {
                 viewpoint,
                 resident_bytes: &self.resident,
                 in_flight: &self.in_flight,
+                expected_bytes: self.predict.then_some(&self.sizes[..]),
             };
             let decision = decide(&self.config, &view);
             self.check_decision(&view, &decision);
@@ -940,7 +974,17 @@ mod tests {
                     .windows(2)
                     .all(|w| belt_of(d.current, w[0]) == belt_of(d.current, w[1]))
             );
-            assert!(d.evict.is_empty() || (d.used_bytes > limit && !d.loading));
+            // With sizes known, cached tiles beyond the belt being built also make room when
+            // that belt does not fit under the limit (and only then).
+            let next_belt_needs: u64 = belt_tiles(config, d.current, d.complete_belts)
+                .filter(|&id| !resident(id))
+                .map(|id| view.expected_bytes.map_or(0, |e| e[config.index(id)]))
+                .sum();
+            let making_room = view.expected_bytes.is_some()
+                && d.complete_belts > 0
+                && d.used_bytes + next_belt_needs > limit
+                && d.evict.iter().all(|&id| belt_of(d.current, id) > d.complete_belts);
+            assert!(d.evict.is_empty() || ((d.used_bytes > limit || making_room) && !d.loading));
             // ...and that belt is the farthest holding any tile (the paper's dp); with nothing
             // evicted over the limit, every resident tile is in the square.
             let farthest = (0..config.tile_count())
@@ -1157,6 +1201,72 @@ mod tests {
             if d.complete_belts < d.belt_count {
                 prop_assert!(world.used() > world.config.memory_limit);
                 prop_assert_eq!(world.used(), world.square_bytes(d.current, d.complete_belts));
+            }
+        }
+
+        #[test]
+        fn with_sizes_known_a_still_viewpoint_from_empty_settles_on_the_largest_square_under_the_limit(
+            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
+            fx in -0.3f64..1.3, fy in -0.3f64..1.3,
+        ) {
+            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
+            world.predict = true;
+            let viewpoint = [fx * f64::from(columns), fy * f64::from(rows)];
+            let limit = settle_limit(&world.config);
+            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
+            let (k, memory_limit) = (d.complete_belts, world.config.memory_limit);
+            prop_assert_eq!(world.used(), world.square_bytes(d.current, k));
+            prop_assert!(k >= 1 || d.belt_count == 0);
+            // The current tile is always fetched; any larger square fits under the limit...
+            if k > 1 {
+                prop_assert!(world.square_bytes(d.current, k) <= memory_limit);
+            }
+            // ...and one more belt would not.
+            if k < d.belt_count {
+                prop_assert!(world.square_bytes(d.current, k + 1) > memory_limit);
+            }
+        }
+
+        #[test]
+        fn with_sizes_known_resident_bytes_exceed_the_limit_by_the_current_tile_at_most(
+            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
+            walk in proptest::collection::vec(moves(), 1..80),
+        ) {
+            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
+            world.predict = true;
+            let largest_tile = world.sizes.iter().copied().max().unwrap_or(0);
+            let (w, h) = (f64::from(columns), f64::from(rows));
+            let mut viewpoint = [w / 2.0, h / 2.0];
+            for step in walk {
+                let frames = match step {
+                    Move::Stay(frames) => frames,
+                    Move::Step(dx, dy) => {
+                        viewpoint = [(viewpoint[0] + dx).clamp(-8.0, w + 8.0), (viewpoint[1] + dy).clamp(-8.0, h + 8.0)];
+                        1
+                    }
+                    Move::Jump(fx, fy) => {
+                        viewpoint = [fx * w, fy * h];
+                        1
+                    }
+                };
+                for _ in 0..frames {
+                    world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
+                    prop_assert!(world.used() <= world.config.memory_limit + largest_tile,
+                        "{} bytes resident, limit {} + one tile {}", world.used(), world.config.memory_limit, largest_tile);
+                }
+            }
+            let limit = settle_limit(&world.config);
+            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
+            // Settled short of the whole grid: the next belt does not fit, and nothing beyond
+            // the belt being built is still held.
+            if d.complete_belts < d.belt_count {
+                prop_assert!(world.square_bytes(d.current, d.complete_belts + 1) > world.config.memory_limit);
+                let beyond = (0..world.config.tile_count())
+                    .filter(|&i| world.resident[i] > 0)
+                    .map(|i| TileId::new(i as u32 % columns, i as u32 / columns))
+                    .filter(|&id| belt_of(d.current, id) > d.complete_belts)
+                    .count();
+                prop_assert_eq!(beyond, 0);
             }
         }
     }

@@ -4,22 +4,17 @@
 //! compared with the same tile fetched directly from the server.
 
 use std::collections::{HashMap, HashSet};
-use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
-use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use terrain_client::fetch::{FetchError, TileClient};
 use terrain_client::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
 use terrain_server::build::{BuildOptions, build};
-use terrain_server::db::{TileDb, Verify};
-use terrain_server::http::{AppState, ServeOptions, serve};
 use terrain_shared::{Heights, Manifest, TileId};
 use terrain_tests::data::jacksboro;
 use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
-use terrain_tests::server::TestServer;
-use tokio::sync::oneshot;
+use terrain_tests::server::{RestartableServer, TestServer};
 
 /// Smaller than the default tiles, so the 403x344 fixture makes a 7x6 grid: 42 tiles give
 /// the fault schedules many tiles to land on.
@@ -539,87 +534,5 @@ impl Reference {
             }
         }
         delivered
-    }
-}
-
-/// A server that can be stopped and started again on the same address, which
-/// [`TestServer`] (a fresh port each time) cannot do.
-struct RestartableServer {
-    db_dir: PathBuf,
-    addr: SocketAddr,
-    running: Option<(oneshot::Sender<()>, JoinHandle<std::io::Result<()>>)>,
-}
-
-impl RestartableServer {
-    fn start(db_dir: &Path) -> RestartableServer {
-        let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind 127.0.0.1:0");
-        let addr = listener.local_addr().expect("bound address");
-        let mut server = RestartableServer {
-            db_dir: db_dir.to_path_buf(),
-            addr,
-            running: None,
-        };
-        server.serve(listener);
-        server
-    }
-
-    fn base_url(&self) -> String {
-        format!("http://{}", self.addr)
-    }
-
-    fn stop(&mut self) {
-        if let Some((shutdown, thread)) = self.running.take() {
-            let _ = shutdown.send(());
-            match thread.join() {
-                Ok(result) => result.expect("the server failed"),
-                Err(_) => panic!("the server thread panicked"),
-            }
-        }
-    }
-
-    /// Binds the same address again: the standard library sets `SO_REUSEADDR` on Unix, so
-    /// the old connections in TIME_WAIT do not block it.
-    fn restart(&mut self) {
-        let listener = std::net::TcpListener::bind(self.addr)
-            .unwrap_or_else(|error| panic!("cannot bind {} again: {error}", self.addr));
-        self.serve(listener);
-    }
-
-    fn serve(&mut self, listener: std::net::TcpListener) {
-        listener
-            .set_nonblocking(true)
-            .expect("non-blocking listener");
-        let db = TileDb::open(&self.db_dir, Verify::SizesOnly).expect("the database opens");
-        let state = Arc::new(AppState::new(db));
-        // Shutdown drains for at most this long: the test stops the server mid-fetch and
-        // should not wait the default 8 s for a connection that never ends.
-        let options = ServeOptions {
-            shutdown_deadline: Duration::from_millis(200),
-            ..ServeOptions::default()
-        };
-        let (shutdown, stop) = oneshot::channel::<()>();
-        let thread = std::thread::spawn(move || {
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()?;
-            runtime.block_on(async move {
-                let listener = tokio::net::TcpListener::from_std(listener)?;
-                serve(listener, state, options, async move {
-                    let _ = stop.await;
-                })
-                .await
-            })
-        });
-        self.running = Some((shutdown, thread));
-    }
-}
-
-impl Drop for RestartableServer {
-    fn drop(&mut self) {
-        if let Some((shutdown, thread)) = self.running.take() {
-            let _ = shutdown.send(());
-            let _ = thread.join();
-        }
     }
 }

@@ -5,9 +5,10 @@
 //! single-threaded runtime) without starving the server it talks to.
 
 use std::net::SocketAddr;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::thread::JoinHandle;
+use std::time::Duration;
 use terrain_server::db::{TileDb, Verify};
 use terrain_server::http::{AppState, ServeOptions, serve};
 use tokio::sync::oneshot;
@@ -135,6 +136,89 @@ impl Drop for TestServer {
             && !std::thread::panicking()
         {
             panic!("the test server failed: {error}");
+        }
+    }
+}
+
+/// A server that can be stopped and started again on the same address, which
+/// [`TestServer`] (a fresh port each time) cannot do.
+#[derive(Debug)]
+pub struct RestartableServer {
+    db_dir: PathBuf,
+    addr: SocketAddr,
+    running: Option<(oneshot::Sender<()>, JoinHandle<std::io::Result<()>>)>,
+}
+
+impl RestartableServer {
+    pub fn start(db_dir: &Path) -> RestartableServer {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind 127.0.0.1:0");
+        let addr = listener.local_addr().expect("bound address");
+        let mut server = RestartableServer {
+            db_dir: db_dir.to_path_buf(),
+            addr,
+            running: None,
+        };
+        server.serve(listener);
+        server
+    }
+
+    pub fn base_url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    pub fn stop(&mut self) {
+        if let Some((shutdown, thread)) = self.running.take() {
+            let _ = shutdown.send(());
+            match thread.join() {
+                Ok(result) => result.expect("the server failed"),
+                Err(_) => panic!("the server thread panicked"),
+            }
+        }
+    }
+
+    /// Binds the same address again: the standard library sets `SO_REUSEADDR` on Unix, so
+    /// the old connections in TIME_WAIT do not block it.
+    pub fn restart(&mut self) {
+        let listener = std::net::TcpListener::bind(self.addr)
+            .unwrap_or_else(|error| panic!("cannot bind {} again: {error}", self.addr));
+        self.serve(listener);
+    }
+
+    fn serve(&mut self, listener: std::net::TcpListener) {
+        listener
+            .set_nonblocking(true)
+            .expect("non-blocking listener");
+        let db = TileDb::open(&self.db_dir, Verify::SizesOnly).expect("the database opens");
+        let state = Arc::new(AppState::new(db));
+        // Shutdown drains for at most this long: the test stops the server mid-fetch and
+        // should not wait the default 8 s for a connection that never ends.
+        let options = ServeOptions {
+            shutdown_deadline: Duration::from_millis(200),
+            ..ServeOptions::default()
+        };
+        let (shutdown, stop) = oneshot::channel::<()>();
+        let thread = std::thread::spawn(move || {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            runtime.block_on(async move {
+                let listener = tokio::net::TcpListener::from_std(listener)?;
+                serve(listener, state, options, async move {
+                    let _ = stop.await;
+                })
+                .await
+            })
+        });
+        self.running = Some((shutdown, thread));
+    }
+}
+
+impl Drop for RestartableServer {
+    fn drop(&mut self) {
+        if let Some((shutdown, thread)) = self.running.take() {
+            let _ = shutdown.send(());
+            let _ = thread.join();
         }
     }
 }
