@@ -81,7 +81,7 @@ pub enum FlightError {
 }
 
 /// Columns of `flight.csv`, one row per frame.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes";
+pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes";
 
 /// One frame of a flight, as written to `flight.csv`.
 #[derive(Debug, Clone, PartialEq)]
@@ -92,6 +92,9 @@ pub struct FrameRecord {
     /// Wall-clock seconds since the flight started.
     pub wall_s: f64,
     pub position_m: [f64; 3],
+    /// Terrain height under the viewpoint (nearest sample of the resident current tile);
+    /// `None` while that tile is not resident or the viewpoint is off the terrain.
+    pub ground_m: Option<f64>,
     pub current: [i64; 2],
     /// Belt index of the farthest complete belt; `None` while the current tile is missing.
     pub farthest_complete_belt: Option<u32>,
@@ -110,13 +113,14 @@ pub struct FrameRecord {
 impl FrameRecord {
     pub fn csv_row(&self) -> String {
         format!(
-            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.frame,
             self.time_s,
             self.wall_s,
             self.position_m[0],
             self.position_m[1],
             self.position_m[2],
+            self.ground_m.map_or(String::new(), |g| format!("{g:.1}")),
             self.current[0],
             self.current[1],
             self.farthest_complete_belt.map_or(String::new(), |b| b.to_string()),
@@ -132,9 +136,12 @@ impl FrameRecord {
     }
 }
 
-/// A tile held in memory.
+/// A tile held in memory: its data (what a renderer will upload) and what it costs.
 #[derive(Debug, Clone)]
 struct ResidentTile {
+    heights: terrain_shared::Heights,
+    /// Encoded texture levels held, coarsest first.
+    textures: Vec<bytes::Bytes>,
     bytes: TileBytes,
     /// Bytes downloaded for it (heights and texture bodies).
     downloaded: u64,
@@ -285,6 +292,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
 #[derive(Debug)]
 struct FlightState {
     columns: u32,
+    tile_size: u32,
     tile_extent_m: [f64; 2],
     pager: PagerConfig,
     tiles: Vec<Option<ResidentTile>>,
@@ -303,6 +311,7 @@ impl FlightState {
         let cells = f64::from(manifest.tile_size - 1);
         FlightState {
             columns: manifest.grid.columns,
+            tile_size: manifest.tile_size,
             tile_extent_m: [cells * manifest.spacing_m[0], cells * manifest.spacing_m[1]],
             pager,
             tiles: vec![None; count],
@@ -331,14 +340,19 @@ impl FlightState {
             match event {
                 FetchEvent::Tile { id, heights, heights_bytes, coarsest_texture, .. } => {
                     let bytes = TileBytes {
-                        compressed_heights: heights_bytes,
-                        decoded_heights: (heights.codes.len() * std::mem::size_of::<i32>()) as u64,
+                        decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
                         textures: coarsest_texture.len() as u64,
                         ..TileBytes::default()
                     };
                     let i = self.index(id);
                     self.resident_bytes[i] = bytes.total();
-                    self.tiles[i] = Some(ResidentTile { bytes, downloaded: heights_bytes + coarsest_texture.len() as u64, used: false });
+                    self.tiles[i] = Some(ResidentTile {
+                        heights,
+                        downloaded: heights_bytes + coarsest_texture.len() as u64,
+                        textures: vec![coarsest_texture],
+                        bytes,
+                        used: false,
+                    });
                     self.tiles_fetched += 1;
                 }
                 FetchEvent::TextureLevel { id, bytes, .. } => {
@@ -346,6 +360,7 @@ impl FlightState {
                     if let Some(tile) = &mut self.tiles[i] {
                         tile.bytes.textures += bytes.len() as u64;
                         tile.downloaded += bytes.len() as u64;
+                        tile.textures.push(bytes);
                         self.resident_bytes[i] = tile.bytes.total();
                     }
                 }
@@ -398,6 +413,7 @@ impl FlightState {
             time_s,
             wall_s,
             position_m: position,
+            ground_m: self.ground_under(position),
             current: [decision.current.x, decision.current.y],
             farthest_complete_belt: decision.farthest_complete_belt,
             complete_belts: decision.complete_belts,
@@ -412,11 +428,25 @@ impl FlightState {
     }
 }
 
+impl FlightState {
+    /// Height of the nearest sample under `position`, if its tile is resident.
+    fn ground_under(&self, position: [f64; 3]) -> Option<f64> {
+        let cells = f64::from(self.tile_size - 1);
+        let (tx, ty) = (position[0] / self.tile_extent_m[0], position[1] / self.tile_extent_m[1]);
+        if tx < 0.0 || ty < 0.0 || tx >= f64::from(self.columns) || ty >= (self.tiles.len() / self.columns as usize) as f64 {
+            return None;
+        }
+        let tile = self.tiles[self.index(TileId::new(tx as u32, ty as u32))].as_ref()?;
+        let x = ((tx - tx.floor()) * cells).round() as usize;
+        let y = ((ty - ty.floor()) * cells).round() as usize;
+        Some(tile.heights.metres(x, y))
+    }
+}
+
 /// What a tile holds once resident, known from the manifest before it is fetched: the same
-/// accounting as a delivered tile's (compressed heights, decoded codes, coarsest texture).
+/// accounting as a delivered tile's (decoded codes, coarsest texture level).
 pub fn expected_tile_bytes(manifest: &Manifest, tile: &terrain_shared::TileRecord) -> TileBytes {
     TileBytes {
-        compressed_heights: tile.heights.bytes,
         decoded_heights: u64::from(manifest.tile_size).pow(2) * std::mem::size_of::<i32>() as u64,
         textures: tile.texture.first().map_or(0, |level| level.bytes),
         ..TileBytes::default()

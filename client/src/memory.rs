@@ -84,13 +84,12 @@ fn parse_meminfo_available(text: &str) -> Option<u64> {
     Some(kib * 1024)
 }
 
-/// Bytes one resident tile holds, by kind. Everything kept per tile is counted: the
-/// compressed heights (kept so a tile can be re-decoded without a download), the decoded
-/// height codes, and the encoded texture levels. A renderer adds its vertex data and GPU
-/// buffers here when it uploads a tile.
+/// Bytes one resident tile holds, by kind: everything kept per tile, and only what is kept.
+/// The compressed heights body is dropped once decoded (the decoded codes are what is
+/// used), so it is not here; the encoded texture levels are kept (a renderer decodes them
+/// on upload). A renderer adds its vertex data and GPU buffers here when it uploads a tile.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct TileBytes {
-    pub compressed_heights: u64,
     pub decoded_heights: u64,
     pub textures: u64,
     pub vertices: u64,
@@ -99,7 +98,7 @@ pub struct TileBytes {
 
 impl TileBytes {
     pub fn total(&self) -> u64 {
-        self.compressed_heights + self.decoded_heights + self.textures + self.vertices + self.gpu
+        self.decoded_heights + self.textures + self.vertices + self.gpu
     }
 }
 
@@ -137,7 +136,7 @@ mod tests {
 
     #[test]
     fn tile_bytes_add_up_every_kind() {
-        let bytes = TileBytes { compressed_heights: 1, decoded_heights: 2, textures: 4, vertices: 8, gpu: 16 };
-        assert_eq!(bytes.total(), 31);
+        let bytes = TileBytes { decoded_heights: 2, textures: 4, vertices: 8, gpu: 16 };
+        assert_eq!(bytes.total(), 30);
     }
 }

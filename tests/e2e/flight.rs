@@ -41,11 +41,11 @@ fn number(row: &std::collections::HashMap<String, String>, column: &str) -> u64 
     row[column].parse().unwrap_or_else(|e| panic!("{column} = {:?}: {e}", row[column]))
 }
 
-/// Bytes the client holds for a resident tile: compressed heights, decoded codes (4 bytes
-/// each) and the coarsest texture level.
+/// Bytes the client holds for a resident tile: decoded codes (4 bytes each) and the coarsest
+/// texture level.
 fn tile_bytes(manifest: &Manifest, id: TileId) -> u64 {
     let record = manifest.tile(id).expect("in grid");
-    record.heights.bytes + 4 * u64::from(manifest.tile_size).pow(2) + record.texture[0].bytes
+    4 * u64::from(manifest.tile_size).pow(2) + record.texture[0].bytes
 }
 
 fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {
@@ -71,6 +71,12 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
     let all: u64 = manifest.tiles.iter().map(|t| tile_bytes(&manifest, t.id())).sum();
     assert_eq!(number(last, "resident_bytes"), all, "resident bytes are exactly what the tiles hold");
     assert_eq!(number(last, "evicted_unused_bytes"), 0, "nothing is evicted under an ample budget");
+    // The ground under the viewpoint comes from the resident tile's decoded heights: the
+    // source raster's nearest sample.
+    let (width, _, codes) = terrain_tests::data::png_codes(&jacksboro());
+    let metres = |column: &str| last[column].parse::<f64>().expect("a number");
+    let (sx, sy) = ((metres("x_m") / manifest.spacing_m[0]).round() as u32, (metres("y_m") / manifest.spacing_m[1]).round() as u32);
+    assert_eq!(metres("ground_m"), f64::from(codes[(sy * width + sx) as usize]));
     assert!(summary.chart.exists());
     let chart = image::open(&summary.chart).expect("flight.png is an image");
     assert!(chart.width() >= 800 && chart.height() >= 600);
