@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Every benchmark behind BENCHMARKS.md, in one run, on the data kit in $TERRAIN_DATA_DIR.
+# Writes its outputs under ${OUT:-out/bench}; takes about 6 minutes on 2 cores.
+# Needs nginx and wrk for the HTTP comparison (installed here when missing, as root).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+: "${TERRAIN_DATA_DIR:?set TERRAIN_DATA_DIR to the data kit (the directory holding himalaya_4097/ and puget_sound_1k/)}"
+export TERRAIN_DATA_DIR
+out=${OUT:-out/bench}
+mkdir -p "$out"
+for tool in nginx wrk; do
+  command -v "$tool" >/dev/null || {
+    apt-get -o DPkg::Lock::Timeout=600 update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 install -y -qq --no-install-recommends nginx wrk >/dev/null
+  }
+done
+cargo build --release --workspace --locked
+bin=target/release
+
+echo "== databases"
+"$bin/terrain-server" build "$TERRAIN_DATA_DIR/puget_sound_1k/ps_height_1k.png" --out "$out/db/puget_sound_1k" --force --quiet
+/usr/bin/time -f "build: %e s wall, peak RSS %M KiB" \
+  "$bin/terrain-server" build "$TERRAIN_DATA_DIR/himalaya_4097/g10g_himalaya_4097.png" --out "$out/db/himalaya_4097" --force --quiet
+
+echo "== heights codec"
+cargo bench -p terrain-server --bench codec 2>/dev/null
+echo "== HTTP: terrain-server against nginx"
+cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/himalaya_4097" 2>/dev/null
+cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/puget_sound_1k" 2>/dev/null
+echo "== pager decision time"
+cargo bench -p terrain-client --bench pager 2>/dev/null
+echo "== streaming through 100 Mbit/s"
+cargo bench -p terrain-tests --bench stream -- "$out/db/himalaya_4097" 2>/dev/null
+
+echo "== flights over himalaya_4097"
+"$bin/terrain-server" serve "$out/db/himalaya_4097" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
+server=$!
+trap 'kill "$server" 2>/dev/null || true' EXIT
+for _ in $(seq 200); do
+  url=$(sed -n 's/^listening on //p' "$out/server.stdout"); [ -n "$url" ] && break; sleep 0.05
+done
+for memory in 32MiB 256MiB; do
+  /usr/bin/time -f "process: peak RSS %M KiB" \
+    "$bin/terrain-client" fly --server "$url" --memory "$memory" --out "$out/flight-himalaya-$memory" --quiet
+done
