@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The main job: build a tile database from the bundled jacksboro DEM (once), serve it on
 # a free local port, stream every tile through the client (verified against the manifest
-# and decoded), fly the default camera path with a memory budget that holds about half the
-# tiles (so the belt pager has to evict), and write to out/: an overview picture of the
+# and decoded), fly the default camera path with a memory budget that holds two belts (nine
+# of the twelve tiles, so the belt pager has to evict as the viewpoint moves), and write to out/: an overview picture of the
 # terrain, per-tile CSV, the flight's per-frame CSV and charts, the server's Prometheus
 # metrics, and summaries.
 #
@@ -36,7 +36,7 @@ done
 echo "serving $db at $url"
 
 "$bin/terrain-client" fetch --server "$url" --out "$out/fetch"
-"$bin/terrain-client" fly --server "$url" --memory 400KiB --out "$out/flight"
+"$bin/terrain-client" fly --server "$url" --memory 800KiB --out "$out/flight"
 curl -fsS "$url/metrics" >"$out/metrics.txt"
 kill -TERM "$server"
 wait "$server" || true
