@@ -27,17 +27,23 @@ fn register_font() {
     let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
 }
 
+/// One line of a panel: its legend, colour and points (flight time, value).
+type Series<'a> = (&'a str, RGBColor, Vec<(f64, f64)>);
+
 /// One panel: named series over flight time.
 struct Panel<'a> {
     title: String,
     y_label: &'a str,
-    series: Vec<(&'a str, RGBColor, Vec<(f64, f64)>)>,
+    series: Vec<Series<'a>>,
 }
 
 /// Writes the flight chart: memory, resident tiles, complete belts and download rate over time.
 pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result<(), ChartError> {
     register_font();
-    let err = |e: String| ChartError { path: path.display().to_string(), message: e };
+    let err = |e: String| ChartError {
+        path: path.display().to_string(),
+        message: e,
+    };
     let time = |r: &FrameRecord| r.time_s;
     let rate = download_rate_mbit(records);
     let panels = [
@@ -45,22 +51,57 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
             title: format!("{title}: memory held by resident tiles"),
             y_label: "MiB",
             series: vec![
-                ("resident", BLUE, records.iter().map(|r| (time(r), r.resident_bytes as f64 / MIB)).collect()),
-                ("limit", RED, records.iter().map(|r| (time(r), r.memory_limit_bytes as f64 / MIB)).collect()),
+                (
+                    "resident",
+                    BLUE,
+                    records
+                        .iter()
+                        .map(|r| (time(r), r.resident_bytes as f64 / MIB))
+                        .collect(),
+                ),
+                (
+                    "limit",
+                    RED,
+                    records
+                        .iter()
+                        .map(|r| (time(r), r.memory_limit_bytes as f64 / MIB))
+                        .collect(),
+                ),
             ],
         },
         Panel {
             title: "tiles".into(),
             y_label: "tiles",
             series: vec![
-                ("resident", BLUE, records.iter().map(|r| (time(r), r.resident_tiles as f64)).collect()),
-                ("in flight", MAGENTA, records.iter().map(|r| (time(r), r.in_flight as f64)).collect()),
+                (
+                    "resident",
+                    BLUE,
+                    records
+                        .iter()
+                        .map(|r| (time(r), r.resident_tiles as f64))
+                        .collect(),
+                ),
+                (
+                    "in flight",
+                    MAGENTA,
+                    records
+                        .iter()
+                        .map(|r| (time(r), r.in_flight as f64))
+                        .collect(),
+                ),
             ],
         },
         Panel {
             title: "complete belts around the current tile".into(),
             y_label: "belts",
-            series: vec![("complete belts", GREEN, records.iter().map(|r| (time(r), f64::from(r.complete_belts))).collect())],
+            series: vec![(
+                "complete belts",
+                GREEN,
+                records
+                    .iter()
+                    .map(|r| (time(r), f64::from(r.complete_belts)))
+                    .collect(),
+            )],
         },
         Panel {
             title: "download rate (1 s window)".into(),
@@ -68,12 +109,19 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
             series: vec![("downloaded", BLACK, rate)],
         },
     ];
-    let root = BitMapBackend::new(path, (WIDTH, PANEL_HEIGHT * panels.len() as u32)).into_drawing_area();
+    let root =
+        BitMapBackend::new(path, (WIDTH, PANEL_HEIGHT * panels.len() as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
     let areas = root.split_evenly((panels.len(), 1));
     let t_max = records.last().map_or(1.0, |r| r.time_s).max(1e-3);
     for (panel, area) in panels.iter().zip(&areas) {
-        let y_max = panel.series.iter().flat_map(|(_, _, s)| s.iter().map(|p| p.1)).fold(0.0f64, f64::max).max(1e-9) * 1.1;
+        let y_max = panel
+            .series
+            .iter()
+            .flat_map(|(_, _, s)| s.iter().map(|p| p.1))
+            .fold(0.0f64, f64::max)
+            .max(1e-9)
+            * 1.1;
         let mut chart = ChartBuilder::on(area)
             .caption(&panel.title, ("sans-serif", 18))
             .margin(8)
@@ -91,10 +139,15 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
         for (name, colour, points) in &panel.series {
             let colour = *colour;
             chart
-                .draw_series(LineSeries::new(points.iter().copied(), colour.stroke_width(2)))
+                .draw_series(LineSeries::new(
+                    points.iter().copied(),
+                    colour.stroke_width(2),
+                ))
                 .map_err(|e| err(e.to_string()))?
                 .label(*name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2)));
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
+                });
         }
         chart
             .configure_series_labels()
@@ -120,7 +173,11 @@ fn download_rate_mbit(records: &[FrameRecord]) -> Vec<(f64, f64)> {
             }
             let (first, span) = (&records[start], r.wall_s - records[start].wall_s);
             let bits = (r.bytes_downloaded - first.bytes_downloaded) as f64 * 8.0;
-            let rate = if span > 0.0 && i > start { bits / span / 1e6 } else { 0.0 };
+            let rate = if span > 0.0 && i > start {
+                bits / span / 1e6
+            } else {
+                0.0
+            };
             (r.time_s, rate)
         })
         .collect()

@@ -73,7 +73,10 @@ pub enum FlightError {
     #[error("tile {id} cannot be fetched: {message}")]
     TileFailed { id: TileId, message: String },
     #[error("cannot write {path}: {source}")]
-    Write { path: PathBuf, source: std::io::Error },
+    Write {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error(transparent)]
     Chart(#[from] crate::charts::ChartError),
     #[error("invalid option: {0}")]
@@ -123,7 +126,8 @@ impl FrameRecord {
             self.ground_m.map_or(String::new(), |g| format!("{g:.1}")),
             self.current[0],
             self.current[1],
-            self.farthest_complete_belt.map_or(String::new(), |b| b.to_string()),
+            self.farthest_complete_belt
+                .map_or(String::new(), |b| b.to_string()),
             self.complete_belts,
             self.resident_tiles,
             self.resident_bytes,
@@ -175,7 +179,11 @@ pub struct FlightSummary {
 impl fmt::Display for FlightSummary {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
-        writeln!(f, "flew {} frames ({:.1} s of flight in {:.1} s) over {}", self.frames, self.duration_s, self.wall_s, self.dataset)?;
+        writeln!(
+            f,
+            "flew {} frames ({:.1} s of flight in {:.1} s) over {}",
+            self.frames, self.duration_s, self.wall_s, self.dataset
+        )?;
         writeln!(
             f,
             "  memory    peak {:.2} MiB of tiles against a limit of {:.2} MiB (peak overshoot {:.2} MiB)",
@@ -183,7 +191,11 @@ impl fmt::Display for FlightSummary {
             mib(self.memory_limit_bytes),
             mib(self.peak_overshoot_bytes)
         )?;
-        writeln!(f, "  square    {} complete belts at the end", self.final_complete_belts)?;
+        writeln!(
+            f,
+            "  square    {} complete belts at the end",
+            self.final_complete_belts
+        )?;
         writeln!(
             f,
             "  network   {} tiles, {:.2} MiB downloaded ({:.2} MiB evicted before use), {} retries, {} failures",
@@ -196,17 +208,27 @@ impl fmt::Display for FlightSummary {
         if let Some(rss) = self.peak_rss_bytes {
             writeln!(f, "  process   peak RSS {:.1} MiB", mib(rss))?;
         }
-        writeln!(f, "  wrote     {} and {}", self.csv.display(), self.chart.display())
+        writeln!(
+            f,
+            "  wrote     {} and {}",
+            self.csv.display(),
+            self.chart.display()
+        )
     }
 }
 
 /// Flies `args`' path against its server. Must run inside a multi-threaded tokio runtime.
 pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 1000.0) {
-        return Err(FlightError::BadOption(format!("--fps {} must be in (0, 1000]", args.fps)));
+        return Err(FlightError::BadOption(format!(
+            "--fps {} must be in (0, 1000]",
+            args.fps
+        )));
     }
     if args.concurrency == 0 {
-        return Err(FlightError::BadOption("--concurrency must be at least 1".into()));
+        return Err(FlightError::BadOption(
+            "--concurrency must be at least 1".into(),
+        ));
     }
     let budget = MemoryBudget::new(args.memory, args.limit_percent)?;
     let client = TileClient::new(&args.server)?;
@@ -215,10 +237,21 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),
     };
-    std::fs::create_dir_all(&args.out).map_err(|source| FlightError::Write { path: args.out.clone(), source })?;
+    std::fs::create_dir_all(&args.out).map_err(|source| FlightError::Write {
+        path: args.out.clone(),
+        source,
+    })?;
 
-    let config = FetcherConfig { concurrency: args.concurrency, ..FetcherConfig::default() };
-    let mut fetcher = Fetcher::new(client, Arc::clone(&manifest), config, tokio::runtime::Handle::current());
+    let config = FetcherConfig {
+        concurrency: args.concurrency,
+        ..FetcherConfig::default()
+    };
+    let mut fetcher = Fetcher::new(
+        client,
+        Arc::clone(&manifest),
+        config,
+        tokio::runtime::Handle::current(),
+    );
     let pager = PagerConfig {
         columns: manifest.grid.columns,
         rows: manifest.grid.rows,
@@ -226,10 +259,16 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         nearest_when_outside: !args.no_nearest_when_outside,
     };
     let frames = (path.duration_s() * args.fps).ceil() as u64 + 1;
-    let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(frames) };
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(frames)
+    };
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} flying [{elapsed_precise}] {wide_bar} {pos}/{len} frames {msg}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template(
+            "{spinner} flying [{elapsed_precise}] {wide_bar} {pos}/{len} frames {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
 
     let mut flight = FlightState::new(&manifest, pager);
@@ -241,7 +280,13 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         ticker.tick().await;
         let time_s = frame as f64 / args.fps;
         let position = path.position_at(time_s);
-        let record = flight.frame(&mut fetcher, frame, time_s, started.elapsed().as_secs_f64(), position)?;
+        let record = flight.frame(
+            &mut fetcher,
+            frame,
+            time_s,
+            started.elapsed().as_secs_f64(),
+            position,
+        )?;
         bar.set_position(frame + 1);
         bar.set_message(format!(
             "{} tiles, {:.1}/{:.1} MiB",
@@ -262,7 +307,10 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         text.push_str(&record.csv_row());
         text.push('\n');
     }
-    std::fs::write(&csv, text).map_err(|source| FlightError::Write { path: csv.clone(), source })?;
+    std::fs::write(&csv, text).map_err(|source| FlightError::Write {
+        path: csv.clone(),
+        source,
+    })?;
     let chart = args.out.join("flight.png");
     crate::charts::flight_chart(&records, &manifest.dataset, &chart)?;
 
@@ -275,7 +323,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         wall_s: started.elapsed().as_secs_f64(),
         memory_limit_bytes: budget.limit_bytes(),
         peak_resident_bytes: records.iter().map(|r| r.resident_bytes).max().unwrap_or(0),
-        peak_overshoot_bytes: records.iter().map(|r| r.resident_bytes.saturating_sub(r.memory_limit_bytes)).max().unwrap_or(0),
+        peak_overshoot_bytes: records
+            .iter()
+            .map(|r| r.resident_bytes.saturating_sub(r.memory_limit_bytes))
+            .max()
+            .unwrap_or(0),
         final_complete_belts: last.as_ref().map_or(0, |r| r.complete_belts),
         tiles_fetched: flight.tiles_fetched,
         bytes_downloaded: stats.bytes_downloaded,
@@ -316,7 +368,11 @@ impl FlightState {
             pager,
             tiles: vec![None; count],
             resident_bytes: vec![0; count],
-            expected_bytes: manifest.tiles.iter().map(|t| expected_tile_bytes(manifest, t).total()).collect(),
+            expected_bytes: manifest
+                .tiles
+                .iter()
+                .map(|t| expected_tile_bytes(manifest, t).total())
+                .collect(),
             in_flight: vec![false; count],
             tiles_fetched: 0,
             evicted_unused_bytes: 0,
@@ -338,7 +394,13 @@ impl FlightState {
     ) -> Result<FrameRecord, FlightError> {
         for event in fetcher.poll() {
             match event {
-                FetchEvent::Tile { id, heights, heights_bytes, coarsest_texture, .. } => {
+                FetchEvent::Tile {
+                    id,
+                    heights,
+                    heights_bytes,
+                    coarsest_texture,
+                    ..
+                } => {
                     let bytes = TileBytes {
                         decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
                         textures: coarsest_texture.len() as u64,
@@ -368,8 +430,16 @@ impl FlightState {
                     // A tile the server refuses (4xx) will never arrive: the flight cannot
                     // complete its square, so it stops with the server's reason. Corrupt or
                     // unreachable tiles are asked for again by the pager on a later frame.
-                    if !error.is_transient() && !matches!(error, FetchError::HashMismatch { .. } | FetchError::Decode { .. }) {
-                        return Err(FlightError::TileFailed { id, message: error.to_string() });
+                    if !error.is_transient()
+                        && !matches!(
+                            error,
+                            FetchError::HashMismatch { .. } | FetchError::Decode { .. }
+                        )
+                    {
+                        return Err(FlightError::TileFailed {
+                            id,
+                            message: error.to_string(),
+                        });
                     }
                     tracing::warn!(tile = %id, error = %error, "tile failed after retries; it will be requested again");
                 }
@@ -377,7 +447,10 @@ impl FlightState {
         }
         self.in_flight.fill(false);
         fetcher.mark_pending(&mut self.in_flight, self.columns);
-        let viewpoint = [position[0] / self.tile_extent_m[0], position[1] / self.tile_extent_m[1]];
+        let viewpoint = [
+            position[0] / self.tile_extent_m[0],
+            position[1] / self.tile_extent_m[1],
+        ];
         let view = PagerView {
             viewpoint,
             resident_bytes: &self.resident_bytes,
@@ -389,10 +462,10 @@ impl FlightState {
         fetcher.cancel(&decision.cancel);
         for &id in &decision.evict {
             let i = self.index(id);
-            if let Some(tile) = self.tiles[i].take() {
-                if !tile.used {
-                    self.evicted_unused_bytes += tile.downloaded;
-                }
+            if let Some(tile) = self.tiles[i].take()
+                && !tile.used
+            {
+                self.evicted_unused_bytes += tile.downloaded;
             }
             self.resident_bytes[i] = 0;
         }
@@ -432,8 +505,15 @@ impl FlightState {
     /// Height of the nearest sample under `position`, if its tile is resident.
     fn ground_under(&self, position: [f64; 3]) -> Option<f64> {
         let cells = f64::from(self.tile_size - 1);
-        let (tx, ty) = (position[0] / self.tile_extent_m[0], position[1] / self.tile_extent_m[1]);
-        if tx < 0.0 || ty < 0.0 || tx >= f64::from(self.columns) || ty >= (self.tiles.len() / self.columns as usize) as f64 {
+        let (tx, ty) = (
+            position[0] / self.tile_extent_m[0],
+            position[1] / self.tile_extent_m[1],
+        );
+        if tx < 0.0
+            || ty < 0.0
+            || tx >= f64::from(self.columns)
+            || ty >= (self.tiles.len() / self.columns as usize) as f64
+        {
             return None;
         }
         let tile = self.tiles[self.index(TileId::new(tx as u32, ty as u32))].as_ref()?;

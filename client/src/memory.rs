@@ -15,11 +15,15 @@ pub const DEFAULT_LIMIT_PERCENT: f64 = 90.0;
 /// Why a budget could not be worked out.
 #[derive(Debug, Error, PartialEq)]
 pub enum MemoryError {
-    #[error("cannot read a memory size from {0:?}: use a number with a unit, e.g. 64MiB, 1.5GiB or 500MB")]
+    #[error(
+        "cannot read a memory size from {0:?}: use a number with a unit, e.g. 64MiB, 1.5GiB or 500MB"
+    )]
     BadSize(String),
     #[error("the limit percentage {0} is not in (0, 100]")]
     BadPercent(f64),
-    #[error("cannot read the available memory from /proc/meminfo ({0}); give a budget with --memory")]
+    #[error(
+        "cannot read the available memory from /proc/meminfo ({0}); give a budget with --memory"
+    )]
     Unavailable(String),
 }
 
@@ -30,7 +34,10 @@ pub struct MemorySize(pub u64);
 impl FromStr for MemorySize {
     type Err = MemoryError;
     fn from_str(text: &str) -> Result<MemorySize, MemoryError> {
-        let size: bytesize::ByteSize = text.trim().parse().map_err(|_| MemoryError::BadSize(text.into()))?;
+        let size: bytesize::ByteSize = text
+            .trim()
+            .parse()
+            .map_err(|_| MemoryError::BadSize(text.into()))?;
         if size.as_u64() == 0 {
             return Err(MemoryError::BadSize(text.into()));
         }
@@ -63,7 +70,11 @@ impl MemoryBudget {
             Some(MemorySize(bytes)) => (bytes, BudgetSource::Given),
             None => (available_memory()?, BudgetSource::Available),
         };
-        Ok(MemoryBudget { budget_bytes, limit_percent: percent, source })
+        Ok(MemoryBudget {
+            budget_bytes,
+            limit_percent: percent,
+            source,
+        })
     }
 
     /// Bytes the pager may fill.
@@ -74,8 +85,10 @@ impl MemoryBudget {
 
 /// `MemAvailable` of /proc/meminfo: what can be allocated without swapping.
 pub fn available_memory() -> Result<u64, MemoryError> {
-    let text = std::fs::read_to_string("/proc/meminfo").map_err(|e| MemoryError::Unavailable(e.to_string()))?;
-    parse_meminfo_available(&text).ok_or_else(|| MemoryError::Unavailable("no MemAvailable line".into()))
+    let text = std::fs::read_to_string("/proc/meminfo")
+        .map_err(|e| MemoryError::Unavailable(e.to_string()))?;
+    parse_meminfo_available(&text)
+        .ok_or_else(|| MemoryError::Unavailable("no MemAvailable line".into()))
 }
 
 fn parse_meminfo_available(text: &str) -> Option<u64> {
@@ -108,7 +121,9 @@ mod tests {
 
     #[test]
     fn sizes_read_binary_and_decimal_units() {
-        let check = |text: &str, bytes: u64| assert_eq!(text.parse::<MemorySize>(), Ok(MemorySize(bytes)), "{text}");
+        let check = |text: &str, bytes: u64| {
+            assert_eq!(text.parse::<MemorySize>(), Ok(MemorySize(bytes)), "{text}")
+        };
         check("64MiB", 64 << 20);
         check("32 MiB", 32 << 20);
         check("1GiB", 1 << 30);
@@ -120,10 +135,17 @@ mod tests {
 
     #[test]
     fn the_limit_is_the_percentage_of_the_budget() {
-        let budget = MemoryBudget::new(Some(MemorySize(100 << 20)), DEFAULT_LIMIT_PERCENT).expect("valid");
+        let budget =
+            MemoryBudget::new(Some(MemorySize(100 << 20)), DEFAULT_LIMIT_PERCENT).expect("valid");
         assert_eq!(budget.limit_bytes(), 94_371_840); // 90% of 100 MiB
-        assert_eq!(MemoryBudget::new(None, 0.0), Err(MemoryError::BadPercent(0.0)));
-        assert_eq!(MemoryBudget::new(None, 120.0), Err(MemoryError::BadPercent(120.0)));
+        assert_eq!(
+            MemoryBudget::new(None, 0.0),
+            Err(MemoryError::BadPercent(0.0))
+        );
+        assert_eq!(
+            MemoryBudget::new(None, 120.0),
+            Err(MemoryError::BadPercent(120.0))
+        );
     }
 
     #[test]
@@ -136,7 +158,12 @@ mod tests {
 
     #[test]
     fn tile_bytes_add_up_every_kind() {
-        let bytes = TileBytes { decoded_heights: 2, textures: 4, vertices: 8, gpu: 16 };
+        let bytes = TileBytes {
+            decoded_heights: 2,
+            textures: 4,
+            vertices: 8,
+            gpu: 16,
+        };
         assert_eq!(bytes.total(), 30);
     }
 }

@@ -170,7 +170,11 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
         "in_flight needs one entry per tile, row-major"
     );
     if let Some(expected) = view.expected_bytes {
-        assert_eq!(expected.len(), tiles, "expected_bytes needs one entry per tile, row-major");
+        assert_eq!(
+            expected.len(),
+            tiles,
+            "expected_bytes needs one entry per tile, row-major"
+        );
     }
     let current = current_tile(config, view.viewpoint);
     let belt_count = belt_count(config, current);
@@ -983,7 +987,9 @@ mod tests {
             let making_room = view.expected_bytes.is_some()
                 && d.complete_belts > 0
                 && d.used_bytes + next_belt_needs > limit
-                && d.evict.iter().all(|&id| belt_of(d.current, id) > d.complete_belts);
+                && d.evict
+                    .iter()
+                    .all(|&id| belt_of(d.current, id) > d.complete_belts);
             assert!(d.evict.is_empty() || ((d.used_bytes > limit || making_room) && !d.loading));
             // ...and that belt is the farthest holding any tile (the paper's dp); with nothing
             // evicted over the limit, every resident tile is in the square.

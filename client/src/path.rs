@@ -37,11 +37,18 @@ pub struct Keyframe {
 #[derive(Debug, Error)]
 pub enum PathError {
     #[error("cannot read flight path {path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("flight path {path} is not valid JSON for a path: {message}")]
     Json { path: String, message: String },
     #[error("flight path {path}, line {line}: {message}")]
-    Csv { path: String, line: usize, message: String },
+    Csv {
+        path: String,
+        line: usize,
+        message: String,
+    },
     #[error("flight path {path}: {message}")]
     Invalid { path: String, message: String },
 }
@@ -78,10 +85,15 @@ impl CameraPath {
         }
         for (i, k) in keyframes.iter().enumerate() {
             if ![k.t, k.x, k.y, k.z].iter().all(|v| v.is_finite()) {
-                return Err(format!("keyframe {i} has a value that is not a finite number"));
+                return Err(format!(
+                    "keyframe {i} has a value that is not a finite number"
+                ));
             }
             if i > 0 && k.t < keyframes[i - 1].t {
-                return Err(format!("keyframe {i} at t = {} s comes before the previous one", k.t));
+                return Err(format!(
+                    "keyframe {i} at t = {} s comes before the previous one",
+                    k.t
+                ));
             }
         }
         Ok(CameraPath { keyframes })
@@ -90,10 +102,22 @@ impl CameraPath {
     /// Reads a `.json` or `.csv` path; `extent` units are resolved against `manifest`.
     pub fn load(path: &Path, manifest: &Manifest) -> Result<CameraPath, PathError> {
         let name = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| PathError::Io { path: name.clone(), source })?;
-        let is_csv = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("csv"));
-        let keyframes = if is_csv { parse_csv(&text, &name)? } else { parse_json(&text, &name, manifest)? };
-        CameraPath::new(keyframes).map_err(|message| PathError::Invalid { path: name, message })
+        let text = std::fs::read_to_string(path).map_err(|source| PathError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        let is_csv = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("csv"));
+        let keyframes = if is_csv {
+            parse_csv(&text, &name)?
+        } else {
+            parse_json(&text, &name, manifest)?
+        };
+        CameraPath::new(keyframes).map_err(|message| PathError::Invalid {
+            path: name,
+            message,
+        })
     }
 
     /// A lap over the whole terrain: the four quadrants in turn, then the centre, at
@@ -101,19 +125,42 @@ impl CameraPath {
     /// [`DEFAULT_HOLD_S`] hold.
     pub fn default_for(manifest: &Manifest) -> CameraPath {
         let [w, h] = manifest.extent_m;
-        let tile_m = f64::from(manifest.tile_size - 1) * manifest.spacing_m[0].max(manifest.spacing_m[1]);
+        let tile_m =
+            f64::from(manifest.tile_size - 1) * manifest.spacing_m[0].max(manifest.spacing_m[1]);
         let z = manifest.heights.max_m + 0.05 * w.max(h);
-        let stops = [(0.15, 0.15), (0.85, 0.15), (0.85, 0.85), (0.15, 0.85), (0.5, 0.5)];
-        let length_m: f64 = stops.windows(2).map(|p| ((p[1].0 - p[0].0) * w).hypot((p[1].1 - p[0].1) * h)).sum();
+        let stops = [
+            (0.15, 0.15),
+            (0.85, 0.15),
+            (0.85, 0.85),
+            (0.15, 0.85),
+            (0.5, 0.5),
+        ];
+        let length_m: f64 = stops
+            .windows(2)
+            .map(|p| ((p[1].0 - p[0].0) * w).hypot((p[1].1 - p[0].1) * h))
+            .sum();
         let moving_s = (length_m / tile_m / DEFAULT_SPEED_TILES_PER_S).max(DEFAULT_MIN_MOVING_S);
         let mut t = 0.0;
-        let mut keyframes = vec![Keyframe { t, x: stops[0].0 * w, y: stops[0].1 * h, z }];
+        let mut keyframes = vec![Keyframe {
+            t,
+            x: stops[0].0 * w,
+            y: stops[0].1 * h,
+            z,
+        }];
         for p in stops.windows(2) {
             t += moving_s * ((p[1].0 - p[0].0) * w).hypot((p[1].1 - p[0].1) * h) / length_m;
-            keyframes.push(Keyframe { t, x: p[1].0 * w, y: p[1].1 * h, z });
+            keyframes.push(Keyframe {
+                t,
+                x: p[1].0 * w,
+                y: p[1].1 * h,
+                z,
+            });
         }
         let last = keyframes[keyframes.len() - 1];
-        keyframes.push(Keyframe { t: t + DEFAULT_HOLD_S, ..last });
+        keyframes.push(Keyframe {
+            t: t + DEFAULT_HOLD_S,
+            ..last
+        });
         CameraPath { keyframes }
     }
 
@@ -138,39 +185,74 @@ impl CameraPath {
             return [l.x, l.y, l.z];
         }
         let (a, b) = (k[next - 1], k[next]);
-        let f = if b.t > a.t { (t - a.t) / (b.t - a.t) } else { 1.0 };
-        [a.x + (b.x - a.x) * f, a.y + (b.y - a.y) * f, a.z + (b.z - a.z) * f]
+        let f = if b.t > a.t {
+            (t - a.t) / (b.t - a.t)
+        } else {
+            1.0
+        };
+        [
+            a.x + (b.x - a.x) * f,
+            a.y + (b.y - a.y) * f,
+            a.z + (b.z - a.z) * f,
+        ]
     }
 }
 
 fn parse_json(text: &str, name: &str, manifest: &Manifest) -> Result<Vec<Keyframe>, PathError> {
-    let file: PathFile =
-        serde_json::from_str(text).map_err(|e| PathError::Json { path: name.into(), message: e.to_string() })?;
+    let file: PathFile = serde_json::from_str(text).map_err(|e| PathError::Json {
+        path: name.into(),
+        message: e.to_string(),
+    })?;
     Ok(match file.units {
         Units::Metres => file.keyframes,
         Units::Extent => file
             .keyframes
             .into_iter()
-            .map(|k| Keyframe { x: k.x * manifest.extent_m[0], y: k.y * manifest.extent_m[1], ..k })
+            .map(|k| Keyframe {
+                x: k.x * manifest.extent_m[0],
+                y: k.y * manifest.extent_m[1],
+                ..k
+            })
             .collect(),
     })
 }
 
 fn parse_csv(text: &str, name: &str) -> Result<Vec<Keyframe>, PathError> {
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
     let header: Vec<String> = lines
         .next()
-        .map(|(_, l)| l.split(',').map(|c| c.trim().to_ascii_lowercase()).collect())
+        .map(|(_, l)| {
+            l.split(',')
+                .map(|c| c.trim().to_ascii_lowercase())
+                .collect()
+        })
         .unwrap_or_default();
     if header != ["t", "x", "y", "z"] {
-        return Err(PathError::Csv { path: name.into(), line: 1, message: "the header must be t,x,y,z".into() });
+        return Err(PathError::Csv {
+            path: name.into(),
+            line: 1,
+            message: "the header must be t,x,y,z".into(),
+        });
     }
     lines
         .map(|(i, line)| {
-            let values: Result<Vec<f64>, _> = line.split(',').map(|v| v.trim().parse::<f64>()).collect();
+            let values: Result<Vec<f64>, _> =
+                line.split(',').map(|v| v.trim().parse::<f64>()).collect();
             match values.as_deref() {
-                Ok([t, x, y, z]) => Ok(Keyframe { t: *t, x: *x, y: *y, z: *z }),
-                _ => Err(PathError::Csv { path: name.into(), line: i + 1, message: format!("expected four numbers, got {line:?}") }),
+                Ok([t, x, y, z]) => Ok(Keyframe {
+                    t: *t,
+                    x: *x,
+                    y: *y,
+                    z: *z,
+                }),
+                _ => Err(PathError::Csv {
+                    path: name.into(),
+                    line: i + 1,
+                    message: format!("expected four numbers, got {line:?}"),
+                }),
             }
         })
         .collect()
@@ -181,15 +263,30 @@ mod tests {
     use super::*;
 
     fn path(points: &[(f64, f64, f64, f64)]) -> CameraPath {
-        CameraPath::new(points.iter().map(|&(t, x, y, z)| Keyframe { t, x, y, z }).collect()).expect("valid")
+        CameraPath::new(
+            points
+                .iter()
+                .map(|&(t, x, y, z)| Keyframe { t, x, y, z })
+                .collect(),
+        )
+        .expect("valid")
     }
 
     #[test]
     fn positions_interpolate_between_keyframes_and_hold_at_the_ends() {
-        let p = path(&[(0.0, 0.0, 0.0, 10.0), (2.0, 100.0, 50.0, 10.0), (2.0, 0.0, 0.0, 0.0), (3.0, 0.0, 10.0, 0.0)]);
+        let p = path(&[
+            (0.0, 0.0, 0.0, 10.0),
+            (2.0, 100.0, 50.0, 10.0),
+            (2.0, 0.0, 0.0, 0.0),
+            (3.0, 0.0, 10.0, 0.0),
+        ]);
         assert_eq!(p.position_at(-1.0), [0.0, 0.0, 10.0]);
         assert_eq!(p.position_at(1.0), [50.0, 25.0, 10.0]);
-        assert_eq!(p.position_at(2.0), [0.0, 0.0, 0.0], "two keyframes at one time: a jump");
+        assert_eq!(
+            p.position_at(2.0),
+            [0.0, 0.0, 0.0],
+            "two keyframes at one time: a jump"
+        );
         assert_eq!(p.position_at(2.5), [0.0, 5.0, 0.0]);
         assert_eq!(p.position_at(9.0), [0.0, 10.0, 0.0]);
         assert_eq!(p.duration_s(), 3.0);
@@ -198,15 +295,55 @@ mod tests {
     #[test]
     fn invalid_paths_say_what_is_wrong() {
         assert!(CameraPath::new(vec![]).is_err());
-        let back = vec![Keyframe { t: 1.0, x: 0.0, y: 0.0, z: 0.0 }, Keyframe { t: 0.5, x: 0.0, y: 0.0, z: 0.0 }];
-        assert!(CameraPath::new(back).expect_err("time runs back").contains("before"));
-        assert!(matches!(parse_csv("t,x,y\n0,1,2\n", "p.csv"), Err(PathError::Csv { line: 1, .. })));
-        assert!(matches!(parse_csv("t,x,y,z\n0,1,2\n", "p.csv"), Err(PathError::Csv { line: 2, .. })));
+        let back = vec![
+            Keyframe {
+                t: 1.0,
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+            },
+            Keyframe {
+                t: 0.5,
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+            },
+        ];
+        assert!(
+            CameraPath::new(back)
+                .expect_err("time runs back")
+                .contains("before")
+        );
+        assert!(matches!(
+            parse_csv("t,x,y\n0,1,2\n", "p.csv"),
+            Err(PathError::Csv { line: 1, .. })
+        ));
+        assert!(matches!(
+            parse_csv("t,x,y,z\n0,1,2\n", "p.csv"),
+            Err(PathError::Csv { line: 2, .. })
+        ));
     }
 
     #[test]
     fn csv_paths_read_metres() {
-        let k = parse_csv("# a comment\nt, x, y, z\n0,1,2,3\n\n1.5,4,5,6\n", "p.csv").expect("valid");
-        assert_eq!(k, vec![Keyframe { t: 0.0, x: 1.0, y: 2.0, z: 3.0 }, Keyframe { t: 1.5, x: 4.0, y: 5.0, z: 6.0 }]);
+        let k =
+            parse_csv("# a comment\nt, x, y, z\n0,1,2,3\n\n1.5,4,5,6\n", "p.csv").expect("valid");
+        assert_eq!(
+            k,
+            vec![
+                Keyframe {
+                    t: 0.0,
+                    x: 1.0,
+                    y: 2.0,
+                    z: 3.0
+                },
+                Keyframe {
+                    t: 1.5,
+                    x: 4.0,
+                    y: 5.0,
+                    z: 6.0
+                }
+            ]
+        );
     }
 }

@@ -23,18 +23,33 @@ const TILE_SIZE: u32 = 129;
 const MEASURE_FOR: Duration = Duration::from_secs(2);
 
 fn main() {
-    let mut paths: Vec<PathBuf> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).map(PathBuf::from).collect();
+    let mut paths: Vec<PathBuf> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .map(PathBuf::from)
+        .collect();
     if paths.is_empty() {
         let Some(dir) = std::env::var_os("TERRAIN_DATA_DIR") else {
-            eprintln!("usage: cargo bench -p terrain-server --bench codec -- DEM...  (or set TERRAIN_DATA_DIR)");
+            eprintln!(
+                "usage: cargo bench -p terrain-server --bench codec -- DEM...  (or set TERRAIN_DATA_DIR)"
+            );
             std::process::exit(2);
         };
         let dir = PathBuf::from(dir);
-        paths = vec![dir.join("puget_sound_1k/ps_height_1k.png"), dir.join("himalaya_4097/g10g_himalaya_4097.png")];
+        paths = vec![
+            dir.join("puget_sound_1k/ps_height_1k.png"),
+            dir.join("himalaya_4097/g10g_himalaya_4097.png"),
+        ];
     }
-    println!("machine: {} ({} cores); decode on one thread", cpu_model(), std::thread::available_parallelism().map_or(1, |n| n.get()));
+    println!(
+        "machine: {} ({} cores); decode on one thread",
+        cpu_model(),
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
     println!();
-    println!("| DEM | tiles | this codec B/sample | PNG-16 B/sample | zstd-19 raw B/sample | entropy floor | vs PNG-16 | vs zstd | decode Msamples/s | zstd raw decode | PNG decode | decode vs zstd raw |");
+    println!(
+        "| DEM | tiles | this codec B/sample | PNG-16 B/sample | zstd-19 raw B/sample | entropy floor | vs PNG-16 | vs zstd | decode Msamples/s | zstd raw decode | PNG decode | decode vs zstd raw |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for path in paths {
         bench(&path);
@@ -50,18 +65,45 @@ fn bench(path: &std::path::Path) {
         }
     };
     let grid = tiles::Grid::covering(raster.width, raster.height, TILE_SIZE);
-    let cut: Vec<_> =
-        grid.tiles().map(|id| tiles::cut(&raster.codes, raster.width, raster.height, grid, id, 1.0, 0.0)).collect();
+    let cut: Vec<_> = grid
+        .tiles()
+        .map(|id| {
+            tiles::cut(
+                &raster.codes,
+                raster.width,
+                raster.height,
+                grid,
+                id,
+                1.0,
+                0.0,
+            )
+        })
+        .collect();
     let samples: usize = cut.iter().map(|t| t.heights.codes.len()).sum();
 
-    let ours: Vec<Vec<u8>> = cut.iter().map(|t| t.heights.encode().expect("encodes")).collect();
-    let raw: Vec<Vec<u8>> =
-        cut.iter().map(|t| t.heights.codes.iter().flat_map(|&c| (c as u16).to_le_bytes()).collect()).collect();
-    let zstd_raw: Vec<Vec<u8>> = raw.iter().map(|r| zstd::bulk::compress(r, 19).expect("zstd")).collect();
+    let ours: Vec<Vec<u8>> = cut
+        .iter()
+        .map(|t| t.heights.encode().expect("encodes"))
+        .collect();
+    let raw: Vec<Vec<u8>> = cut
+        .iter()
+        .map(|t| {
+            t.heights
+                .codes
+                .iter()
+                .flat_map(|&c| (c as u16).to_le_bytes())
+                .collect()
+        })
+        .collect();
+    let zstd_raw: Vec<Vec<u8>> = raw
+        .iter()
+        .map(|r| zstd::bulk::compress(r, 19).expect("zstd"))
+        .collect();
     let png: Vec<Vec<u8>> = cut.iter().map(|t| png16(&t.heights)).collect();
     let entropy = residual_entropy_bytes(&cut);
 
-    let size = |blobs: &[Vec<u8>]| blobs.iter().map(Vec::len).sum::<usize>() as f64 / samples as f64;
+    let size =
+        |blobs: &[Vec<u8>]| blobs.iter().map(Vec::len).sum::<usize>() as f64 / samples as f64;
     let (ours_b, png_b, zstd_b) = (size(&ours), size(&png), size(&zstd_raw));
 
     let ours_rate = rate(samples, || {
@@ -73,7 +115,11 @@ fn bench(path: &std::path::Path) {
     let mut decompressor = zstd::bulk::Decompressor::new().expect("zstd context");
     let zstd_rate = rate(samples, || {
         for blob in &zstd_raw {
-            std::hint::black_box(decompressor.decompress_to_buffer(blob, &mut buffer).expect("zstd"));
+            std::hint::black_box(
+                decompressor
+                    .decompress_to_buffer(blob, &mut buffer)
+                    .expect("zstd"),
+            );
         }
     });
     let png_rate = rate(samples, || {
@@ -81,7 +127,10 @@ fn bench(path: &std::path::Path) {
             std::hint::black_box(image::load_from_memory(blob).expect("png"));
         }
     });
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     println!(
         "| {name} | {} | {ours_b:.3} | {png_b:.3} | {zstd_b:.3} | {entropy:.3} | {:.2}x smaller | {:.2}x smaller | {ours_rate:.0} | {zstd_rate:.0} | {png_rate:.0} | {:.2}x |",
         cut.len(),
@@ -106,11 +155,19 @@ fn rate(samples: usize, mut pass: impl FnMut()) -> f64 {
 fn png16(heights: &Heights) -> Vec<u8> {
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let pixels: Vec<u16> = heights.codes.iter().map(|&c| c as u16).collect();
-    let image = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(u32::from(heights.width), u32::from(heights.height), pixels)
-        .expect("sized");
+    let image = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(
+        u32::from(heights.width),
+        u32::from(heights.height),
+        pixels,
+    )
+    .expect("sized");
     let mut out = std::io::Cursor::new(Vec::new());
     image
-        .write_with_encoder(PngEncoder::new_with_quality(&mut out, CompressionType::Best, FilterType::Adaptive))
+        .write_with_encoder(PngEncoder::new_with_quality(
+            &mut out,
+            CompressionType::Best,
+            FilterType::Adaptive,
+        ))
         .expect("png");
     out.into_inner()
 }
@@ -127,18 +184,27 @@ fn residual_entropy_bytes(tiles: &[tiles::TileSamples]) -> f64 {
                 let west = if x > 0 { at(x - 1, y) } else { 0 };
                 let north = if y > 0 { at(x, y - 1) } else { 0 };
                 let north_west = if x > 0 && y > 0 { at(x - 1, y - 1) } else { 0 };
-                *counts.entry(at(x, y) - (west + north - north_west)).or_default() += 1;
+                *counts
+                    .entry(at(x, y) - (west + north - north_west))
+                    .or_default() += 1;
                 total += 1;
             }
         }
     }
-    let bits: f64 = counts.values().map(|&c| -(c as f64) * (c as f64 / total as f64).log2()).sum();
+    let bits: f64 = counts
+        .values()
+        .map(|&c| -(c as f64) * (c as f64 / total as f64).log2())
+        .sum();
     bits / total as f64 / 8.0
 }
 
 fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|text| text.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string()))
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
+        })
         .unwrap_or_else(|| "unknown CPU".into())
 }

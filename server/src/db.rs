@@ -33,13 +33,33 @@ pub const TEXTURES_PACK: &str = "textures.pack";
 #[derive(Debug, Error)]
 pub enum DbError {
     #[error("cannot read {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path} is not a usable manifest: {source}")]
-    Manifest { path: PathBuf, source: ManifestError },
-    #[error("{pack} is {found} bytes but the manifest lists {expected} bytes of blobs: the database is damaged or incomplete")]
-    PackSize { pack: PathBuf, expected: u64, found: u64 },
-    #[error("{what} of tile {id} in {pack} does not match its hash (expected {expected}, found {found}): the database is damaged")]
-    HashMismatch { pack: PathBuf, id: TileId, what: String, expected: String, found: String },
+    Manifest {
+        path: PathBuf,
+        source: ManifestError,
+    },
+    #[error(
+        "{pack} is {found} bytes but the manifest lists {expected} bytes of blobs: the database is damaged or incomplete"
+    )]
+    PackSize {
+        pack: PathBuf,
+        expected: u64,
+        found: u64,
+    },
+    #[error(
+        "{what} of tile {id} in {pack} does not match its hash (expected {expected}, found {found}): the database is damaged"
+    )]
+    HashMismatch {
+        pack: PathBuf,
+        id: TileId,
+        what: String,
+        expected: String,
+        found: String,
+    },
 }
 
 /// Whether [`TileDb::open`] hashes every blob (a full read of the packs) before serving.
@@ -72,25 +92,45 @@ impl TileDb {
     /// Opens the database in `dir`, checking pack sizes and, with [`Verify::Hashes`], every hash.
     pub fn open(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
         let manifest_path = dir.join(MANIFEST_FILE);
-        let manifest_json = std::fs::read(&manifest_path)
-            .map_err(|source| DbError::Io { path: manifest_path.clone(), source })?;
-        let manifest = Manifest::from_json(&manifest_json)
-            .map_err(|source| DbError::Manifest { path: manifest_path.clone(), source })?;
+        let manifest_json = std::fs::read(&manifest_path).map_err(|source| DbError::Io {
+            path: manifest_path.clone(),
+            source,
+        })?;
+        let manifest = Manifest::from_json(&manifest_json).map_err(|source| DbError::Manifest {
+            path: manifest_path.clone(),
+            source,
+        })?;
 
         let heights_path = dir.join(HEIGHTS_PACK);
         let heights_pack = map_file(&heights_path)?;
         let textures_path = dir.join(TEXTURES_PACK);
         let textures_pack = map_file(&textures_path)?;
 
-        let heights = slice_pack(&heights_pack, &heights_path, manifest.tiles.iter().map(|t| {
-            (t.id(), "heights".to_string(), &t.heights)
-        }), verify)?;
-        let flat_textures = slice_pack(&textures_pack, &textures_path, manifest.tiles.iter().flat_map(|t| {
-            t.texture.iter().enumerate().map(move |(level, blob)| (t.id(), format!("texture level {level}"), blob))
-        }), verify)?;
+        let heights = slice_pack(
+            &heights_pack,
+            &heights_path,
+            manifest
+                .tiles
+                .iter()
+                .map(|t| (t.id(), "heights".to_string(), &t.heights)),
+            verify,
+        )?;
+        let flat_textures = slice_pack(
+            &textures_pack,
+            &textures_path,
+            manifest.tiles.iter().flat_map(|t| {
+                t.texture
+                    .iter()
+                    .enumerate()
+                    .map(move |(level, blob)| (t.id(), format!("texture level {level}"), blob))
+            }),
+            verify,
+        )?;
         let levels = manifest.texture.levels as usize;
         let mut flat = flat_textures.into_iter();
-        let textures = (0..manifest.tiles.len()).map(|_| flat.by_ref().take(levels).collect()).collect();
+        let textures = (0..manifest.tiles.len())
+            .map(|_| flat.by_ref().take(levels).collect())
+            .collect();
 
         Ok(TileDb {
             dir: dir.to_path_buf(),
@@ -132,14 +172,18 @@ impl TileDb {
 
     fn index(&self, id: TileId) -> Option<usize> {
         let grid = self.manifest.grid;
-        (id.x < grid.columns && id.y < grid.rows).then(|| id.y as usize * grid.columns as usize + id.x as usize)
+        (id.x < grid.columns && id.y < grid.rows)
+            .then(|| id.y as usize * grid.columns as usize + id.x as usize)
     }
 }
 
 /// Maps a pack read-only. An empty file cannot be mapped and needs no map.
 #[allow(unsafe_code)]
 fn map_file(path: &Path) -> Result<Bytes, DbError> {
-    let io = |source| DbError::Io { path: path.to_path_buf(), source };
+    let io = |source| DbError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let file = File::open(path).map_err(io)?;
     if file.metadata().map_err(io)?.len() == 0 {
         return Ok(Bytes::new());
@@ -162,7 +206,11 @@ fn slice_pack<'a>(
     let listed: Vec<_> = blobs.collect();
     let expected: u64 = listed.iter().map(|(_, _, b)| b.bytes).sum();
     if expected != pack.len() as u64 {
-        return Err(DbError::PackSize { pack: path.to_path_buf(), expected, found: pack.len() as u64 });
+        return Err(DbError::PackSize {
+            pack: path.to_path_buf(),
+            expected,
+            found: pack.len() as u64,
+        });
     }
     let mut offset = 0usize;
     let mut out = Vec::with_capacity(listed.len());
@@ -181,7 +229,10 @@ fn slice_pack<'a>(
                 });
             }
         }
-        out.push(StoredBlob { bytes, hash: blob.hash.clone() });
+        out.push(StoredBlob {
+            bytes,
+            hash: blob.hash.clone(),
+        });
     }
     Ok(out)
 }
@@ -192,9 +243,16 @@ pub enum WriteError {
     #[error("{0} already exists: pass --force to replace it")]
     Exists(PathBuf),
     #[error("cannot write the database at {path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("the manifest lists {listed} bytes of {pack} but {written} were written")]
-    Mismatch { pack: &'static str, listed: u64, written: u64 },
+    Mismatch {
+        pack: &'static str,
+        listed: u64,
+        written: u64,
+    },
 }
 
 /// Writes a database into a hidden temporary directory beside its destination and
@@ -221,13 +279,19 @@ impl DbWriter {
         if out.exists() && !force {
             return Err(WriteError::Exists(out.to_path_buf()));
         }
-        let io = |source| WriteError::Io { path: out.to_path_buf(), source };
+        let io = |source| WriteError::Io {
+            path: out.to_path_buf(),
+            source,
+        };
         let parent = match out.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         };
         std::fs::create_dir_all(&parent).map_err(io)?;
-        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = out
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let tmp = tempfile::Builder::new()
             .prefix(&format!(".{name}.building-"))
             .tempdir_in(&parent)
@@ -253,7 +317,12 @@ impl DbWriter {
     /// Appends the next tile's heights.
     pub fn add_heights(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
         use std::io::Write;
-        self.heights.write_all(bytes).map_err(|source| WriteError::Io { path: self.out.clone(), source })?;
+        self.heights
+            .write_all(bytes)
+            .map_err(|source| WriteError::Io {
+                path: self.out.clone(),
+                source,
+            })?;
         self.heights_written += bytes.len() as u64;
         Ok(Blob::of(bytes))
     }
@@ -261,7 +330,12 @@ impl DbWriter {
     /// Appends the next texture level (coarsest first within a tile).
     pub fn add_texture(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
         use std::io::Write;
-        self.textures.write_all(bytes).map_err(|source| WriteError::Io { path: self.out.clone(), source })?;
+        self.textures
+            .write_all(bytes)
+            .map_err(|source| WriteError::Io {
+                path: self.out.clone(),
+                source,
+            })?;
         self.textures_written += bytes.len() as u64;
         Ok(Blob::of(bytes))
     }
@@ -270,15 +344,31 @@ impl DbWriter {
     pub fn finish(mut self, manifest: &Manifest) -> Result<PathBuf, WriteError> {
         use std::io::Write;
         let listed_heights: u64 = manifest.tiles.iter().map(|t| t.heights.bytes).sum();
-        let listed_textures: u64 = manifest.tiles.iter().flat_map(|t| &t.texture).map(|b| b.bytes).sum();
+        let listed_textures: u64 = manifest
+            .tiles
+            .iter()
+            .flat_map(|t| &t.texture)
+            .map(|b| b.bytes)
+            .sum();
         if listed_heights != self.heights_written {
-            return Err(WriteError::Mismatch { pack: HEIGHTS_PACK, listed: listed_heights, written: self.heights_written });
+            return Err(WriteError::Mismatch {
+                pack: HEIGHTS_PACK,
+                listed: listed_heights,
+                written: self.heights_written,
+            });
         }
         if listed_textures != self.textures_written {
-            return Err(WriteError::Mismatch { pack: TEXTURES_PACK, listed: listed_textures, written: self.textures_written });
+            return Err(WriteError::Mismatch {
+                pack: TEXTURES_PACK,
+                listed: listed_textures,
+                written: self.textures_written,
+            });
         }
         let out = self.out.clone();
-        let io = |source| WriteError::Io { path: out.clone(), source };
+        let io = |source| WriteError::Io {
+            path: out.clone(),
+            source,
+        };
         for pack in [&mut self.heights, &mut self.textures] {
             pack.flush().map_err(io)?;
             pack.get_ref().sync_all().map_err(io)?;

@@ -81,7 +81,11 @@ pub enum EncodeError {
     #[error("tile of {width}x{height} samples: each side must be between 1 and {MAX_SIDE}")]
     BadSize { width: usize, height: usize },
     #[error("{codes} codes given for a {width}x{height} tile")]
-    WrongLength { codes: usize, width: u16, height: u16 },
+    WrongLength {
+        codes: usize,
+        width: u16,
+        height: u16,
+    },
     #[error("height quantum {0} m is not a positive finite number")]
     BadQuantum(f64),
     #[error("zstd failed: {0}")]
@@ -106,7 +110,10 @@ pub enum DecodeError {
     #[error("heights payload does not decompress: {0}")]
     Zstd(String),
     #[error("decoded codes span {found:?}, the header says {expected:?}")]
-    RangeMismatch { expected: (i32, i32), found: (i32, i32) },
+    RangeMismatch {
+        expected: (i32, i32),
+        found: (i32, i32),
+    },
 }
 
 impl Heights {
@@ -139,7 +146,10 @@ impl Heights {
     pub fn encode_with_level(&self, zstd_level: i32) -> Result<Vec<u8>, EncodeError> {
         let (w, h) = (usize::from(self.width), usize::from(self.height));
         if w == 0 || h == 0 || self.width > MAX_SIDE || self.height > MAX_SIDE {
-            return Err(EncodeError::BadSize { width: w, height: h });
+            return Err(EncodeError::BadSize {
+                width: w,
+                height: h,
+            });
         }
         if self.codes.len() != w * h {
             return Err(EncodeError::WrongLength {
@@ -213,8 +223,9 @@ impl Heights {
         let mut planar = vec![0u8; n * header.planes];
         let mut rest = payload;
         for plane in planar.chunks_exact_mut(n) {
-            let frame_len = zstd::zstd_safe::find_frame_compressed_size(rest)
-                .map_err(|code| DecodeError::Zstd(zstd::zstd_safe::get_error_name(code).to_string()))?;
+            let frame_len = zstd::zstd_safe::find_frame_compressed_size(rest).map_err(|code| {
+                DecodeError::Zstd(zstd::zstd_safe::get_error_name(code).to_string())
+            })?;
             let Some((frame, tail)) = rest.split_at_checked(frame_len) else {
                 return Err(DecodeError::Zstd("frame runs past the payload".into()));
             };
@@ -223,12 +234,17 @@ impl Heights {
                 .ok_or_else(|| DecodeError::Zstd("no zstd context".into()))?
                 .map_err(|e| DecodeError::Zstd(e.to_string()))?;
             if written != n {
-                return Err(DecodeError::Zstd(format!("plane of {written} bytes, {n} expected")));
+                return Err(DecodeError::Zstd(format!(
+                    "plane of {written} bytes, {n} expected"
+                )));
             }
             rest = tail;
         }
         if !rest.is_empty() {
-            return Err(DecodeError::Zstd(format!("{} bytes after the last plane", rest.len())));
+            return Err(DecodeError::Zstd(format!(
+                "{} bytes after the last plane",
+                rest.len()
+            )));
         }
 
         let mut codes = vec![0i32; n];
@@ -302,7 +318,8 @@ impl Header {
             return Err(DecodeError::TruncatedHeader { len: bytes.len() });
         };
         let u16_at = |i: usize| u16::from_le_bytes([head[i], head[i + 1]]);
-        let u32_at = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
+        let u32_at =
+            |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
         let f64_at = |i: usize| {
             let mut b = [0u8; 8];
             b.copy_from_slice(&head[i..i + 8]);
@@ -318,7 +335,10 @@ impl Header {
         let payload_len = u32_at(36) as usize;
         let found = bytes.len() - HEADER_LEN;
         if payload_len != found {
-            return Err(DecodeError::PayloadLength { expected: payload_len, found });
+            return Err(DecodeError::PayloadLength {
+                expected: payload_len,
+                found,
+            });
         }
         let stored = u32_at(CRC_OFFSET);
         let mut crc = crc32fast::Hasher::new();
@@ -344,10 +364,15 @@ impl Header {
             return Err(DecodeError::BadHeader("empty tile"));
         }
         if header.width > MAX_SIDE || header.height > MAX_SIDE {
-            return Err(DecodeError::BadHeader("tile side above the decoder's limit"));
+            return Err(DecodeError::BadHeader(
+                "tile side above the decoder's limit",
+            ));
         }
-        if !(header.quantum_m.is_finite() && header.quantum_m > 0.0 && header.offset_m.is_finite()) {
-            return Err(DecodeError::BadHeader("quantum or offset is not a usable number"));
+        if !(header.quantum_m.is_finite() && header.quantum_m > 0.0 && header.offset_m.is_finite())
+        {
+            return Err(DecodeError::BadHeader(
+                "quantum or offset is not a usable number",
+            ));
         }
         if header.min > header.max {
             return Err(DecodeError::BadHeader("minimum above maximum"));
@@ -385,7 +410,13 @@ mod tests {
                 codes.push(f(x, y));
             }
         }
-        Heights { width, height, quantum_m: 0.1, offset_m: -5.0, codes }
+        Heights {
+            width,
+            height,
+            quantum_m: 0.1,
+            offset_m: -5.0,
+            codes,
+        }
     }
 
     fn check_round_trip(h: &Heights) {
@@ -397,15 +428,23 @@ mod tests {
     fn planes_and_extremes_round_trip() {
         check_round_trip(&tile(1, 1, |_, _| 7));
         check_round_trip(&tile(129, 129, |x, y| (x * 3 + y * 5) as i32)); // a plane: residuals 0
-        check_round_trip(&tile(17, 9, |x, y| if (x + y) % 2 == 0 { i32::MIN } else { i32::MAX }));
-        check_round_trip(&tile(33, 33, |x, y| ((x * 7919 + y * 104729) % 65536) as i32 - 32768));
+        check_round_trip(&tile(17, 9, |x, y| {
+            if (x + y) % 2 == 0 { i32::MIN } else { i32::MAX }
+        }));
+        check_round_trip(&tile(33, 33, |x, y| {
+            ((x * 7919 + y * 104729) % 65536) as i32 - 32768
+        }));
     }
 
     #[test]
     fn a_plane_compresses_to_almost_nothing() {
         let h = tile(129, 129, |x, y| 1000 + (x * 3 + y * 5) as i32);
         let bytes = h.encode().expect("encodes");
-        assert!(bytes.len() < HEADER_LEN + 64, "{} bytes for a plane", bytes.len());
+        assert!(
+            bytes.len() < HEADER_LEN + 64,
+            "{} bytes for a plane",
+            bytes.len()
+        );
     }
 
     #[test]
@@ -413,7 +452,10 @@ mod tests {
         let h = tile(33, 33, |x, y| ((x * x + 3 * y) % 500) as i32);
         let bytes = h.encode().expect("encodes");
         for len in 0..bytes.len() {
-            assert!(Heights::decode(&bytes[..len]).is_err(), "truncated to {len} bytes");
+            assert!(
+                Heights::decode(&bytes[..len]).is_err(),
+                "truncated to {len} bytes"
+            );
         }
         for bit in 0..bytes.len() * 8 {
             let mut corrupt = bytes.clone();
@@ -430,7 +472,10 @@ mod tests {
         let mut h = tile(4, 4, |_, _| 0);
         h.quantum_m = 0.0;
         assert_eq!(h.encode(), Err(EncodeError::BadQuantum(0.0)));
-        assert!(matches!(tile(0, 4, |_, _| 0).encode(), Err(EncodeError::BadSize { .. })));
+        assert!(matches!(
+            tile(0, 4, |_, _| 0).encode(),
+            Err(EncodeError::BadSize { .. })
+        ));
     }
 
     proptest! {

@@ -161,14 +161,20 @@ pub struct Blob {
 
 impl Blob {
     pub fn of(bytes: &[u8]) -> Blob {
-        Blob { hash: content_hash(bytes), bytes: bytes.len() as u64 }
+        Blob {
+            hash: content_hash(bytes),
+            bytes: bytes.len() as u64,
+        }
     }
 }
 
 /// The content hash used everywhere: BLAKE3, first 128 bits, lowercase hex.
 pub fn content_hash(bytes: &[u8]) -> String {
     let digest = blake3::hash(bytes);
-    digest.as_bytes()[..16].iter().map(|b| format!("{b:02x}")).collect()
+    digest.as_bytes()[..16]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 /// Why a manifest was refused.
@@ -205,7 +211,9 @@ impl Manifest {
             return Err(ManifestError::WrongFormat(self.format.clone()));
         }
         if self.version != VERSION {
-            return Err(ManifestError::UnsupportedVersion { found: self.version });
+            return Err(ManifestError::UnsupportedVersion {
+                found: self.version,
+            });
         }
         let n = self.tile_size;
         if n < 3 || !(n - 1).is_power_of_two() {
@@ -213,7 +221,12 @@ impl Manifest {
         }
         let expected = (self.grid.columns as usize) * (self.grid.rows as usize);
         if self.tiles.len() != expected {
-            return bad(format!("{} tile records for a {}x{} grid", self.tiles.len(), self.grid.columns, self.grid.rows));
+            return bad(format!(
+                "{} tile records for a {}x{} grid",
+                self.tiles.len(),
+                self.grid.columns,
+                self.grid.rows
+            ));
         }
         if self.mask_levels != crate::mask::level_count(n) {
             return bad(format!("{} mask levels for tiles of {n}", self.mask_levels));
@@ -222,15 +235,27 @@ impl Manifest {
             return bad("texture has no levels".into());
         }
         for (i, tile) in self.tiles.iter().enumerate() {
-            let (x, y) = ((i % self.grid.columns as usize) as u32, (i / self.grid.columns as usize) as u32);
+            let (x, y) = (
+                (i % self.grid.columns as usize) as u32,
+                (i / self.grid.columns as usize) as u32,
+            );
             if (tile.x, tile.y) != (x, y) {
-                return bad(format!("record {i} is tile {}/{}, expected {x}/{y}", tile.x, tile.y));
+                return bad(format!(
+                    "record {i} is tile {}/{}, expected {x}/{y}",
+                    tile.x, tile.y
+                ));
             }
             if tile.mask_errors_m.len() != self.mask_levels as usize {
-                return bad(format!("tile {x}/{y} has {} mask errors", tile.mask_errors_m.len()));
+                return bad(format!(
+                    "tile {x}/{y} has {} mask errors",
+                    tile.mask_errors_m.len()
+                ));
             }
             if tile.texture.len() != self.texture.levels as usize {
-                return bad(format!("tile {x}/{y} has {} texture levels", tile.texture.len()));
+                return bad(format!(
+                    "tile {x}/{y} has {} texture levels",
+                    tile.texture.len()
+                ));
             }
             if tile.valid[0] == 0 || tile.valid[1] == 0 || tile.valid[0] > n || tile.valid[1] > n {
                 return bad(format!("tile {x}/{y} has {:?} valid samples", tile.valid));
@@ -244,7 +269,8 @@ impl Manifest {
         if id.x >= self.grid.columns || id.y >= self.grid.rows {
             return None;
         }
-        self.tiles.get(id.y as usize * self.grid.columns as usize + id.x as usize)
+        self.tiles
+            .get(id.y as usize * self.grid.columns as usize + id.x as usize)
     }
 
     /// Position of sample `(x, y)` of tile `id` in metres from sample (0, 0) of the raster,
@@ -259,7 +285,10 @@ impl Manifest {
 
     /// Content version computed from the grid and every blob hash, as the builder sets it.
     pub fn compute_content_version(&self) -> String {
-        let mut text = format!("{FORMAT}/{VERSION}/{}/{}x{}", self.tile_size, self.grid.columns, self.grid.rows);
+        let mut text = format!(
+            "{FORMAT}/{VERSION}/{}/{}x{}",
+            self.tile_size, self.grid.columns, self.grid.rows
+        );
         for tile in &self.tiles {
             text.push(' ');
             text.push_str(&tile.heights.hash);

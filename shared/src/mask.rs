@@ -95,8 +95,9 @@ mod tests {
     #[test]
     fn planes_have_no_error_at_any_level() {
         let n = 17u32;
-        let plane: Vec<f32> =
-            (0..n * n).map(|i| 3.0 * (i % n) as f32 - 2.0 * (i / n) as f32).collect();
+        let plane: Vec<f32> = (0..n * n)
+            .map(|i| 3.0 * (i % n) as f32 - 2.0 * (i / n) as f32)
+            .collect();
         for level in 0..level_count(n) {
             assert!(max_vertical_error(&plane, n, level) < 1e-3, "level {level}");
         }

@@ -14,10 +14,16 @@ pub const METRICS: &str = "/metrics";
 
 /// Path of the heights of one tile.
 pub fn heights(content_version: &str, id: TileId) -> String {
-    format!("{API_PREFIX}/{content_version}/tiles/{}/{}/heights", id.x, id.y)
+    format!(
+        "{API_PREFIX}/{content_version}/tiles/{}/{}/heights",
+        id.x, id.y
+    )
 }
 
 /// Path of one texture level (0 = coarsest) of one tile.
 pub fn texture(content_version: &str, id: TileId, level: u32) -> String {
-    format!("{API_PREFIX}/{content_version}/tiles/{}/{}/texture/{level}", id.x, id.y)
+    format!(
+        "{API_PREFIX}/{content_version}/tiles/{}/{}/texture/{level}",
+        id.x, id.y
+    )
 }

@@ -36,42 +36,76 @@ fn main() {
         Some(dir) => std::path::PathBuf::from(dir),
         None => {
             let Some(kit) = std::env::var_os("TERRAIN_DATA_DIR") else {
-                eprintln!("usage: cargo bench -p terrain-tests --bench stream -- DATABASE_DIR  (or set TERRAIN_DATA_DIR)");
+                eprintln!(
+                    "usage: cargo bench -p terrain-tests --bench stream -- DATABASE_DIR  (or set TERRAIN_DATA_DIR)"
+                );
                 std::process::exit(2);
             };
             let heights = std::path::Path::new(&kit).join("himalaya_4097/g10g_himalaya_4097.png");
-            build(&BuildOptions::new(&heights, tmp.path().join("db")), &|_, _| {}, &AtomicBool::new(false))
-                .unwrap_or_else(|e| panic!("{}: {e}", heights.display()))
-                .out
+            build(
+                &BuildOptions::new(&heights, tmp.path().join("db")),
+                &|_, _| {},
+                &AtomicBool::new(false),
+            )
+            .unwrap_or_else(|e| panic!("{}: {e}", heights.display()))
+            .out
         }
     };
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("runtime");
-    println!("machine: {} ({} cores); link: 100 Mbit/s token bucket on loopback", cpu_model(), num_cores());
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    println!(
+        "machine: {} ({} cores); link: 100 Mbit/s token bucket on loopback",
+        cpu_model(),
+        num_cores()
+    );
 
     // Baseline: one bulk body through an identical link.
     let synthetic = SyntheticDb::write_with_large_texture(BULK_BYTES).expect("synthetic database");
     let bulk_server = TestServer::start(synthetic.dir());
-    let bulk_proxy = FaultyProxy::start(bulk_server.addr(), FaultPlan::pass_through().with_bandwidth(LINK_BYTES_PER_S));
+    let bulk_proxy = FaultyProxy::start(
+        bulk_server.addr(),
+        FaultPlan::pass_through().with_bandwidth(LINK_BYTES_PER_S),
+    );
     let bulk_rate = runtime.block_on(async {
         let client = TileClient::new(bulk_proxy.base_url()).expect("client");
         let manifest = client.manifest().await.expect("manifest");
         let started = Instant::now();
-        let body = client.texture(&manifest, LARGE_TEXTURE.0, LARGE_TEXTURE.1).await.expect("bulk body");
+        let body = client
+            .texture(&manifest, LARGE_TEXTURE.0, LARGE_TEXTURE.1)
+            .await
+            .expect("bulk body");
         body.len() as f64 / started.elapsed().as_secs_f64()
     });
 
     // Tiles, as a flight fetches them.
     let server = TestServer::start(&db);
     let nominal = LINK_BYTES_PER_S as f64;
-    println!("baseline  bulk body {:>8.2} MB/s = {:.1}% of the link", bulk_rate / 1e6, 100.0 * bulk_rate / nominal);
+    println!(
+        "baseline  bulk body {:>8.2} MB/s = {:.1}% of the link",
+        bulk_rate / 1e6,
+        100.0 * bulk_rate / nominal
+    );
     for concurrency in CONCURRENCY {
-        let proxy = FaultyProxy::start(server.addr(), FaultPlan::pass_through().with_bandwidth(LINK_BYTES_PER_S));
+        let proxy = FaultyProxy::start(
+            server.addr(),
+            FaultPlan::pass_through().with_bandwidth(LINK_BYTES_PER_S),
+        );
         let (tiles, elapsed, payload, wire) = runtime.block_on(async {
             let client = TileClient::new(proxy.base_url()).expect("client");
             let manifest = Arc::new(client.manifest().await.expect("manifest"));
             let wire_before = proxy.stats().bytes_sent;
-            let config = FetcherConfig { concurrency, ..FetcherConfig::default() };
-            let mut fetcher = Fetcher::new(client, Arc::clone(&manifest), config, tokio::runtime::Handle::current());
+            let config = FetcherConfig {
+                concurrency,
+                ..FetcherConfig::default()
+            };
+            let mut fetcher = Fetcher::new(
+                client,
+                Arc::clone(&manifest),
+                config,
+                tokio::runtime::Handle::current(),
+            );
             let started = Instant::now();
             for (rank, tile) in manifest.tiles.iter().enumerate() {
                 fetcher.request(tile.id(), Want::Tile, rank as u64);
@@ -88,7 +122,12 @@ fn main() {
                 tokio::time::sleep(Duration::from_millis(1)).await;
             }
             let elapsed = started.elapsed().as_secs_f64();
-            (delivered, elapsed, fetcher.stats().bytes_downloaded, proxy.stats().bytes_sent - wire_before)
+            (
+                delivered,
+                elapsed,
+                fetcher.stats().bytes_downloaded,
+                proxy.stats().bytes_sent - wire_before,
+            )
         });
         println!(
             "{concurrency:>2} at once {tiles} tiles in {elapsed:.2} s = {:>6.1} tiles/s; link used {:.1}% on the wire ({:.1}% by tile bodies); bodies vs bulk baseline {:.2}x",
@@ -107,6 +146,11 @@ fn num_cores() -> usize {
 fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|t| t.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|s| s.trim().to_string()))
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
         .unwrap_or_else(|| "unknown CPU".into())
 }

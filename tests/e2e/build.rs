@@ -12,7 +12,8 @@ use terrain_tests::data::{geotiff_i16, jacksboro, kit_file, png_codes, workspace
 fn build_into(heights: &Path, dir: &Path, adjust: impl FnOnce(&mut BuildOptions)) -> BuildReport {
     let mut options = BuildOptions::new(heights, dir.join("db"));
     adjust(&mut options);
-    build(&options, &|_, _| {}, &AtomicBool::new(false)).unwrap_or_else(|e| panic!("{}: {e}", heights.display()))
+    build(&options, &|_, _| {}, &AtomicBool::new(false))
+        .unwrap_or_else(|e| panic!("{}: {e}", heights.display()))
 }
 
 /// Decodes every tile of an opened database, row-major.
@@ -22,7 +23,10 @@ fn decoded_tiles(db: &TileDb) -> Vec<(TileId, Heights)> {
         .iter()
         .map(|t| {
             let blob = db.heights(t.id()).expect("tile in grid");
-            (t.id(), Heights::decode(&blob.bytes).unwrap_or_else(|e| panic!("tile {}: {e}", t.id())))
+            (
+                t.id(),
+                Heights::decode(&blob.bytes).unwrap_or_else(|e| panic!("tile {}: {e}", t.id())),
+            )
         })
         .collect()
 }
@@ -40,7 +44,11 @@ fn check_tiles_equal_source(db: &TileDb, source: impl Fn(u32, u32) -> i32) -> us
                 let sx = (id.x * (n - 1) + x).min(m.raster.width - 1);
                 let sy = (id.y * (n - 1) + y).min(m.raster.height - 1);
                 let got = tile.codes[(y * n + x) as usize];
-                assert_eq!(got, source(sx, sy), "tile {id} sample ({x}, {y}) = raster ({sx}, {sy})");
+                assert_eq!(
+                    got,
+                    source(sx, sy),
+                    "tile {id} sample ({x}, {y}) = raster ({sx}, {sy})"
+                );
                 let record = m.tile(id).expect("record");
                 if x < record.valid[0] && y < record.valid[1] {
                     compared += 1;
@@ -63,7 +71,11 @@ fn jacksboro_heights_are_stored_exactly_with_shared_borders() {
     let m = &report.manifest;
     assert_eq!((m.raster.width, m.raster.height), (403, 344));
     assert_eq!((m.grid.columns, m.grid.rows), (4, 3));
-    assert_eq!(m.spacing_m, [74.3, 92.6], "spacing from the fixture's dataset.json");
+    assert_eq!(
+        m.spacing_m,
+        [74.3, 92.6],
+        "spacing from the fixture's dataset.json"
+    );
     assert_eq!(m.texture.source, TextureSource::Generated);
     assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let db = open(&report);
@@ -74,21 +86,36 @@ fn jacksboro_heights_are_stored_exactly_with_shared_borders() {
     for (id, tile) in decoded_tiles(&db) {
         let record = m.tile(id).expect("record");
         let (lo, hi) = tile.code_range();
-        assert_eq!((record.min_m, record.max_m), (lo as f32, hi as f32), "tile {id}");
+        assert_eq!(
+            (record.min_m, record.max_m),
+            (lo as f32, hi as f32),
+            "tile {id}"
+        );
         assert_eq!(record.mask_errors_m[0], 0.0);
-        assert!(record.mask_errors_m.iter().all(|&e| e >= 0.0 && f64::from(e) <= (hi - lo) as f64 + 0.01));
+        assert!(
+            record
+                .mask_errors_m
+                .iter()
+                .all(|&e| e >= 0.0 && f64::from(e) <= (hi - lo) as f64 + 0.01)
+        );
         assert!(record.roughness_m > 0.0);
     }
 }
 
 #[test]
 fn puget_sound_keeps_its_decimetre_heights_and_its_cell_centred_texture() {
-    let Some(heights) = kit_file("puget_sound", "puget_sound_1k/ps_height_1k.png") else { return };
+    let Some(heights) = kit_file("puget_sound", "puget_sound_1k/ps_height_1k.png") else {
+        return;
+    };
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_into(&heights, tmp.path(), |_| {});
     let m = &report.manifest;
     assert_eq!((m.heights.quantum_m, m.spacing_m), (0.1, [160.0, 160.0]));
-    assert!((m.heights.max_m - 4379.8).abs() < 1e-6, "Mt Rainier: {}", m.heights.max_m);
+    assert!(
+        (m.heights.max_m - 4379.8).abs() < 1e-6,
+        "Mt Rainier: {}",
+        m.heights.max_m
+    );
     assert_eq!(m.texture.source, TextureSource::Image);
     assert_eq!(m.texture.size, 128, "one texel per cell, as in the source");
     let db = open(&report);
@@ -98,10 +125,14 @@ fn puget_sound_keeps_its_decimetre_heights_and_its_cell_centred_texture() {
     // Registration: with one texel per cell, texel (i, j) of tile (x, y) is source texel
     // (128 x + i, 128 y + j). Compare a whole tile, and the same tile shifted by one texel,
     // which must match worse: JPEG blurs, a half-texel error would not show, a whole one does.
-    let source = image::open(heights.with_file_name("ps_texture_1k.png")).expect("texture").into_rgb8();
+    let source = image::open(heights.with_file_name("ps_texture_1k.png"))
+        .expect("texture")
+        .into_rgb8();
     let id = TileId::new(3, 2);
     let finest = db.texture(id, m.texture.levels - 1).expect("finest level");
-    let tile = image::load_from_memory(&finest.bytes).expect("jpeg").into_rgb8();
+    let tile = image::load_from_memory(&finest.bytes)
+        .expect("jpeg")
+        .into_rgb8();
     let mean_difference = |shift: i64| {
         let mut total = 0.0;
         for j in 8..120u32 {
@@ -115,22 +146,33 @@ fn puget_sound_keeps_its_decimetre_heights_and_its_cell_centred_texture() {
         total / (112.0 * 112.0)
     };
     let (aligned, shifted) = (mean_difference(0), mean_difference(1));
-    assert!(aligned < 8.0 && aligned * 1.5 < shifted, "aligned {aligned:.2}, shifted by one texel {shifted:.2}");
+    assert!(
+        aligned < 8.0 && aligned * 1.5 < shifted,
+        "aligned {aligned:.2}, shifted by one texel {shifted:.2}"
+    );
 }
 
 #[test]
 fn himalaya_4097_builds_a_32_by_32_grid_with_everest() {
-    let Some(heights) = kit_file("himalaya_4097", "himalaya_4097/g10g_himalaya_4097.png") else { return };
+    let Some(heights) = kit_file("himalaya_4097", "himalaya_4097/g10g_himalaya_4097.png") else {
+        return;
+    };
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_into(&heights, tmp.path(), |_| {});
     let m = &report.manifest;
     assert_eq!((m.grid.columns, m.grid.rows), (32, 32));
     assert_eq!((m.heights.min_m, m.heights.max_m), (0.0, 8752.0));
-    assert!(m.tiles.iter().all(|t| t.valid == [129, 129]), "4097 = 32 * 128 + 1: no padding");
+    assert!(
+        m.tiles.iter().all(|t| t.valid == [129, 129]),
+        "4097 = 32 * 128 + 1: no padding"
+    );
     // Flat sea: tiles that are all zero have no roughness and no mask error at any level.
     let sea: Vec<_> = m.tiles.iter().filter(|t| t.max_m == 0.0).collect();
     assert!(!sea.is_empty());
-    assert!(sea.iter().all(|t| t.roughness_m == 0.0 && t.mask_errors_m.iter().all(|&e| e == 0.0)));
+    assert!(
+        sea.iter()
+            .all(|t| t.roughness_m == 0.0 && t.mask_errors_m.iter().all(|&e| e == 0.0))
+    );
     let db = open(&report);
     let (w, _, codes) = png_codes(&heights);
     check_tiles_equal_source(&db, |x, y| codes[(y * w + x) as usize]);
@@ -138,7 +180,12 @@ fn himalaya_4097_builds_a_32_by_32_grid_with_everest() {
 
 #[test]
 fn grand_canyon_8_bit_heights_keep_their_ten_metre_steps() {
-    let Some(heights) = kit_file("grand_canyon", "grand_canyon_hoppe/gcanyon_elev_crop.bw.png") else { return };
+    let Some(heights) = kit_file(
+        "grand_canyon",
+        "grand_canyon_hoppe/gcanyon_elev_crop.bw.png",
+    ) else {
+        return;
+    };
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_into(&heights, tmp.path(), |_| {});
     let m = &report.manifest;
@@ -152,7 +199,9 @@ fn grand_canyon_8_bit_heights_keep_their_ten_metre_steps() {
 /// SRTM GeoTIFFs: voids are counted exactly, filled without spikes, and every valid
 /// sample is stored unchanged.
 fn check_srtm_geotiff(name: &str) {
-    let Some(tif) = kit_file(name, &format!("srtm_geotiff/{name}")) else { return };
+    let Some(tif) = kit_file(name, &format!("srtm_geotiff/{name}")) else {
+        return;
+    };
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_into(&tif, tmp.path(), |_| {});
     let (w, _, source) = geotiff_i16(&tif);
@@ -167,10 +216,25 @@ fn check_srtm_geotiff(name: &str) {
     assert_eq!(m.heights.filled_voids, voids as u64);
     let georeference = m.georeference.as_ref().expect("GeoTIFF geotransform");
     assert_eq!(georeference.crs.as_deref(), Some("EPSG:4326"));
-    assert!(m.spacing_m[0] < m.spacing_m[1], "3 arc-seconds are narrower east-west away from the equator");
+    assert!(
+        m.spacing_m[0] < m.spacing_m[1],
+        "3 arc-seconds are narrower east-west away from the equator"
+    );
 
-    let valid_min = source.iter().filter(|&&v| v != -32768).min().copied().map(i32::from).expect("valid");
-    let valid_max = source.iter().filter(|&&v| v != -32768).max().copied().map(i32::from).expect("valid");
+    let valid_min = source
+        .iter()
+        .filter(|&&v| v != -32768)
+        .min()
+        .copied()
+        .map(i32::from)
+        .expect("valid");
+    let valid_max = source
+        .iter()
+        .filter(|&&v| v != -32768)
+        .max()
+        .copied()
+        .map(i32::from)
+        .expect("valid");
     let db = open(&report);
     let n = m.tile_size;
     for (id, tile) in decoded_tiles(&db) {
@@ -181,7 +245,10 @@ fn check_srtm_geotiff(name: &str) {
                 let got = tile.codes[(y * n + x) as usize];
                 let original = i32::from(source[(sy * w + sx) as usize]);
                 if original == -32768 {
-                    assert!((valid_min..=valid_max).contains(&got), "{name}: void at ({sx}, {sy}) filled with {got}");
+                    assert!(
+                        (valid_min..=valid_max).contains(&got),
+                        "{name}: void at ({sx}, {sy}) filled with {got}"
+                    );
                 } else {
                     assert_eq!(got, original, "{name}: ({sx}, {sy})");
                 }
@@ -202,7 +269,9 @@ fn mt_fuji_geotiff_voids_are_reported_and_filled() {
 
 #[test]
 fn an_srtm_hgt_file_gives_the_same_heights_as_its_geotiff() {
-    let Some(tif) = kit_file("hgt", "srtm_geotiff/mt_rainier_90m.tif") else { return };
+    let Some(tif) = kit_file("hgt", "srtm_geotiff/mt_rainier_90m.tif") else {
+        return;
+    };
     let tmp = tempfile::tempdir().expect("tempdir");
     // The same 1201^2 int16 samples as SRTM distributes them: big-endian, named by corner.
     let (_, _, samples) = geotiff_i16(&tif);
@@ -212,16 +281,28 @@ fn an_srtm_hgt_file_gives_the_same_heights_as_its_geotiff() {
 
     let from_hgt = build_into(&hgt, &tmp.path().join("a"), |_| {});
     let from_tif = build_into(&tif, &tmp.path().join("b"), |_| {});
-    let georeference = from_hgt.manifest.georeference.clone().expect("from the file name");
+    let georeference = from_hgt
+        .manifest
+        .georeference
+        .clone()
+        .expect("from the file name");
     assert_eq!(georeference.origin, [-122.0, 47.0]);
-    assert_eq!(from_hgt.manifest.heights.filled_voids, from_tif.manifest.heights.filled_voids);
+    assert_eq!(
+        from_hgt.manifest.heights.filled_voids,
+        from_tif.manifest.heights.filled_voids
+    );
     let (a, b) = (open(&from_hgt), open(&from_tif));
     let (ta, tb) = (decoded_tiles(&a), decoded_tiles(&b));
     assert_eq!(ta.len(), tb.len());
     for ((id, x), (_, y)) in ta.iter().zip(&tb) {
         assert_eq!(x.codes, y.codes, "tile {id}");
     }
-    for (s, t) in from_hgt.manifest.spacing_m.iter().zip(from_tif.manifest.spacing_m) {
+    for (s, t) in from_hgt
+        .manifest
+        .spacing_m
+        .iter()
+        .zip(from_tif.manifest.spacing_m)
+    {
         assert!((s - t).abs() < 0.5, "{s} vs {t}");
     }
 }
@@ -232,13 +313,21 @@ fn a_truncated_or_wrong_sized_input_is_a_clear_error() {
     let bytes = std::fs::read(jacksboro()).expect("fixture");
     let truncated = tmp.path().join("truncated.png");
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).expect("write");
-    let error = build(&BuildOptions::new(&truncated, tmp.path().join("db")), &|_, _| {}, &AtomicBool::new(false))
-        .expect_err("a truncated PNG must not build");
+    let error = build(
+        &BuildOptions::new(&truncated, tmp.path().join("db")),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    )
+    .expect_err("a truncated PNG must not build");
     assert!(error.to_string().contains("truncated.png"), "{error}");
     let hgt = tmp.path().join("N10E010.hgt");
     std::fs::write(&hgt, vec![0u8; 1000]).expect("write");
-    let error = build(&BuildOptions::new(&hgt, tmp.path().join("db")), &|_, _| {}, &AtomicBool::new(false))
-        .expect_err("a 1000-byte .hgt must not build");
+    let error = build(
+        &BuildOptions::new(&hgt, tmp.path().join("db")),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    )
+    .expect_err("a 1000-byte .hgt must not build");
     assert!(error.to_string().contains("1201^2"), "{error}");
     assert!(!tmp.path().join("db").exists());
 }
@@ -253,25 +342,47 @@ fn a_damaged_database_is_refused_when_it_opens() {
     bytes[last] ^= 0x40;
     std::fs::write(&pack, &bytes).expect("write");
     match TileDb::open(&report.out, Verify::Hashes) {
-        Err(DbError::HashMismatch { id, .. }) => assert_eq!(id, TileId::new(3, 2), "the last tile holds the last byte"),
+        Err(DbError::HashMismatch { id, .. }) => {
+            assert_eq!(id, TileId::new(3, 2), "the last tile holds the last byte")
+        }
         other => panic!("expected a hash mismatch, got {other:?}"),
     }
     bytes.truncate(last);
     std::fs::write(&pack, &bytes).expect("write");
-    assert!(matches!(TileDb::open(&report.out, Verify::SizesOnly), Err(DbError::PackSize { .. })));
+    assert!(matches!(
+        TileDb::open(&report.out, Verify::SizesOnly),
+        Err(DbError::PackSize { .. })
+    ));
 }
 
 #[test]
 fn an_existing_database_is_replaced_only_with_force() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let first = build_into(&jacksboro(), tmp.path(), |o| o.tile_size = 65);
-    let again = build(&BuildOptions::new(jacksboro(), &first.out), &|_, _| {}, &AtomicBool::new(false));
-    assert!(matches!(again, Err(BuildError::Write(WriteError::Exists(_)))), "{again:?}");
-    assert_eq!(open(&first).manifest().tile_size, 65, "the refused build left the old database alone");
+    let again = build(
+        &BuildOptions::new(jacksboro(), &first.out),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    );
+    assert!(
+        matches!(again, Err(BuildError::Write(WriteError::Exists(_)))),
+        "{again:?}"
+    );
+    assert_eq!(
+        open(&first).manifest().tile_size,
+        65,
+        "the refused build left the old database alone"
+    );
     let mut options = BuildOptions::new(jacksboro(), &first.out);
     options.force = true;
     build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("forced build");
-    assert_eq!(TileDb::open(&first.out, Verify::Hashes).expect("opens").manifest().tile_size, 129);
+    assert_eq!(
+        TileDb::open(&first.out, Verify::Hashes)
+            .expect("opens")
+            .manifest()
+            .tile_size,
+        129
+    );
     assert_eq!(leftovers(tmp.path()), Vec::<PathBuf>::new());
 }
 
@@ -281,7 +392,10 @@ fn leftovers(dir: &Path) -> Vec<PathBuf> {
         .expect("readable")
         .filter_map(Result::ok)
         .map(|e| e.path())
-        .filter(|p| p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with('.'))
+        })
         .collect()
 }
 
@@ -289,8 +403,19 @@ fn leftovers(dir: &Path) -> Vec<PathBuf> {
 fn a_cancelled_build_leaves_nothing_behind() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let cancel = AtomicBool::new(false);
-    let options = BuildOptions { tile_size: 33, ..BuildOptions::new(jacksboro(), tmp.path().join("db")) };
-    let result = build(&options, &|done, _| if done >= 3 { cancel.store(true, Ordering::Relaxed) }, &cancel);
+    let options = BuildOptions {
+        tile_size: 33,
+        ..BuildOptions::new(jacksboro(), tmp.path().join("db"))
+    };
+    let result = build(
+        &options,
+        &|done, _| {
+            if done >= 3 {
+                cancel.store(true, Ordering::Relaxed)
+            }
+        },
+        &cancel,
+    );
     assert!(matches!(result, Err(BuildError::Cancelled)), "{result:?}");
     assert!(!tmp.path().join("db").exists());
     assert_eq!(leftovers(tmp.path()), Vec::<PathBuf>::new());
@@ -301,7 +426,9 @@ fn large_synthetic_dem(dir: &Path) -> PathBuf {
     let path = dir.join("large.png");
     let image = image::ImageBuffer::from_fn(2049, 2049, |x, y| {
         let (x, y) = (f64::from(x) / 60.0, f64::from(y) / 45.0);
-        image::Luma([(20_000.0 + 8_000.0 * x.sin() * y.cos() + 3_000.0 * (x * 3.1 + y).sin()) as u16])
+        image::Luma([
+            (20_000.0 + 8_000.0 * x.sin() * y.cos() + 3_000.0 * (x * 3.1 + y).sin()) as u16,
+        ])
     });
     image.save(&path).expect("write png");
     path
@@ -311,8 +438,14 @@ fn large_synthetic_dem(dir: &Path) -> PathBuf {
 fn wait_for_temporary_dir(dir: &Path, child: &mut std::process::Child) {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
     while leftovers(dir).is_empty() {
-        assert!(child.try_wait().expect("wait").is_none(), "build ended before it could be interrupted");
-        assert!(std::time::Instant::now() < deadline, "the build never started");
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "build ended before it could be interrupted"
+        );
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the build never started"
+        );
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
 }
@@ -353,7 +486,10 @@ fn ctrl_c_cancels_a_build_and_cleans_up() {
         .spawn()
         .expect("builder starts");
     wait_for_temporary_dir(tmp.path(), &mut child);
-    let sent = std::process::Command::new("kill").args(["-INT", &child.id().to_string()]).status().expect("kill runs");
+    let sent = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .expect("kill runs");
     assert!(sent.success());
     let output = child.wait_with_output().expect("exits");
     let stderr = String::from_utf8_lossy(&output.stderr);

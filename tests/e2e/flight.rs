@@ -11,7 +11,10 @@ use terrain_tests::data::jacksboro;
 use terrain_tests::server::{RestartableServer, TestServer};
 
 fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("tokio runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime")
 }
 
 fn args(server: &TestServer, out: &Path, memory: Option<u64>) -> FlightArgs {
@@ -32,13 +35,28 @@ fn args(server: &TestServer, out: &Path, memory: Option<u64>) -> FlightArgs {
 fn read_csv(path: &Path) -> Vec<std::collections::HashMap<String, String>> {
     let text = std::fs::read_to_string(path).expect("flight.csv");
     let mut lines = text.lines();
-    let header: Vec<String> = lines.next().expect("header").split(',').map(str::to_string).collect();
+    let header: Vec<String> = lines
+        .next()
+        .expect("header")
+        .split(',')
+        .map(str::to_string)
+        .collect();
     assert_eq!(header.join(","), CSV_HEADER);
-    lines.map(|l| header.iter().cloned().zip(l.split(',').map(str::to_string)).collect()).collect()
+    lines
+        .map(|l| {
+            header
+                .iter()
+                .cloned()
+                .zip(l.split(',').map(str::to_string))
+                .collect()
+        })
+        .collect()
 }
 
 fn number(row: &std::collections::HashMap<String, String>, column: &str) -> u64 {
-    row[column].parse().unwrap_or_else(|e| panic!("{column} = {:?}: {e}", row[column]))
+    row[column]
+        .parse()
+        .unwrap_or_else(|e| panic!("{column} = {:?}: {e}", row[column]))
 }
 
 /// Bytes the client holds for a resident tile: decoded codes (4 bytes each) and the coarsest
@@ -49,7 +67,12 @@ fn tile_bytes(manifest: &Manifest, id: TileId) -> u64 {
 }
 
 fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {
-    let report = build(&BuildOptions::new(jacksboro(), dir.join("db")), &|_, _| {}, &AtomicBool::new(false)).expect("builds");
+    let report = build(
+        &BuildOptions::new(jacksboro(), dir.join("db")),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    )
+    .expect("builds");
     (TestServer::start(&report.out), report.manifest)
 }
 
@@ -58,25 +81,48 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (server, manifest) = jacksboro_server(tmp.path());
     let out = tmp.path().join("flight");
-    let summary = runtime().block_on(fly(&args(&server, &out, Some(64 << 20)))).expect("flight");
+    let summary = runtime()
+        .block_on(fly(&args(&server, &out, Some(64 << 20))))
+        .expect("flight");
     let rows = read_csv(&summary.csv);
     assert_eq!(rows.len() as u64, summary.frames);
     let last = rows.last().expect("frames");
     // The default path ends still over the centre, tile (1, 1) of the 4 x 3 grid: three
     // belts reach every tile.
-    assert_eq!((number(last, "current_x"), number(last, "current_y")), (1, 1));
+    assert_eq!(
+        (number(last, "current_x"), number(last, "current_y")),
+        (1, 1)
+    );
     assert_eq!(number(last, "complete_belts"), 3);
     assert_eq!(number(last, "resident_tiles"), manifest.tiles.len() as u64);
     assert_eq!(number(last, "in_flight"), 0);
-    let all: u64 = manifest.tiles.iter().map(|t| tile_bytes(&manifest, t.id())).sum();
-    assert_eq!(number(last, "resident_bytes"), all, "resident bytes are exactly what the tiles hold");
-    assert_eq!(number(last, "evicted_unused_bytes"), 0, "nothing is evicted under an ample budget");
+    let all: u64 = manifest
+        .tiles
+        .iter()
+        .map(|t| tile_bytes(&manifest, t.id()))
+        .sum();
+    assert_eq!(
+        number(last, "resident_bytes"),
+        all,
+        "resident bytes are exactly what the tiles hold"
+    );
+    assert_eq!(
+        number(last, "evicted_unused_bytes"),
+        0,
+        "nothing is evicted under an ample budget"
+    );
     // The ground under the viewpoint comes from the resident tile's decoded heights: the
     // source raster's nearest sample.
     let (width, _, codes) = terrain_tests::data::png_codes(&jacksboro());
     let metres = |column: &str| last[column].parse::<f64>().expect("a number");
-    let (sx, sy) = ((metres("x_m") / manifest.spacing_m[0]).round() as u32, (metres("y_m") / manifest.spacing_m[1]).round() as u32);
-    assert_eq!(metres("ground_m"), f64::from(codes[(sy * width + sx) as usize]));
+    let (sx, sy) = (
+        (metres("x_m") / manifest.spacing_m[0]).round() as u32,
+        (metres("y_m") / manifest.spacing_m[1]).round() as u32,
+    );
+    assert_eq!(
+        metres("ground_m"),
+        f64::from(codes[(sy * width + sx) as usize])
+    );
     assert!(summary.chart.exists());
     let chart = image::open(&summary.chart).expect("flight.png is an image");
     assert!(chart.width() >= 800 && chart.height() >= 600);
@@ -89,23 +135,47 @@ fn a_tight_budget_keeps_resident_bytes_under_the_limit_but_for_the_current_tile_
     let one_tile = tile_bytes(&manifest, TileId::new(0, 0));
     // Room for about three tiles: less than the nine of a full second belt.
     let budget = one_tile * 3 * 10 / 9;
-    let summary = runtime().block_on(fly(&args(&server, &tmp.path().join("flight"), Some(budget)))).expect("flight");
+    let summary = runtime()
+        .block_on(fly(&args(
+            &server,
+            &tmp.path().join("flight"),
+            Some(budget),
+        )))
+        .expect("flight");
     let rows = read_csv(&summary.csv);
     // The pager knows each tile's bytes from the manifest and starts a belt only if it fits;
     // only the current tile is fetched regardless, so it is the most the limit is exceeded by.
-    let slack = manifest.tiles.iter().map(|t| tile_bytes(&manifest, t.id())).max().unwrap_or(0);
+    let slack = manifest
+        .tiles
+        .iter()
+        .map(|t| tile_bytes(&manifest, t.id()))
+        .max()
+        .unwrap_or(0);
     let mut evicted_at_some_point = false;
     let mut previous_resident = 0;
     for row in &rows {
-        let (resident, limit) = (number(row, "resident_bytes"), number(row, "memory_limit_bytes"));
-        assert!(resident <= limit + slack, "frame {}: {resident} bytes against a limit of {limit} + {slack}", row["frame"]);
+        let (resident, limit) = (
+            number(row, "resident_bytes"),
+            number(row, "memory_limit_bytes"),
+        );
+        assert!(
+            resident <= limit + slack,
+            "frame {}: {resident} bytes against a limit of {limit} + {slack}",
+            row["frame"]
+        );
         evicted_at_some_point |= resident < previous_resident;
         previous_resident = resident;
     }
-    assert!(evicted_at_some_point, "a lap over the terrain with room for three tiles must evict");
+    assert!(
+        evicted_at_some_point,
+        "a lap over the terrain with room for three tiles must evict"
+    );
     let last = rows.last().expect("frames");
     assert_eq!(number(last, "in_flight"), 0, "the still end converges");
-    assert!(number(last, "complete_belts") >= 1, "the current tile is always kept");
+    assert!(
+        number(last, "complete_belts") >= 1,
+        "the current tile is always kept"
+    );
     assert!(number(last, "resident_tiles") < manifest.tiles.len() as u64);
 }
 
@@ -115,15 +185,25 @@ fn a_flight_against_a_wrong_url_says_why() {
     let (server, _) = jacksboro_server(tmp.path());
     let mut wrong = args(&server, &tmp.path().join("flight"), Some(64 << 20));
     wrong.server = format!("{}/no/such/prefix", server.base_url());
-    let error = runtime().block_on(fly(&wrong)).expect_err("no manifest there");
+    let error = runtime()
+        .block_on(fly(&wrong))
+        .expect_err("no manifest there");
     let message = error.to_string();
-    assert!(message.contains("404") && message.contains("manifest.json"), "{message}");
+    assert!(
+        message.contains("404") && message.contains("manifest.json"),
+        "{message}"
+    );
 }
 
 #[test]
 fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(&BuildOptions::new(jacksboro(), tmp.path().join("db")), &|_, _| {}, &AtomicBool::new(false)).expect("builds");
+    let report = build(
+        &BuildOptions::new(jacksboro(), tmp.path().join("db")),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    )
+    .expect("builds");
     let mut server = RestartableServer::start(&report.out);
     // Room for ten of the twelve tiles: the square can reach two belts (nine tiles) but not
     // the whole grid, so the lap keeps fetching and evicting all along.
@@ -146,17 +226,79 @@ fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     server.stop();
     std::thread::sleep(std::time::Duration::from_millis(3000));
     server.restart();
-    let summary = flight.join().expect("flight thread").expect("the flight survives the outage");
+    let summary = flight
+        .join()
+        .expect("flight thread")
+        .expect("the flight survives the outage");
     let rows = read_csv(&summary.csv);
     let last = rows.last().expect("frames");
-    assert!(summary.retries > 0, "requests during the outage were retried");
-    assert_eq!(number(last, "in_flight"), 0, "everything asked for after the restart arrived");
-    assert!(number(last, "complete_belts") >= 2, "the square was rebuilt after the outage");
+    assert!(
+        summary.retries > 0,
+        "requests during the outage were retried"
+    );
+    assert_eq!(
+        number(last, "in_flight"),
+        0,
+        "everything asked for after the restart arrived"
+    );
+    assert!(
+        number(last, "complete_belts") >= 2,
+        "the square was rebuilt after the outage"
+    );
     let downloaded_at = |wall_s: f64| {
-        rows.iter().find(|r| r["wall_s"].parse::<f64>().unwrap_or(0.0) >= wall_s).map_or(0, |r| number(r, "bytes_downloaded"))
+        rows.iter()
+            .find(|r| r["wall_s"].parse::<f64>().unwrap_or(0.0) >= wall_s)
+            .map_or(0, |r| number(r, "bytes_downloaded"))
     };
-    assert!(number(last, "bytes_downloaded") > downloaded_at(4.0), "tiles arrived after the restart");
+    assert!(
+        number(last, "bytes_downloaded") > downloaded_at(4.0),
+        "tiles arrived after the restart"
+    );
     // Tiles whose retries ran out during the outage were asked for again by the pager; what
     // arrived is intact, since the fetcher delivers only bodies matching the manifest's
     // hashes (the fetcher tests compare them tile by tile across the same kind of outage).
+}
+
+#[test]
+fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame() {
+    let Some(heights) =
+        terrain_tests::data::kit_file("himalaya flight", "himalaya_4097/g10g_himalaya_4097.png")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = build(
+        &BuildOptions::new(&heights, tmp.path().join("db")),
+        &|_, _| {},
+        &AtomicBool::new(false),
+    )
+    .expect("builds");
+    let server = TestServer::start(&report.out);
+    let mut flight = args(&server, &tmp.path().join("flight"), Some(32 << 20));
+    flight.concurrency = 8;
+    let summary = runtime().block_on(fly(&flight)).expect("flight");
+    let rows = read_csv(&summary.csv);
+    let limit = (32u64 << 20) * 9 / 10;
+    for row in &rows {
+        assert_eq!(number(row, "memory_limit_bytes"), limit);
+        assert!(
+            number(row, "resident_bytes") <= limit,
+            "frame {}: {} bytes resident",
+            row["frame"],
+            row["resident_bytes"]
+        );
+    }
+    // The square is far larger than one belt, and the budget is what stops it: the whole
+    // grid (1024 tiles of about 67 KiB) would need about 67 MiB.
+    let last = rows.last().expect("frames");
+    assert!(
+        number(last, "complete_belts") >= 5,
+        "{} complete belts",
+        last["complete_belts"]
+    );
+    assert!(number(last, "resident_tiles") < 1024);
+    assert!(
+        summary.peak_resident_bytes > limit / 2,
+        "the flight used its budget"
+    );
 }

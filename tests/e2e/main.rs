@@ -1,7 +1,7 @@
 //! End-to-end tests: one binary, linked once.
 
-mod http;
 mod build;
-mod round_trip;
 mod fetcher;
 mod flight;
+mod http;
+mod round_trip;

@@ -23,12 +23,20 @@ pub fn jacksboro() -> PathBuf {
 pub fn kit_file(test: &str, relative: &str) -> Option<PathBuf> {
     let required = std::env::var(REQUIRE_DATA_VAR).is_ok_and(|v| v == "1");
     let Some(dir) = std::env::var_os(DATA_DIR_VAR) else {
-        assert!(!required, "{test}: {REQUIRE_DATA_VAR}=1 but {DATA_DIR_VAR} is not set");
+        assert!(
+            !required,
+            "{test}: {REQUIRE_DATA_VAR}=1 but {DATA_DIR_VAR} is not set"
+        );
         eprintln!("NOT RUN: {test} needs the data kit: set {DATA_DIR_VAR} to its data/ directory");
         return None;
     };
     let path = Path::new(&dir).join(relative);
-    assert!(path.exists(), "{test}: {} does not exist ({DATA_DIR_VAR}={})", path.display(), Path::new(&dir).display());
+    assert!(
+        path.exists(),
+        "{test}: {} does not exist ({DATA_DIR_VAR}={})",
+        path.display(),
+        Path::new(&dir).display()
+    );
     Some(path)
 }
 
@@ -60,15 +68,25 @@ pub fn geotiff_i16(path: &Path) -> (u32, u32, Vec<i16>) {
 pub fn workspace_binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test binary path");
     // target/<profile>/deps/e2e-<hash> -> target/<profile>/<name>
-    let dir = exe.parent().and_then(Path::parent).expect("target/<profile>");
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("target/<profile>");
     let path = dir.join(name);
-    assert!(path.exists(), "{} not built: run `cargo build --release --workspace` first", path.display());
+    assert!(
+        path.exists(),
+        "{} not built: run `cargo build --release --workspace` first",
+        path.display()
+    );
     path
 }
 
 /// Runs a workspace binary to completion, returning (success, stdout, stderr).
 pub fn run_binary(name: &str, args: &[&std::ffi::OsStr]) -> (bool, String, String) {
-    let output = Command::new(workspace_binary(name)).args(args).output().expect("binary runs");
+    let output = Command::new(workspace_binary(name))
+        .args(args)
+        .output()
+        .expect("binary runs");
     (
         output.status.success(),
         String::from_utf8_lossy(&output.stdout).into_owned(),

@@ -162,12 +162,18 @@ impl BuildOptions {
             None => None,
             Some([s]) => Some([*s, *s]),
             Some([x, y]) => Some([*x, *y]),
-            Some(_) => return Err(BuildError::BadOption("--spacing takes one or two values".into())),
+            Some(_) => {
+                return Err(BuildError::BadOption(
+                    "--spacing takes one or two values".into(),
+                ));
+            }
         };
         let name = args.name.clone();
         let out = match &args.out {
             Some(out) => out.clone(),
-            None => Path::new("db").join(name.clone().unwrap_or_else(|| default_name(&args.heights))),
+            None => {
+                Path::new("db").join(name.clone().unwrap_or_else(|| default_name(&args.heights)))
+            }
         };
         Ok(BuildOptions {
             texture: match (&args.texture, args.generated_texture) {
@@ -198,7 +204,10 @@ impl BuildOptions {
 
 /// The dataset name: the folder's when a dataset.json describes it, else the file stem.
 fn default_name(heights: &Path) -> String {
-    let folder = heights.parent().filter(|p| p.join("dataset.json").exists()).and_then(|p| p.file_name());
+    let folder = heights
+        .parent()
+        .filter(|p| p.join("dataset.json").exists())
+        .and_then(|p| p.file_name());
     folder
         .or_else(|| heights.file_stem())
         .map(|n| n.to_string_lossy().into_owned())
@@ -215,7 +224,10 @@ pub enum BuildError {
     #[error("texture {path}: {message}")]
     Texture { path: PathBuf, message: String },
     #[error("cannot encode tile {tile}: {source}")]
-    Encode { tile: terrain_shared::TileId, source: EncodeError },
+    Encode {
+        tile: terrain_shared::TileId,
+        source: EncodeError,
+    },
     #[error("cannot encode a texture level: {0}")]
     TextureEncode(String),
     #[error("tile size {0} is not 2^n + 1 between 3 and 4097")]
@@ -243,7 +255,10 @@ impl fmt::Display for BuildWarning {
                 r.samples, r.regions, r.largest_region
             ),
             BuildWarning::SpacingUnknown => {
-                write!(f, "sample spacing unknown: assumed 1 m (give --spacing or a dataset.json)")
+                write!(
+                    f,
+                    "sample spacing unknown: assumed 1 m (give --spacing or a dataset.json)"
+                )
             }
             BuildWarning::TextureAspect { texture, raster } => write!(
                 f,
@@ -281,7 +296,11 @@ pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
 
 /// Builds the database described by `options`. Checks `cancel` between tiles; a cancelled
 /// or failed build leaves nothing at `options.out`.
-pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBool) -> Result<BuildReport, BuildError> {
+pub fn build(
+    options: &BuildOptions,
+    progress: ProgressFn<'_>,
+    cancel: &AtomicBool,
+) -> Result<BuildReport, BuildError> {
     let started = Instant::now();
     let n = options.tile_size;
     if !(3..=4097).contains(&n) || !(n - 1).is_power_of_two() {
@@ -290,7 +309,9 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     if let Some(size) = options.texture_size
         && (!size.is_power_of_two() || size > 4096)
     {
-        return Err(BuildError::BadOption(format!("--texture-size {size} is not a power of two up to 4096")));
+        return Err(BuildError::BadOption(format!(
+            "--texture-size {size} is not a power of two up to 4096"
+        )));
     }
     let mut warnings = Vec::new();
     let dataset = input::DatasetInfo::beside(&options.heights)?;
@@ -298,25 +319,45 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
         Some((path, info)) => (path.parent().map(Path::to_path_buf), info),
         None => (None, input::DatasetInfo::default()),
     };
-    let mut raster = input::read_heights(&options.heights, options.nodata.or(info.nodata), options.float_quantum_m)?;
-    let source_bytes = std::fs::metadata(&options.heights).map(|m| m.len()).unwrap_or(0);
+    let mut raster = input::read_heights(
+        &options.heights,
+        options.nodata.or(info.nodata),
+        options.float_quantum_m,
+    )?;
+    let source_bytes = std::fs::metadata(&options.heights)
+        .map(|m| m.len())
+        .unwrap_or(0);
 
     let scale = options.height_scale.or(info.height_scale_m).unwrap_or(1.0);
-    let offset = options.height_offset.or(info.height_offset_m).unwrap_or(0.0);
+    let offset = options
+        .height_offset
+        .or(info.height_offset_m)
+        .unwrap_or(0.0);
     if !(scale.is_finite() && scale > 0.0 && offset.is_finite()) {
-        return Err(BuildError::BadOption(format!("height scale {scale} and offset {offset} must be finite, scale positive")));
+        return Err(BuildError::BadOption(format!(
+            "height scale {scale} and offset {offset} must be finite, scale positive"
+        )));
     }
     let quantum_m = raster.quantum_m * scale;
     let offset_m = raster.offset_m * scale + offset;
-    let spacing_m = match options.spacing_m.or(raster.spacing_m).or_else(|| info.spacing(raster.height)) {
+    let spacing_m = match options
+        .spacing_m
+        .or(raster.spacing_m)
+        .or_else(|| info.spacing(raster.height))
+    {
         Some(s) if s.iter().all(|v| v.is_finite() && *v > 0.0) => s,
-        Some(s) => return Err(BuildError::BadOption(format!("spacing {s:?} must be positive"))),
+        Some(s) => {
+            return Err(BuildError::BadOption(format!(
+                "spacing {s:?} must be positive"
+            )));
+        }
         None => {
             warnings.push(BuildWarning::SpacingUnknown);
             [1.0, 1.0]
         }
     };
-    let georeference: Option<Georeference> = raster.georeference.clone().or_else(|| info.georeference());
+    let georeference: Option<Georeference> =
+        raster.georeference.clone().or_else(|| info.georeference());
 
     let (width, height) = (raster.width, raster.height);
     let voids = std::mem::take(&mut raster.voids);
@@ -325,28 +366,49 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     let filled_voids = filled.as_ref().map_or(0, |r| r.samples as u64);
     warnings.extend(filled.map(BuildWarning::FilledVoids));
     let codes = raster.codes;
-    let (min_code, max_code) = codes.iter().fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
-    let (min_m, max_m) = (offset_m + quantum_m * f64::from(min_code), offset_m + quantum_m * f64::from(max_code));
+    let (min_code, max_code) = codes
+        .iter()
+        .fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+    let (min_m, max_m) = (
+        offset_m + quantum_m * f64::from(min_code),
+        offset_m + quantum_m * f64::from(max_code),
+    );
 
     // The texture source.
     let texture_path = match &options.texture {
         TextureChoice::Image(path) => Some(path.clone()),
         TextureChoice::Generated => None,
-        TextureChoice::Auto => info.texture.as_ref().zip(dataset_dir.as_ref()).map(|(t, dir)| dir.join(t)),
+        TextureChoice::Auto => info
+            .texture
+            .as_ref()
+            .zip(dataset_dir.as_ref())
+            .map(|(t, dir)| dir.join(t)),
     };
     let source_image = match &texture_path {
         Some(path) => {
             let image = image::ImageReader::open(path)
-                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .map_err(|e| BuildError::Texture {
+                    path: path.clone(),
+                    message: e.to_string(),
+                })?
                 .with_guessed_format()
-                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .map_err(|e| BuildError::Texture {
+                    path: path.clone(),
+                    message: e.to_string(),
+                })?
                 .decode()
-                .map_err(|e| BuildError::Texture { path: path.clone(), message: e.to_string() })?
+                .map_err(|e| BuildError::Texture {
+                    path: path.clone(),
+                    message: e.to_string(),
+                })?
                 .into_rgb8();
             let (tw, th) = (f64::from(image.width()), f64::from(image.height()));
             let (rw, rh) = (f64::from(width - 1), f64::from(height - 1));
             if ((tw / th) / (rw / rh) - 1.0).abs() > 0.02 {
-                warnings.push(BuildWarning::TextureAspect { texture: [image.width(), image.height()], raster: [width, height] });
+                warnings.push(BuildWarning::TextureAspect {
+                    texture: [image.width(), image.height()],
+                    raster: [width, height],
+                });
             }
             Some(image)
         }
@@ -354,14 +416,27 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     };
     let registration = options
         .texture_registration
-        .or_else(|| info.texture_registration.as_deref().and_then(Registration::from_dataset))
+        .or_else(|| {
+            info.texture_registration
+                .as_deref()
+                .and_then(Registration::from_dataset)
+        })
         .unwrap_or(Registration::EdgeAligned);
     let texture_size = options.texture_size.unwrap_or_else(|| match &source_image {
         Some(image) => texture::size_for_source(image.width(), width, n),
         None => n - 1,
     });
     let texture_levels = texture::level_count(texture_size);
-    let field = texture::HeightField { codes: &codes, width, height, quantum_m, offset_m, spacing_m, min_m, max_m };
+    let field = texture::HeightField {
+        codes: &codes,
+        width,
+        height,
+        quantum_m,
+        offset_m,
+        spacing_m,
+        min_m,
+        max_m,
+    };
 
     let grid = tiles::Grid::covering(width, height, n);
     let mut writer = DbWriter::create(&options.out, options.force)?;
@@ -382,12 +457,21 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
                     .map_err(|source| BuildError::Encode { tile: id, source })?;
                 let stats = tiles::stats(&cut);
                 let finest = match &source_image {
-                    Some(image) => texture::from_image(image, registration, (width, height), grid, id, texture_size),
+                    Some(image) => texture::from_image(
+                        image,
+                        registration,
+                        (width, height),
+                        grid,
+                        id,
+                        texture_size,
+                    ),
                     None => texture::generated(&field, grid, id, texture_size),
                 };
                 let levels = texture::mip_chain(finest)
                     .iter()
-                    .map(|level| texture::encode(level, options.texture_format, options.jpeg_quality))
+                    .map(|level| {
+                        texture::encode(level, options.texture_format, options.jpeg_quality)
+                    })
                     .collect::<Result<Vec<_>, _>>()
                     .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
                 let record = TileRecord {
@@ -402,11 +486,19 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
                     texture: Vec::new(),
                 };
                 progress(done.fetch_add(1, Ordering::Relaxed) + 1, grid.len());
-                Ok(MadeTile { record, heights: encoded, texture_levels: levels })
+                Ok(MadeTile {
+                    record,
+                    heights: encoded,
+                    texture_levels: levels,
+                })
             })
             .collect();
         for result in made {
-            let MadeTile { mut record, heights, texture_levels } = result?;
+            let MadeTile {
+                mut record,
+                heights,
+                texture_levels,
+            } = result?;
             record.heights = writer.add_heights(&heights)?;
             for level in &texture_levels {
                 record.texture.push(writer.add_texture(level)?);
@@ -416,8 +508,15 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
     }
 
     let heights_bytes = records.iter().map(|r| r.heights.bytes).sum();
-    let texture_bytes = records.iter().flat_map(|r| &r.texture).map(|b| b.bytes).sum();
-    let name = options.name.clone().unwrap_or_else(|| default_name(&options.heights));
+    let texture_bytes = records
+        .iter()
+        .flat_map(|r| &r.texture)
+        .map(|b| b.bytes)
+        .sum();
+    let name = options
+        .name
+        .clone()
+        .unwrap_or_else(|| default_name(&options.heights));
     let mut manifest = Manifest {
         format: manifest::FORMAT.into(),
         version: manifest::VERSION,
@@ -425,9 +524,15 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
         content_version: String::new(),
         raster: RasterSize { width, height },
         tile_size: n,
-        grid: GridSize { columns: grid.columns, rows: grid.rows },
+        grid: GridSize {
+            columns: grid.columns,
+            rows: grid.rows,
+        },
         spacing_m,
-        extent_m: [f64::from(width - 1) * spacing_m[0], f64::from(height - 1) * spacing_m[1]],
+        extent_m: [
+            f64::from(width - 1) * spacing_m[0],
+            f64::from(height - 1) * spacing_m[1],
+        ],
         heights: HeightsInfo {
             codec: heights::CODEC_NAME.into(),
             quantum_m,
@@ -438,7 +543,11 @@ pub fn build(options: &BuildOptions, progress: ProgressFn<'_>, cancel: &AtomicBo
         },
         texture: TextureInfo {
             format: options.texture_format,
-            source: if source_image.is_some() { TextureSource::Image } else { TextureSource::Generated },
+            source: if source_image.is_some() {
+                TextureSource::Image
+            } else {
+                TextureSource::Generated
+            },
             size: texture_size,
             levels: texture_levels,
         },
@@ -477,7 +586,11 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
             }
         });
     }
-    let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(0)
+    };
     bar.set_style(
         indicatif::ProgressStyle::with_template("{spinner} building [{elapsed_precise}] {wide_bar} {pos}/{len} tiles ({per_sec}, {eta} left)")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
@@ -486,7 +599,8 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     };
-    let report = build(&options, &on_progress, &cancel).with_context(|| format!("building {}", options.heights.display()))?;
+    let report = build(&options, &on_progress, &cancel)
+        .with_context(|| format!("building {}", options.heights.display()))?;
     bar.finish_and_clear();
     print!("{}", Summary(&report));
     Ok(())
@@ -501,16 +615,31 @@ impl fmt::Display for Summary<'_> {
         let r = self.0;
         let m = &r.manifest;
         let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
-        writeln!(f, "built {} ({}) in {:.1} s", r.out.display(), m.dataset, r.elapsed.as_secs_f64())?;
+        writeln!(
+            f,
+            "built {} ({}) in {:.1} s",
+            r.out.display(),
+            m.dataset,
+            r.elapsed.as_secs_f64()
+        )?;
         writeln!(
             f,
             "  raster    {} x {} samples, spacing {:.1} x {:.1} m, heights {:.1} .. {:.1} m in steps of {} m",
-            m.raster.width, m.raster.height, m.spacing_m[0], m.spacing_m[1], m.heights.min_m, m.heights.max_m, m.heights.quantum_m
+            m.raster.width,
+            m.raster.height,
+            m.spacing_m[0],
+            m.spacing_m[1],
+            m.heights.min_m,
+            m.heights.max_m,
+            m.heights.quantum_m
         )?;
         writeln!(
             f,
             "  tiles     {} x {} = {} tiles of {}^2 samples",
-            m.grid.columns, m.grid.rows, m.tiles.len(), m.tile_size
+            m.grid.columns,
+            m.grid.rows,
+            m.tiles.len(),
+            m.tile_size
         )?;
         writeln!(
             f,

@@ -37,7 +37,9 @@ impl Registration {
     /// Reads the `texture_registration` of a `dataset.json`.
     pub fn from_dataset(text: &str) -> Option<Registration> {
         match text.to_ascii_lowercase().replace(['_', ' '], "-").as_str() {
-            "cell-centred" | "cell-centered" | "same-extent" | "edge-aligned" => Some(Registration::EdgeAligned),
+            "cell-centred" | "cell-centered" | "same-extent" | "edge-aligned" => {
+                Some(Registration::EdgeAligned)
+            }
             "sample-centred" | "sample-centered" | "point" => Some(Registration::SampleCentred),
             _ => None,
         }
@@ -59,7 +61,14 @@ pub fn size_for_source(image_width: u32, raster_width: u32, tile_size: u32) -> u
 }
 
 /// Resamples the part of `source` over tile `id` to `size x size` texels (bilinear).
-pub fn from_image(source: &RgbImage, registration: Registration, raster: (u32, u32), grid: Grid, id: TileId, size: u32) -> RgbImage {
+pub fn from_image(
+    source: &RgbImage,
+    registration: Registration,
+    raster: (u32, u32),
+    grid: Grid,
+    id: TileId,
+    size: u32,
+) -> RgbImage {
     let (rw, rh) = (f64::from(raster.0), f64::from(raster.1));
     let (iw, ih) = (f64::from(source.width()), f64::from(source.height()));
     let cells = f64::from(grid.tile_size - 1);
@@ -84,7 +93,10 @@ fn bilinear(image: &RgbImage, x: f64, y: f64) -> Rgb<u8> {
     let (x0, y0) = (x.floor(), y.floor());
     let (fx, fy) = (x - x0, y - y0);
     let (x0, y0) = (x0 as u32, y0 as u32);
-    let (x1, y1) = ((x0 + 1).min(image.width() - 1), (y0 + 1).min(image.height() - 1));
+    let (x1, y1) = (
+        (x0 + 1).min(image.width() - 1),
+        (y0 + 1).min(image.height() - 1),
+    );
     let p = |x, y| image.get_pixel(x, y).0.map(f64::from);
     let (a, b, c, d) = (p(x0, y0), p(x1, y0), p(x0, y1), p(x1, y1));
     Rgb(std::array::from_fn(|k| {
@@ -126,7 +138,8 @@ impl HeightField<'_> {
         let light = [alt.cos() * az.sin(), -alt.cos() * az.cos(), alt.sin()];
         let normal = [-dzdx, -dzdy, 1.0];
         let len = (normal[0] * normal[0] + normal[1] * normal[1] + 1.0).sqrt();
-        let lambert = ((normal[0] * light[0] + normal[1] * light[1] + normal[2] * light[2]) / len).max(0.0);
+        let lambert =
+            ((normal[0] * light[0] + normal[1] * light[1] + normal[2] * light[2]) / len).max(0.0);
         // Flat ground gets 0.25 + 0.75 = full tint; slopes facing away darken to 0.25.
         let shade = 0.25 + 0.75 * (lambert / alt.sin()).min(1.3);
         let tint = tint(h, self.min_m, self.max_m);
@@ -150,8 +163,16 @@ fn tint(h: f64, min: f64, max: f64) -> [f64; 3] {
     if h <= 0.0 && max > 0.0 && min <= 0.0 {
         return WATER;
     }
-    let t = if max > min { ((h - min) / (max - min)).clamp(0.0, 1.0) } else { 0.0 };
-    let i = RAMP.iter().rposition(|(stop, _)| *stop <= t).unwrap_or(0).min(RAMP.len() - 2);
+    let t = if max > min {
+        ((h - min) / (max - min)).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let i = RAMP
+        .iter()
+        .rposition(|(stop, _)| *stop <= t)
+        .unwrap_or(0)
+        .min(RAMP.len() - 2);
     let ((t0, c0), (t1, c1)) = (RAMP[i], RAMP[i + 1]);
     let f = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
     std::array::from_fn(|k| c0[k] + (c1[k] - c0[k]) * f)
@@ -168,7 +189,12 @@ pub fn generated(field: &HeightField<'_>, grid: Grid, id: TileId, size: u32) -> 
         let (fx, fy) = (sx.floor(), sy.floor());
         let (tx, ty) = (sx - fx, sy - fy);
         let (ix, iy) = (fx as i64, fy as i64);
-        let (a, b, c, d) = (field.colour(ix, iy), field.colour(ix + 1, iy), field.colour(ix, iy + 1), field.colour(ix + 1, iy + 1));
+        let (a, b, c, d) = (
+            field.colour(ix, iy),
+            field.colour(ix + 1, iy),
+            field.colour(ix, iy + 1),
+            field.colour(ix + 1, iy + 1),
+        );
         Rgb(std::array::from_fn(|k| {
             let top = a[k] + (b[k] - a[k]) * tx;
             let bottom = c[k] + (d[k] - c[k]) * tx;
@@ -187,7 +213,9 @@ pub fn mip_chain(finest: RgbImage) -> Vec<RgbImage> {
         let next = RgbImage::from_fn(half, half, |x, y| {
             let p = |dx, dy| prev.get_pixel(2 * x + dx, 2 * y + dy).0.map(u32::from);
             let (a, b, c, d) = (p(0, 0), p(1, 0), p(0, 1), p(1, 1));
-            Rgb(std::array::from_fn(|k| ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8))
+            Rgb(std::array::from_fn(|k| {
+                ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
+            }))
         });
         chain.push(next);
     }
@@ -196,11 +224,16 @@ pub fn mip_chain(finest: RgbImage) -> Vec<RgbImage> {
 }
 
 /// Encodes one level.
-pub fn encode(image: &RgbImage, format: ImageFormat, jpeg_quality: u8) -> Result<Vec<u8>, image::ImageError> {
+pub fn encode(
+    image: &RgbImage,
+    format: ImageFormat,
+    jpeg_quality: u8,
+) -> Result<Vec<u8>, image::ImageError> {
     let mut out = std::io::Cursor::new(Vec::new());
     match format {
         ImageFormat::Jpeg => {
-            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, jpeg_quality).encode_image(image)?;
+            image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, jpeg_quality)
+                .encode_image(image)?;
         }
         ImageFormat::Png => {
             image.write_with_encoder(image::codecs::png::PngEncoder::new(&mut out))?;
@@ -229,9 +262,18 @@ mod tests {
 
     #[test]
     fn mip_chains_are_coarsest_first_and_average() {
-        let finest = RgbImage::from_fn(16, 16, |x, _| if x < 8 { Rgb([0, 0, 0]) } else { Rgb([200, 100, 50]) });
+        let finest = RgbImage::from_fn(16, 16, |x, _| {
+            if x < 8 {
+                Rgb([0, 0, 0])
+            } else {
+                Rgb([200, 100, 50])
+            }
+        });
         let chain = mip_chain(finest);
-        assert_eq!(chain.iter().map(|l| l.width()).collect::<Vec<_>>(), vec![8, 16]);
+        assert_eq!(
+            chain.iter().map(|l| l.width()).collect::<Vec<_>>(),
+            vec![8, 16]
+        );
         assert_eq!(chain[0].get_pixel(0, 0).0, [0, 0, 0]);
         assert_eq!(chain[0].get_pixel(7, 0).0, [200, 100, 50]);
     }
@@ -242,10 +284,25 @@ mod tests {
         // between samples i..i+1, j..j+1. One tile of 5 samples (4 cells) covers cells 0..4,
         // of which 3 are real; with 4 texels per side tile texel k is cell k.
         let source = RgbImage::from_fn(3, 3, |x, y| Rgb([(x * 80) as u8, (y * 80) as u8, 7]));
-        let grid = Grid { tile_size: 5, columns: 1, rows: 1 };
-        let tile = from_image(&source, Registration::EdgeAligned, (4, 4), grid, TileId::new(0, 0), 4);
+        let grid = Grid {
+            tile_size: 5,
+            columns: 1,
+            rows: 1,
+        };
+        let tile = from_image(
+            &source,
+            Registration::EdgeAligned,
+            (4, 4),
+            grid,
+            TileId::new(0, 0),
+            4,
+        );
         for k in 0..3 {
-            assert_eq!(tile.get_pixel(k, k).0, [(k * 80) as u8, (k * 80) as u8, 7], "texel {k}");
+            assert_eq!(
+                tile.get_pixel(k, k).0,
+                [(k * 80) as u8, (k * 80) as u8, 7],
+                "texel {k}"
+            );
         }
     }
 
@@ -256,10 +313,23 @@ mod tests {
         assert_eq!(tint(10.0, 10.0, 100.0), [58.0, 125.0, 68.0]);
         // Shading: a slope facing the north-west light is brighter than one facing away.
         let codes: Vec<i32> = (0..25).map(|i| (i % 5) * 10).collect(); // rises to the east
-        let field = HeightField { codes: &codes, width: 5, height: 5, quantum_m: 1.0, offset_m: 1.0, spacing_m: [10.0, 10.0], min_m: 0.0, max_m: 1000.0 };
+        let field = HeightField {
+            codes: &codes,
+            width: 5,
+            height: 5,
+            quantum_m: 1.0,
+            offset_m: 1.0,
+            spacing_m: [10.0, 10.0],
+            min_m: 0.0,
+            max_m: 1000.0,
+        };
         let west_facing = field.colour(2, 2);
         let mirrored: Vec<i32> = (0..25).map(|i| (4 - i % 5) * 10).collect();
-        let east_facing = HeightField { codes: &mirrored, ..field }.colour(2, 2);
+        let east_facing = HeightField {
+            codes: &mirrored,
+            ..field
+        }
+        .colour(2, 2);
         assert!(west_facing[1] > east_facing[1]);
     }
 }

@@ -46,7 +46,15 @@ pub struct TileSamples {
 }
 
 /// Cuts tile `id` out of `codes` (row-major `width x height`).
-pub fn cut(codes: &[i32], width: u32, height: u32, grid: Grid, id: TileId, quantum_m: f64, offset_m: f64) -> TileSamples {
+pub fn cut(
+    codes: &[i32],
+    width: u32,
+    height: u32,
+    grid: Grid,
+    id: TileId,
+    quantum_m: f64,
+    offset_m: f64,
+) -> TileSamples {
     let n = grid.tile_size;
     let (x0, y0) = (id.x * (n - 1), id.y * (n - 1));
     let mut tile = Vec::with_capacity((n * n) as usize);
@@ -59,7 +67,13 @@ pub fn cut(codes: &[i32], width: u32, height: u32, grid: Grid, id: TileId, quant
     }
     TileSamples {
         id,
-        heights: Heights { width: n as u16, height: n as u16, quantum_m, offset_m, codes: tile },
+        heights: Heights {
+            width: n as u16,
+            height: n as u16,
+            quantum_m,
+            offset_m,
+            codes: tile,
+        },
         valid: [(width - x0).min(n), (height - y0).min(n)],
     }
 }
@@ -78,11 +92,18 @@ pub struct TileStats {
 pub fn stats(tile: &TileSamples) -> TileStats {
     let n = tile.heights.width as usize;
     let metres = tile.heights.to_metres_f32();
-    let (min_m, max_m) = metres.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
+    let (min_m, max_m) = metres
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
     let mask_errors_m = (0..mask::level_count(n as u32))
         .map(|level| (mask::max_vertical_error(&metres, n as u32, level) * 100.0).ceil() / 100.0)
         .collect();
-    TileStats { min_m, max_m, roughness_m: roughness(&metres, n, tile.valid), mask_errors_m }
+    TileStats {
+        min_m,
+        max_m,
+        roughness_m: roughness(&metres, n, tile.valid),
+        mask_errors_m,
+    }
 }
 
 /// Mean terrain ruggedness index (Riley, DeGloria and Elliot 1999) over the real samples:
@@ -98,7 +119,12 @@ fn roughness(metres: &[f32], n: usize, valid: [u32; 2]) -> f32 {
             for dy in -1isize..=1 {
                 for dx in -1isize..=1 {
                     let (nx, ny) = (x as isize + dx, y as isize + dy);
-                    if (dx, dy) != (0, 0) && nx >= 0 && ny >= 0 && (nx as usize) < vw && (ny as usize) < vh {
+                    if (dx, dy) != (0, 0)
+                        && nx >= 0
+                        && ny >= 0
+                        && (nx as usize) < vw
+                        && (ny as usize) < vh
+                    {
                         let d = metres[ny as usize * n + nx as usize] - centre;
                         sum += d * d;
                     }
@@ -116,11 +142,46 @@ mod tests {
 
     #[test]
     fn grids_cover_rasters_with_shared_borders() {
-        assert_eq!(Grid::covering(403, 344, 129), Grid { tile_size: 129, columns: 4, rows: 3 });
-        assert_eq!(Grid::covering(129, 129, 129), Grid { tile_size: 129, columns: 1, rows: 1 });
-        assert_eq!(Grid::covering(130, 129, 129), Grid { tile_size: 129, columns: 2, rows: 1 });
-        assert_eq!(Grid::covering(4097, 4097, 129), Grid { tile_size: 129, columns: 32, rows: 32 });
-        assert_eq!(Grid::covering(2, 2, 129), Grid { tile_size: 129, columns: 1, rows: 1 });
+        assert_eq!(
+            Grid::covering(403, 344, 129),
+            Grid {
+                tile_size: 129,
+                columns: 4,
+                rows: 3
+            }
+        );
+        assert_eq!(
+            Grid::covering(129, 129, 129),
+            Grid {
+                tile_size: 129,
+                columns: 1,
+                rows: 1
+            }
+        );
+        assert_eq!(
+            Grid::covering(130, 129, 129),
+            Grid {
+                tile_size: 129,
+                columns: 2,
+                rows: 1
+            }
+        );
+        assert_eq!(
+            Grid::covering(4097, 4097, 129),
+            Grid {
+                tile_size: 129,
+                columns: 32,
+                rows: 32
+            }
+        );
+        assert_eq!(
+            Grid::covering(2, 2, 129),
+            Grid {
+                tile_size: 129,
+                columns: 1,
+                rows: 1
+            }
+        );
     }
 
     #[test]
@@ -132,7 +193,11 @@ mod tests {
         let a = cut(&codes, w, h, grid, TileId::new(0, 0), 1.0, 0.0);
         let b = cut(&codes, w, h, grid, TileId::new(1, 0), 1.0, 0.0);
         for y in 0..5 {
-            assert_eq!(a.heights.codes[y * 5 + 4], b.heights.codes[y * 5], "row {y}");
+            assert_eq!(
+                a.heights.codes[y * 5 + 4],
+                b.heights.codes[y * 5],
+                "row {y}"
+            );
         }
         assert_eq!(b.valid, [3, 5]);
         // Column 4 of tile b is beyond the raster: it repeats raster column 6.
@@ -144,7 +209,13 @@ mod tests {
     fn flat_tiles_are_smooth_and_free_at_every_mask_level() {
         let tile = TileSamples {
             id: TileId::new(0, 0),
-            heights: Heights { width: 9, height: 9, quantum_m: 0.5, offset_m: 100.0, codes: vec![4; 81] },
+            heights: Heights {
+                width: 9,
+                height: 9,
+                quantum_m: 0.5,
+                offset_m: 100.0,
+                codes: vec![4; 81],
+            },
             valid: [9, 9],
         };
         let s = stats(&tile);
@@ -154,8 +225,20 @@ mod tests {
 
     #[test]
     fn a_rough_tile_is_rougher_and_its_errors_grow_with_the_level() {
-        let codes = (0..81).map(|i| if (i % 9 + i / 9) % 2 == 0 { 0 } else { 10 }).collect();
-        let tile = TileSamples { id: TileId::new(0, 0), heights: Heights { width: 9, height: 9, quantum_m: 1.0, offset_m: 0.0, codes }, valid: [9, 9] };
+        let codes = (0..81)
+            .map(|i| if (i % 9 + i / 9) % 2 == 0 { 0 } else { 10 })
+            .collect();
+        let tile = TileSamples {
+            id: TileId::new(0, 0),
+            heights: Heights {
+                width: 9,
+                height: 9,
+                quantum_m: 1.0,
+                offset_m: 0.0,
+                codes,
+            },
+            valid: [9, 9],
+        };
         let s = stats(&tile);
         assert!(s.roughness_m > 10.0);
         assert_eq!(s.mask_errors_m[0], 0.0);

@@ -27,7 +27,9 @@ pub fn fill(codes: &mut [i32], voids: &[bool], width: usize, height: usize) -> O
         ..region_sizes(voids, width, height)
     };
     let mut known: Vec<bool> = voids.iter().map(|&v| !v).collect();
-    let mut wave: Vec<usize> = (0..codes.len()).filter(|&i| voids[i] && touches_known(i, &known, width, height)).collect();
+    let mut wave: Vec<usize> = (0..codes.len())
+        .filter(|&i| voids[i] && touches_known(i, &known, width, height))
+        .collect();
     let mut next = Vec::new();
     let mut fills = Vec::new();
     while !wave.is_empty() {
@@ -59,10 +61,16 @@ pub fn fill(codes: &mut [i32], voids: &[bool], width: usize, height: usize) -> O
 
 fn neighbours(i: usize, width: usize, height: usize) -> impl Iterator<Item = usize> {
     let (x, y) = ((i % width) as isize, (i / width) as isize);
-    (-1isize..=1).flat_map(move |dy| (-1isize..=1).map(move |dx| (x + dx, y + dy))).filter_map(move |(nx, ny)| {
-        let inside = nx >= 0 && ny >= 0 && (nx as usize) < width && (ny as usize) < height && (nx, ny) != (x, y);
-        inside.then(|| ny as usize * width + nx as usize)
-    })
+    (-1isize..=1)
+        .flat_map(move |dy| (-1isize..=1).map(move |dx| (x + dx, y + dy)))
+        .filter_map(move |(nx, ny)| {
+            let inside = nx >= 0
+                && ny >= 0
+                && (nx as usize) < width
+                && (ny as usize) < height
+                && (nx, ny) != (x, y);
+            inside.then(|| ny as usize * width + nx as usize)
+        })
 }
 
 fn touches_known(i: usize, known: &[bool], width: usize, height: usize) -> bool {
@@ -92,14 +100,24 @@ fn region_sizes(voids: &[bool], width: usize, height: usize) -> FillReport {
         }
         largest = largest.max(size);
     }
-    FillReport { samples: 0, regions, largest_region: largest }
+    FillReport {
+        samples: 0,
+        regions,
+        largest_region: largest,
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn check(width: usize, codes: &[i32], voids: &[bool], expected: &[i32], report: Option<FillReport>) {
+    fn check(
+        width: usize,
+        codes: &[i32],
+        voids: &[bool],
+        expected: &[i32],
+        report: Option<FillReport>,
+    ) {
         let mut filled = codes.to_vec();
         let got = fill(&mut filled, voids, width, codes.len() / width);
         assert_eq!(filled, expected);
@@ -109,8 +127,17 @@ mod tests {
     #[test]
     fn a_single_void_takes_the_mean_of_its_neighbours() {
         let v = [false, false, false, false, true, false, false, false, false];
-        check(3, &[1, 1, 1, 1, -32768, 1, 1, 1, 9], &v, &[1, 1, 1, 1, 2, 1, 1, 1, 9],
-            Some(FillReport { samples: 1, regions: 1, largest_region: 1 }));
+        check(
+            3,
+            &[1, 1, 1, 1, -32768, 1, 1, 1, 9],
+            &v,
+            &[1, 1, 1, 1, 2, 1, 1, 1, 9],
+            Some(FillReport {
+                samples: 1,
+                regions: 1,
+                largest_region: 1,
+            }),
+        );
     }
 
     #[test]
@@ -126,8 +153,17 @@ mod tests {
     #[test]
     fn separate_voids_are_counted_as_regions() {
         let v = [true, false, false, false, true, true];
-        check(6, &[0, 5, 5, 5, 0, 0], &v, &[5, 5, 5, 5, 5, 5],
-            Some(FillReport { samples: 3, regions: 2, largest_region: 2 }));
+        check(
+            6,
+            &[0, 5, 5, 5, 0, 0],
+            &v,
+            &[5, 5, 5, 5, 5, 5],
+            Some(FillReport {
+                samples: 3,
+                regions: 2,
+                largest_region: 2,
+            }),
+        );
     }
 
     #[test]
