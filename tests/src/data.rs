@@ -5,6 +5,7 @@
 //! to 1 (CI sets both) a missing kit fails the test instead. A test never passes because
 //! its input is missing without saying so.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -27,7 +28,12 @@ pub fn kit_file(test: &str, relative: &str) -> Option<PathBuf> {
             !required,
             "{test}: {REQUIRE_DATA_VAR}=1 but {DATA_DIR_VAR} is not set"
         );
-        eprintln!("NOT RUN: {test} needs the data kit: set {DATA_DIR_VAR} to its data/ directory");
+        // Written to the stream itself, not with `eprintln!`: the test harness captures the
+        // print macros of passing tests, and this line must be seen.
+        let _ = writeln!(
+            std::io::stderr(),
+            "NOT RUN: {test} needs the data kit: set {DATA_DIR_VAR} to its data/ directory"
+        );
         return None;
     };
     let path = Path::new(&dir).join(relative);
