@@ -6,8 +6,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 : "${TERRAIN_DATA_DIR:?set TERRAIN_DATA_DIR to the data kit (the directory holding himalaya_4097/ and puget_sound_1k/)}"
 export TERRAIN_DATA_DIR
-out=${OUT:-out/bench}
-mkdir -p "$out"
+# Absolute: cargo runs each bench binary from its own package's directory.
+mkdir -p "${OUT:-out/bench}"
+out=$(cd "${OUT:-out/bench}" && pwd)
 for tool in nginx wrk; do
   command -v "$tool" >/dev/null || {
     apt-get -o DPkg::Lock::Timeout=600 update -qq
