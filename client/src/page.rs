@@ -1152,6 +1152,43 @@ mod tests {
         (2 * belts + 2) * (MAX_DELAY as u32 + 2)
     }
 
+    /// Flies `walk` from the grid's centre, one decision a frame, calling `after_frame`
+    /// after each; returns where the walk ended.
+    fn walk_frames(
+        world: &mut World,
+        random: &mut Random,
+        walk: Vec<Move>,
+        mut after_frame: impl FnMut(&World) -> Result<(), TestCaseError>,
+    ) -> Result<[f64; 2], TestCaseError> {
+        let (w, h) = (
+            f64::from(world.config.columns),
+            f64::from(world.config.rows),
+        );
+        let mut viewpoint = [w / 2.0, h / 2.0];
+        for step in walk {
+            let frames = match step {
+                Move::Stay(frames) => frames,
+                Move::Step(dx, dy) => {
+                    viewpoint = [
+                        (viewpoint[0] + dx).clamp(-8.0, w + 8.0),
+                        (viewpoint[1] + dy).clamp(-8.0, h + 8.0),
+                    ];
+                    1
+                }
+                Move::Jump(fx, fy) => {
+                    viewpoint = [fx * w, fy * h];
+                    1
+                }
+            };
+            for _ in 0..frames {
+                // `World::frame` checks every decision (properties 1 to 3).
+                world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
+                after_frame(world)?;
+            }
+        }
+        Ok(viewpoint)
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(192))]
 
@@ -1181,25 +1218,7 @@ mod tests {
             walk in proptest::collection::vec(moves(), 1..80),
         ) {
             let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
-            let (w, h) = (f64::from(columns), f64::from(rows));
-            let mut viewpoint = [w / 2.0, h / 2.0];
-            for step in walk {
-                let frames = match step {
-                    Move::Stay(frames) => frames,
-                    Move::Step(dx, dy) => {
-                        viewpoint = [(viewpoint[0] + dx).clamp(-8.0, w + 8.0), (viewpoint[1] + dy).clamp(-8.0, h + 8.0)];
-                        1
-                    }
-                    Move::Jump(fx, fy) => {
-                        viewpoint = [fx * w, fy * h];
-                        1
-                    }
-                };
-                for _ in 0..frames {
-                    // `World::frame` checks every decision (properties 1 to 3).
-                    world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
-                }
-            }
+            let viewpoint = walk_frames(&mut world, &mut random, walk, |_| Ok(()))?;
             let limit = settle_limit(&world.config);
             let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
             // Settled: either everything is resident, or memory is over the limit and every
@@ -1241,26 +1260,11 @@ mod tests {
             let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
             world.predict = true;
             let largest_tile = world.sizes.iter().copied().max().unwrap_or(0);
-            let (w, h) = (f64::from(columns), f64::from(rows));
-            let mut viewpoint = [w / 2.0, h / 2.0];
-            for step in walk {
-                let frames = match step {
-                    Move::Stay(frames) => frames,
-                    Move::Step(dx, dy) => {
-                        viewpoint = [(viewpoint[0] + dx).clamp(-8.0, w + 8.0), (viewpoint[1] + dy).clamp(-8.0, h + 8.0)];
-                        1
-                    }
-                    Move::Jump(fx, fy) => {
-                        viewpoint = [fx * w, fy * h];
-                        1
-                    }
-                };
-                for _ in 0..frames {
-                    world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
-                    prop_assert!(world.used() <= world.config.memory_limit + largest_tile,
-                        "{} bytes resident, limit {} + one tile {}", world.used(), world.config.memory_limit, largest_tile);
-                }
-            }
+            let viewpoint = walk_frames(&mut world, &mut random, walk, |world| {
+                prop_assert!(world.used() <= world.config.memory_limit + largest_tile,
+                    "{} bytes resident, limit {} + one tile {}", world.used(), world.config.memory_limit, largest_tile);
+                Ok(())
+            })?;
             let limit = settle_limit(&world.config);
             let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
             // Settled short of the whole grid: the next belt does not fit, and nothing beyond

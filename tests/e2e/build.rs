@@ -450,19 +450,27 @@ fn wait_for_temporary_dir(dir: &Path, child: &mut std::process::Child) {
     }
 }
 
-#[test]
-fn a_killed_build_never_leaves_a_database_at_the_output() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let input = large_synthetic_dem(tmp.path());
-    let out = tmp.path().join("db");
+/// Starts the real builder on a large synthetic DEM in `dir` and returns once its hidden
+/// temporary directory exists (the build is under way), with the output path.
+fn start_large_build(dir: &Path) -> (std::process::Child, PathBuf) {
+    let input = large_synthetic_dem(dir);
+    let out = dir.join("db");
     let mut child = std::process::Command::new(workspace_binary("terrain-server"))
         .args(["build", "--quiet", "--tile-size", "65"])
         .arg(&input)
         .arg("--out")
         .arg(&out)
+        .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("builder starts");
-    wait_for_temporary_dir(tmp.path(), &mut child);
+    wait_for_temporary_dir(dir, &mut child);
+    (child, out)
+}
+
+#[test]
+fn a_killed_build_never_leaves_a_database_at_the_output() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (mut child, out) = start_large_build(tmp.path());
     child.kill().expect("SIGKILL");
     child.wait().expect("reaped");
     assert!(!out.exists(), "a killed build left {}", out.display());
@@ -475,17 +483,7 @@ fn a_killed_build_never_leaves_a_database_at_the_output() {
 #[test]
 fn ctrl_c_cancels_a_build_and_cleans_up() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let input = large_synthetic_dem(tmp.path());
-    let out = tmp.path().join("db");
-    let mut child = std::process::Command::new(workspace_binary("terrain-server"))
-        .args(["build", "--quiet", "--tile-size", "65"])
-        .arg(&input)
-        .arg("--out")
-        .arg(&out)
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("builder starts");
-    wait_for_temporary_dir(tmp.path(), &mut child);
+    let (child, out) = start_large_build(tmp.path());
     let sent = std::process::Command::new("kill")
         .args(["-INT", &child.id().to_string()])
         .status()

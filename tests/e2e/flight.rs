@@ -7,7 +7,7 @@ use terrain_client::flight::{CSV_HEADER, FlightArgs, fly};
 use terrain_client::memory::MemorySize;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};
-use terrain_tests::data::jacksboro;
+use terrain_tests::data::{build_jacksboro, jacksboro};
 use terrain_tests::server::{RestartableServer, TestServer};
 
 fn runtime() -> tokio::runtime::Runtime {
@@ -67,12 +67,7 @@ fn tile_bytes(manifest: &Manifest, id: TileId) -> u64 {
 }
 
 fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {
-    let report = build(
-        &BuildOptions::new(jacksboro(), dir.join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("builds");
+    let report = build_jacksboro(dir);
     (TestServer::start(&report.out), report.manifest)
 }
 
@@ -198,12 +193,7 @@ fn a_flight_against_a_wrong_url_says_why() {
 #[test]
 fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(
-        &BuildOptions::new(jacksboro(), tmp.path().join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("builds");
+    let report = build_jacksboro(tmp.path());
     let mut server = RestartableServer::start(&report.out);
     // Room for ten of the twelve tiles: the square can reach two belts (nine tiles) but not
     // the whole grid, so the lap keeps fetching and evicting all along.

@@ -2,11 +2,9 @@
 //! served on 127.0.0.1:0 and fetched back through the client; every height must equal the
 //! source raster and every texture level must be the image the manifest promises.
 
-use std::sync::atomic::AtomicBool;
 use terrain_client::fetch::{FetchError, TileClient};
-use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Heights, TileId};
-use terrain_tests::data::{jacksboro, png_codes};
+use terrain_tests::data::{build_jacksboro, jacksboro, png_codes};
 use terrain_tests::server::TestServer;
 
 fn runtime() -> tokio::runtime::Runtime {
@@ -19,12 +17,7 @@ fn runtime() -> tokio::runtime::Runtime {
 #[test]
 fn every_height_served_for_jacksboro_equals_the_source_raster() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(
-        &BuildOptions::new(jacksboro(), tmp.path().join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("jacksboro builds");
+    let report = build_jacksboro(tmp.path());
     let server = TestServer::start(&report.out);
     let (width, height, source) = png_codes(&jacksboro());
 
@@ -96,12 +89,7 @@ fn every_height_served_for_jacksboro_equals_the_source_raster() {
 #[test]
 fn a_tile_outside_the_grid_or_a_bad_url_is_a_clear_client_error() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(
-        &BuildOptions::new(jacksboro(), tmp.path().join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("jacksboro builds");
+    let report = build_jacksboro(tmp.path());
     let server = TestServer::start(&report.out);
     runtime().block_on(async {
         let client = TileClient::new(server.base_url()).expect("client");
@@ -129,12 +117,7 @@ fn a_tile_outside_the_grid_or_a_bad_url_is_a_clear_client_error() {
 #[test]
 fn a_corrupt_or_truncated_tile_body_is_rejected_by_the_decoder() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(
-        &BuildOptions::new(jacksboro(), tmp.path().join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("jacksboro builds");
+    let report = build_jacksboro(tmp.path());
     let server = TestServer::start(&report.out);
     runtime().block_on(async {
         let client = TileClient::new(server.base_url()).expect("client");

@@ -19,6 +19,17 @@ pub fn jacksboro() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/jacksboro/jacksboro_fault_dem.png")
 }
 
+/// Builds the bundled jacksboro fixture into `dir/db` with the builder's defaults.
+pub fn build_jacksboro(dir: &Path) -> terrain_server::build::BuildReport {
+    let options = terrain_server::build::BuildOptions::new(jacksboro(), dir.join("db"));
+    terrain_server::build::build(
+        &options,
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .unwrap_or_else(|e| panic!("the jacksboro fixture must build: {e}"))
+}
+
 /// A file of the data kit, or `None` (after saying so on stderr) when the kit is absent.
 /// Panics when the kit is required or the variable names a kit that lacks the file.
 pub fn kit_file(test: &str, relative: &str) -> Option<PathBuf> {
