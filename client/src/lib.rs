@@ -27,6 +27,7 @@ pub mod cli;
 pub mod fetch;
 pub mod fetcher;
 pub mod flight;
+pub mod lod;
 pub mod memory;
 pub mod overview;
 pub mod page;

@@ -1,0 +1,192 @@
+//! LOD benchmark: CPU time per frame of choosing every visible tile's mask (importance,
+//! greedy budget sharing, mask selection), against a floor measured in the same run.
+//!
+//! ```text
+//! cargo bench -p terrain-client --bench lod
+//! ```
+//!
+//! 4096 visible tiles (a 64x64 grid, as in benches/pager.rs) of 129^2 samples at 10 m, so
+//! 1280 m a tile; bounding-box heights of 0 to 1500 m and roughness of 0 to 40 m drawn once
+//! per tile. The viewpoint circles the grid's middle at 2 km altitude, moving 20 m a frame.
+//! Each frame's global budget is 4 M triangles (about 1000 per tile, an eighth of a full
+//! tile on average). Each frame times [`importance_into`] + [`share_into`] (which selects
+//! every mask) and, as the baseline, one pass computing the tiles' distances to the
+//! viewpoint: the least any importance must do. The target is under 0.5 ms a frame.
+
+use std::hint::black_box;
+use std::time::Instant;
+use terrain_client::lod::budget::{Allocation, share_into};
+use terrain_client::lod::importance::{DEFAULT_ALPHA, HeightMeasure, TileView, importance_into};
+use terrain_client::lod::strips::MaskSet;
+
+const SIDE: u32 = 64;
+const TILE_SIZE: u32 = 129;
+const TILE_M: f64 = 1280.0;
+const FRAMES: usize = 5_000;
+const GLOBAL_BUDGET: u32 = 4 << 20;
+const ALTITUDE_M: f64 = 2_000.0;
+const SPEED_M_PER_FRAME: f64 = 20.0;
+const TARGET_US: f64 = 500.0;
+
+fn main() {
+    println!(
+        "machine: {} ({} cores); one thread",
+        cpu_model(),
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    let tiles = (SIDE * SIDE) as usize;
+    let mut random = Random(0x10d);
+    let centres: Vec<[f64; 2]> = (0..tiles)
+        .map(|i| {
+            let (x, y) = ((i as u32 % SIDE) as f64, (i as u32 / SIDE) as f64);
+            [(x + 0.5) * TILE_M, (y + 0.5) * TILE_M]
+        })
+        .collect();
+    let heights: Vec<(f64, f64)> = (0..tiles)
+        .map(|_| (random.unit() * 1500.0, random.unit() * 40.0))
+        .collect();
+    let masks = MaskSet::new(TILE_SIZE);
+    for level in 0..masks.level_count() {
+        black_box(masks.strip(level)); // built once, outside the timed frames
+    }
+
+    let mut views: Vec<TileView> = Vec::with_capacity(tiles);
+    let mut distances: Vec<f64> = Vec::with_capacity(tiles);
+    let (mut importances, mut order, mut allocations) =
+        (Vec::new(), Vec::new(), Vec::<Allocation>::new());
+    let (mut lod_ns, mut floor_ns) = (Vec::with_capacity(FRAMES), Vec::with_capacity(FRAMES));
+    let (mut drawn_sum, mut finest_sum) = (0u64, 0u64);
+    let middle = f64::from(SIDE) * TILE_M / 2.0;
+    let radius = middle / 2.0;
+    for frame in 0..FRAMES {
+        let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
+        let eye = [
+            middle + radius * angle.cos(),
+            middle + radius * angle.sin(),
+            ALTITUDE_M,
+        ];
+        let distance = |c: &[f64; 2]| {
+            let (dx, dy) = (c[0] - eye[0], c[1] - eye[1]);
+            (dx * dx + dy * dy + eye[2] * eye[2]).sqrt()
+        };
+
+        let start = Instant::now();
+        distances.clear();
+        distances.extend(centres.iter().map(distance));
+        black_box(&distances);
+        floor_ns.push(start.elapsed().as_nanos() as f64);
+
+        views.clear();
+        views.extend(distances.iter().zip(&heights).map(
+            |(&distance_m, &(bbox_height_m, roughness_m))| TileView {
+                distance_m,
+                bbox_height_m,
+                roughness_m,
+            },
+        ));
+        let start = Instant::now();
+        importance_into(
+            black_box(&views),
+            DEFAULT_ALPHA,
+            HeightMeasure::BoundingBox,
+            &mut importances,
+        );
+        share_into(
+            &importances,
+            &mut order,
+            GLOBAL_BUDGET,
+            &masks,
+            &mut allocations,
+        );
+        black_box(&allocations);
+        lod_ns.push(start.elapsed().as_nanos() as f64);
+
+        drawn_sum += allocations
+            .iter()
+            .map(|a| u64::from(a.triangles))
+            .sum::<u64>();
+        finest_sum += allocations
+            .iter()
+            .map(|a| a.level)
+            .min()
+            .map_or(0, u64::from);
+    }
+
+    let (lod, floor) = (Stats::of(&mut lod_ns), Stats::of(&mut floor_ns));
+    println!(
+        "{tiles} visible tiles of {TILE_SIZE}^2, global budget {GLOBAL_BUDGET} triangles, {FRAMES} frames"
+    );
+    println!(
+        "mean triangles drawn {:.0} ({:.1}% of the budget); mean finest level {:.1}",
+        drawn_sum as f64 / FRAMES as f64,
+        100.0 * drawn_sum as f64 / (FRAMES as f64 * f64::from(GLOBAL_BUDGET)),
+        finest_sum as f64 / FRAMES as f64
+    );
+    println!("| per frame | mean us | median us | p99 us | max us |");
+    println!("|---|---|---|---|---|");
+    lod.row("importance + share + select");
+    floor.row("baseline: distances only");
+    println!(
+        "lod / baseline: {:.1}x mean, {:.1}x median; target < {TARGET_US} us per frame: {}",
+        lod.mean / floor.mean,
+        lod.median / floor.median,
+        if lod.p99 < TARGET_US {
+            "met (p99)"
+        } else {
+            "MISSED (p99)"
+        }
+    );
+}
+
+/// Mean, median, p99 and max of nanosecond samples, in microseconds.
+struct Stats {
+    mean: f64,
+    median: f64,
+    p99: f64,
+    max: f64,
+}
+
+impl Stats {
+    fn of(ns: &mut [f64]) -> Stats {
+        ns.sort_by(f64::total_cmp);
+        let at = |q: f64| ns[((ns.len() - 1) as f64 * q).round() as usize] / 1e3;
+        Stats {
+            mean: ns.iter().sum::<f64>() / ns.len() as f64 / 1e3,
+            median: at(0.5),
+            p99: at(0.99),
+            max: at(1.0),
+        }
+    }
+
+    fn row(&self, name: &str) {
+        println!(
+            "| {name} | {:.1} | {:.1} | {:.1} | {:.1} |",
+            self.mean, self.median, self.p99, self.max
+        );
+    }
+}
+
+/// splitmix64: reproducible tile heights without a dependency.
+struct Random(u64);
+
+impl Random {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into())
+}

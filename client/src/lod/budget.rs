@@ -1,0 +1,405 @@
+//! Triangle budgets: the frame's global budget, and its greedy sharing among visible tiles.
+//!
+//! Strip-mask paper, section 5.3. [`FrameRateController`] predicts the global budget `tau`
+//! from previous frames so as to hold a target frame rate. [`share`] hands it out greedily
+//! in decreasing importance: each tile receives its share, selects the finest mask that fits
+//! ([`MaskSet::select`]) and returns what that mask does not use to the tiles after it.
+//!
+//! The module owns these two rules. Importances come from [`crate::lod::importance`];
+//! measuring frame times (the clock) is the renderer's, which passes them in.
+
+use crate::lod::strips::MaskSet;
+
+/// One tile's part of the frame's budget.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Allocation {
+    /// Position of the tile in the importances passed to [`share`].
+    pub tile: usize,
+    /// Triangles the tile was offered.
+    pub budget: u32,
+    /// Mask level it draws: [`MaskSet::select`] of `budget`.
+    pub level: u32,
+    /// Triangles that mask draws. Above `budget` only when `budget` is below the coarsest
+    /// mask, which every visible tile draws anyway.
+    pub triangles: u32,
+}
+
+/// Shares `global_budget` triangles among the tiles of `importances` (summing to 1, as
+/// [`crate::lod::importance::importance`] returns them), one [`Allocation`] per tile, in the
+/// order they were served: decreasing importance, ties by tile index. `order` is scratch
+/// space the caller keeps from frame to frame so that sorting does not allocate.
+///
+/// **The rule.** A pool starts at `tau = global_budget`. Tile `t`, served with the
+/// importance `R` of the tiles not yet served (itself included), is offered
+/// `floor(pool * imp_t / R)`: with nothing returned yet, `pool = tau * R` and this is the
+/// paper's `imp_t * tau` exactly; whatever earlier tiles' masks did not use is in `pool`
+/// and so reaches the later tiles in proportion to their importance (rather than all to the
+/// next tile, which would favour it over tiles of nearly equal importance). The tile draws
+/// `select(offer)` and the pool loses what that mask draws. If the remaining tiles have
+/// importance 0, they share the pool evenly.
+///
+/// **Invariant:** when `global_budget` covers the coarsest mask of every tile, the triangles
+/// drawn sum to at most `global_budget`: every offer is capped so that the pool keeps the
+/// coarsest mask of each tile after it. A tile offered less than the coarsest mask still
+/// draws the coarsest mask (a visible tile is never left out), taking it from that reserve.
+/// When `global_budget` is smaller than the coarsest masks of all tiles, every tile draws
+/// its coarsest mask and the frame overspends: it draws `tiles * coarsest` triangles.
+pub fn share(
+    importances: &[f64],
+    order: &mut Vec<usize>,
+    global_budget: u32,
+    masks: &MaskSet,
+) -> Vec<Allocation> {
+    let mut out = Vec::with_capacity(importances.len());
+    share_into(importances, order, global_budget, masks, &mut out);
+    out
+}
+
+/// [`share`] into a vector the caller reuses from frame to frame (cleared first).
+pub fn share_into(
+    importances: &[f64],
+    order: &mut Vec<usize>,
+    global_budget: u32,
+    masks: &MaskSet,
+    out: &mut Vec<Allocation>,
+) {
+    out.clear();
+    order.clear();
+    order.extend(0..importances.len());
+    order.sort_unstable_by(|&a, &b| importances[b].total_cmp(&importances[a]).then(a.cmp(&b)));
+
+    let coarsest = i64::from(masks.triangle_count(masks.coarsest_level()));
+    let mut pool = i64::from(global_budget);
+    // Summed in serving order, then decreased tile by tile; clamped at 0 against rounding.
+    let mut remaining_importance: f64 = order.iter().map(|&t| importances[t].max(0.0)).sum();
+    for (served, &tile) in order.iter().enumerate() {
+        let later = (order.len() - served - 1) as i64;
+        let importance = importances[tile].max(0.0);
+        // The last tile takes the whole pool, whatever rounding left in the importances.
+        let weight = if later == 0 {
+            1.0
+        } else if remaining_importance > 0.0 {
+            (importance / remaining_importance).min(1.0)
+        } else {
+            1.0 / (later + 1) as f64
+        };
+        let proportional = (pool.max(0) as f64 * weight).floor() as i64;
+        let reserve_for_later = coarsest * later;
+        let offer = proportional
+            .min(pool - reserve_for_later)
+            .clamp(0, i64::from(u32::MAX));
+        let budget = offer as u32;
+        let level = masks.select(budget);
+        let triangles = masks.triangle_count(level);
+        pool -= i64::from(triangles);
+        remaining_importance = (remaining_importance - importance).max(0.0);
+        out.push(Allocation {
+            tile,
+            budget,
+            level,
+            triangles,
+        });
+    }
+}
+
+/// Target frame rate when none is configured.
+pub const DEFAULT_TARGET_FPS: f64 = 60.0;
+
+/// Weight of the newest frame in the triangles-per-second estimate: an exponential moving
+/// average over about `1 / 0.2 = 5` frames, which lets one stuttering frame move the
+/// estimate by a fifth only, yet follows a real change (a heavier scene, a throttled GPU)
+/// within about ten frames (`0.8^10 = 11%` of the old rate left).
+pub const RATE_SMOOTHING: f64 = 0.2;
+
+/// Fraction of the gap between the current budget and the rate's ideal budget closed per
+/// frame. Below 1 so that a noisy estimate does not make the budget jump back and forth.
+/// Together with [`RATE_SMOOTHING`], on a renderer whose time is linear in triangles, the
+/// budget comes within 10% of the target in about 10 frames from 10x below it, without
+/// overshooting; a per-frame time that does not depend on triangles slows this down (about
+/// 30 frames from 380x below with 4 of the 16.7 ms fixed). The tests allow 60 frames.
+pub const BUDGET_DAMPING: f64 = 0.5;
+
+/// Most the budget may grow in one frame, as a factor: a frame that was suspiciously fast
+/// (a skipped present, a timer glitch) cannot make the next frame's budget explode.
+pub const MAX_GROWTH_PER_FRAME: f64 = 2.0;
+
+/// What [`FrameRateController`] aims for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BudgetMode {
+    /// Predict the budget from previous frames to hold a frame rate.
+    Adaptive {
+        /// Frames per second to hold.
+        target_fps: f64,
+        /// Budget of the first frame, before any frame was measured.
+        initial_budget: u32,
+        /// The budget never goes below this.
+        min_budget: u32,
+        /// The budget never goes above this.
+        max_budget: u32,
+    },
+    /// Always the same budget, whatever the frame times: for benchmarks and golden images.
+    Fixed(u32),
+}
+
+impl Default for BudgetMode {
+    /// 60 fps, starting from 2^16 triangles (two full 129^2 tiles) and clamped to
+    /// [2^12, 2^26]: the floor keeps the coarsest masks of a few thousand tiles affordable,
+    /// the ceiling (67 M triangles) is well above what one frame of a current GPU draws at 60 fps.
+    fn default() -> BudgetMode {
+        BudgetMode::Adaptive {
+            target_fps: DEFAULT_TARGET_FPS,
+            initial_budget: 1 << 16,
+            min_budget: 1 << 12,
+            max_budget: 1 << 26,
+        }
+    }
+}
+
+/// Predicts each frame's global triangle budget from the frames before it.
+///
+/// Each measured frame gives a rate, triangles drawn over seconds taken; the rate is
+/// smoothed ([`RATE_SMOOTHING`]) and the ideal budget is `rate / target_fps`. The budget
+/// moves [`BUDGET_DAMPING`] of the way towards it, grows at most [`MAX_GROWTH_PER_FRAME`]
+/// and stays within the mode's bounds. If a frame's time also has a part that does not
+/// depend on triangles (`o` seconds), the loop still settles on the target frame time,
+/// as long as `o` is below the frame time: the fixed point `B` of
+/// `B = B / (fps (B / rate + o))` is `B / rate + o = 1 / fps`.
+#[derive(Debug, Clone)]
+pub struct FrameRateController {
+    mode: BudgetMode,
+    budget: u32,
+    /// Smoothed triangles per second; `None` until a frame has been measured.
+    rate: Option<f64>,
+}
+
+impl FrameRateController {
+    /// A controller in `mode`; its first budget is the mode's initial or fixed budget.
+    pub fn new(mode: BudgetMode) -> FrameRateController {
+        let budget = match mode {
+            BudgetMode::Adaptive {
+                initial_budget,
+                min_budget,
+                max_budget,
+                ..
+            } => initial_budget.clamp(min_budget, max_budget),
+            BudgetMode::Fixed(budget) => budget,
+        };
+        FrameRateController {
+            mode,
+            budget,
+            rate: None,
+        }
+    }
+
+    /// The budget of the frame about to be drawn, as last returned.
+    pub fn budget(&self) -> u32 {
+        self.budget
+    }
+
+    /// Smoothed triangles per second, once a frame has been measured.
+    pub fn rate(&self) -> Option<f64> {
+        self.rate
+    }
+
+    /// The next frame's budget, given what the last frame drew and how long it took. A
+    /// frame with no triangles, or a time that is not a positive finite number, tells nothing
+    /// about the rate and keeps the budget.
+    pub fn next_budget(&mut self, last_frame_triangles: u32, last_frame_seconds: f64) -> u32 {
+        let BudgetMode::Adaptive {
+            target_fps,
+            min_budget,
+            max_budget,
+            ..
+        } = self.mode
+        else {
+            return self.budget;
+        };
+        if last_frame_triangles == 0 || !last_frame_seconds.is_finite() || last_frame_seconds <= 0.0
+        {
+            return self.budget;
+        }
+        let sample = f64::from(last_frame_triangles) / last_frame_seconds;
+        let rate = match self.rate {
+            Some(rate) => rate + RATE_SMOOTHING * (sample - rate),
+            None => sample,
+        };
+        self.rate = Some(rate);
+        let current = f64::from(self.budget);
+        let ideal = rate / target_fps;
+        let next = (current + BUDGET_DAMPING * (ideal - current))
+            .min(current * MAX_GROWTH_PER_FRAME)
+            .clamp(f64::from(min_budget), f64::from(max_budget));
+        self.budget = next.round() as u32;
+        self.budget
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn check(
+        importances: &[f64],
+        global_budget: u32,
+        tile_size: u32,
+        expect: &[(usize, u32, u32)],
+    ) {
+        let masks = MaskSet::new(tile_size);
+        let got: Vec<(usize, u32, u32)> =
+            share(importances, &mut Vec::new(), global_budget, &masks)
+                .iter()
+                .map(|a| (a.tile, a.budget, a.triangles))
+                .collect();
+        assert_eq!(got, expect, "(tile, budget, triangles)");
+    }
+
+    #[test]
+    fn leftovers_pass_to_the_tiles_after() {
+        // Tile 17 draws 512, 128, 72, 32, ... triangles. Tile 1 (more important) is offered
+        // 0.5 * 200 = 100 and draws 72; the 28 left go to tile 0, offered 128 and drawing 128,
+        // where 0.5 * 200 = 100 alone would only allow 72.
+        check(&[0.5, 0.5], 200, 17, &[(0, 100, 72), (1, 128, 128)]);
+        check(&[0.4, 0.6], 200, 17, &[(1, 120, 72), (0, 128, 128)]);
+    }
+
+    #[test]
+    fn leftovers_are_shared_in_proportion_to_importance() {
+        // Tile 0 is offered 100 of 200 and draws 72: 128 remain for importances 0.3 and 0.2,
+        // so 0.3 / 0.5 * 128 = 76.8 and then the 128 - 72 = 56 left.
+        check(
+            &[0.5, 0.3, 0.2],
+            200,
+            17,
+            &[(0, 100, 72), (1, 76, 72), (2, 56, 32)],
+        );
+    }
+
+    #[test]
+    fn tiles_are_served_in_decreasing_importance() {
+        let masks = MaskSet::new(9);
+        let served: Vec<usize> = share(&[0.1, 0.4, 0.2, 0.3], &mut Vec::new(), 1000, &masks)
+            .iter()
+            .map(|a| a.tile)
+            .collect();
+        assert_eq!(served, vec![1, 3, 2, 0]);
+    }
+
+    #[test]
+    fn a_budget_below_the_coarsest_masks_draws_them_all_and_overspends() {
+        // Three tiles, coarsest mask 2 triangles each, 5 triangles in all: offers are capped
+        // at 1, below every mask, and the frame draws 6.
+        check(&[0.5, 0.3, 0.2], 5, 6, &[(0, 1, 2), (1, 1, 2), (2, 1, 2)]);
+    }
+
+    #[test]
+    fn small_offers_take_the_coarsest_mask_from_the_reserve() {
+        // 12 triangles for 3 tiles of 6x6 (50, 18, 8, 8, 2): tiles 0 and 1 are offered 6,
+        // fit no mask but the coarsest and draw 2 each, leaving 8 for the last tile.
+        check(&[0.5, 0.3, 0.2], 12, 6, &[(0, 6, 2), (1, 6, 2), (2, 8, 8)]);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        #[test]
+        fn the_shared_budget_is_never_exceeded_when_it_covers_the_coarsest_masks(
+            weights in prop::collection::vec(0.0..1.0f64, 1..200),
+            tile_size in prop::sample::select(vec![3u32, 6, 17, 33, 129]),
+            extra in 0u32..2_000_000,
+        ) {
+            let masks = MaskSet::new(tile_size);
+            let total: f64 = weights.iter().sum();
+            let importances: Vec<f64> = if total > 0.0 {
+                weights.iter().map(|w| w / total).collect()
+            } else {
+                vec![1.0 / weights.len() as f64; weights.len()]
+            };
+            let coarsest = masks.triangle_count(masks.coarsest_level());
+            let global = coarsest * importances.len() as u32 + extra;
+            let allocations = share(&importances, &mut Vec::new(), global, &masks);
+            prop_assert_eq!(allocations.len(), importances.len());
+            let drawn: u64 = allocations.iter().map(|a| u64::from(a.triangles)).sum();
+            prop_assert!(drawn <= u64::from(global), "drew {} of {}", drawn, global);
+            let mut seen = vec![false; importances.len()];
+            for a in &allocations {
+                prop_assert!(!seen[a.tile]);
+                seen[a.tile] = true;
+                prop_assert_eq!(a.level, masks.select(a.budget));
+                prop_assert_eq!(a.triangles, masks.triangle_count(a.level));
+            }
+        }
+    }
+
+    /// splitmix64, for the simulated renderer's noise.
+    struct Random(u64);
+    impl Random {
+        fn unit(&mut self) -> f64 {
+            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// Runs the controller against a renderer drawing `rate` triangles a second after
+    /// `overhead_s` of fixed work, with +-`noise` relative jitter on each frame's time, and
+    /// returns the budgets of frames 60 to 120 relative to the budget that hits 60 fps.
+    fn simulate(initial_budget: u32, rate: f64, overhead_s: f64, noise: f64) -> Vec<f64> {
+        let mut controller = FrameRateController::new(BudgetMode::Adaptive {
+            target_fps: 60.0,
+            initial_budget,
+            min_budget: 1,
+            max_budget: u32::MAX,
+        });
+        let reachable = rate * (1.0 / 60.0 - overhead_s);
+        let mut random = Random(7);
+        let mut budget = controller.budget();
+        let mut relative = Vec::new();
+        for frame in 0..120 {
+            let seconds =
+                (budget as f64 / rate + overhead_s) * (1.0 + noise * (2.0 * random.unit() - 1.0));
+            budget = controller.next_budget(budget, seconds);
+            if frame >= 59 {
+                relative.push(budget as f64 / reachable);
+            }
+        }
+        relative
+    }
+
+    #[test]
+    fn the_controller_converges_within_60_frames_from_below_and_above() {
+        for (initial, rate, overhead, noise) in [
+            (10_000, 6e6, 0.0, 0.05),
+            (5_000_000, 6e6, 0.0, 0.05),
+            (10_000, 3e8, 0.004, 0.05),
+            (50_000_000, 3e8, 0.004, 0.02),
+        ] {
+            let relative = simulate(initial, rate, overhead, noise);
+            let worst = relative.iter().fold(0.0f64, |w, r| w.max((r - 1.0).abs()));
+            assert!(
+                worst < 0.1,
+                "start {initial}, rate {rate}, overhead {overhead}: off by {worst:.3}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_fixed_budget_ignores_frame_times() {
+        let mut controller = FrameRateController::new(BudgetMode::Fixed(12_345));
+        assert_eq!(controller.budget(), 12_345);
+        assert_eq!(controller.next_budget(1, 10.0), 12_345);
+        assert_eq!(controller.next_budget(1_000_000, 1e-6), 12_345);
+    }
+
+    #[test]
+    fn frames_without_triangles_or_time_keep_the_budget() {
+        let mut controller = FrameRateController::new(BudgetMode::default());
+        let first = controller.budget();
+        assert_eq!(controller.next_budget(0, 0.01), first);
+        assert_eq!(controller.next_budget(1000, 0.0), first);
+        assert_eq!(controller.next_budget(1000, f64::NAN), first);
+        assert_eq!(controller.next_budget(1000, f64::INFINITY), first);
+        assert_eq!(controller.rate(), None);
+    }
+}
