@@ -8,7 +8,9 @@
 //!    requests: bounded concurrency, priority order, cancellation, retries with backoff.
 //! 2. **page** ([`page`]): which belts of tiles around the viewpoint to hold, fetch and
 //!    drop within the memory limit ([`memory`]), Algorithm 1 of the strip-mask paper.
-//! 3. **choose LOD** (not yet): the mask level and texture level each held tile draws with.
+//! 3. **choose LOD** ([`lod`]): each visible tile's visual importance, the global triangle
+//!    budget shared greedily by importance, and the strip mask each tile draws with (pure;
+//!    the renderer that uses it is not written yet).
 //! 4. **render** (not yet): upload and draw.
 //!
 //! [`flight`] drives the steps frame by frame along a camera path ([`path`]) and records
