@@ -30,6 +30,8 @@ cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/himalaya_4097" 2
 cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/puget_sound_1k" 2>/dev/null
 echo "== pager decision time"
 cargo bench -p terrain-client --bench pager 2>/dev/null
+echo "== level of detail per frame (strip masks, importance, budget)"
+cargo bench -p terrain-client --bench lod 2>/dev/null
 echo "== streaming through 100 Mbit/s"
 cargo bench -p terrain-tests --bench stream -- "$out/db/himalaya_4097" 2>/dev/null
 
