@@ -13,6 +13,9 @@
 //! every mask) and, as the baseline, one pass computing the tiles' distances to the
 //! viewpoint: the least any importance must do. The target is under 0.5 ms a frame.
 
+mod common;
+use common::{Random, Stats, cpu_model};
+
 use std::hint::black_box;
 use std::time::Instant;
 use terrain_client::lod::budget::{Allocation, share_into};
@@ -74,7 +77,7 @@ fn main() {
         distances.clear();
         distances.extend(centres.iter().map(distance));
         black_box(&distances);
-        floor_ns.push(start.elapsed().as_nanos() as f64);
+        floor_ns.push(start.elapsed().as_nanos() as u64);
 
         views.clear();
         views.extend(distances.iter().zip(&heights).map(
@@ -99,7 +102,7 @@ fn main() {
             &mut allocations,
         );
         black_box(&allocations);
-        lod_ns.push(start.elapsed().as_nanos() as f64);
+        lod_ns.push(start.elapsed().as_nanos() as u64);
 
         drawn_sum += allocations
             .iter()
@@ -124,8 +127,8 @@ fn main() {
     );
     println!("| per frame | mean us | median us | p99 us | max us |");
     println!("|---|---|---|---|---|");
-    lod.row("importance + share + select");
-    floor.row("baseline: distances only");
+    println!("{}", lod.row("importance + share + select"));
+    println!("{}", floor.row("baseline: distances only"));
     println!(
         "lod / baseline: {:.1}x mean, {:.1}x median; target < {TARGET_US} us per frame: {}",
         lod.mean / floor.mean,
@@ -136,57 +139,4 @@ fn main() {
             "MISSED (p99)"
         }
     );
-}
-
-/// Mean, median, p99 and max of nanosecond samples, in microseconds.
-struct Stats {
-    mean: f64,
-    median: f64,
-    p99: f64,
-    max: f64,
-}
-
-impl Stats {
-    fn of(ns: &mut [f64]) -> Stats {
-        ns.sort_by(f64::total_cmp);
-        let at = |q: f64| ns[((ns.len() - 1) as f64 * q).round() as usize] / 1e3;
-        Stats {
-            mean: ns.iter().sum::<f64>() / ns.len() as f64 / 1e3,
-            median: at(0.5),
-            p99: at(0.99),
-            max: at(1.0),
-        }
-    }
-
-    fn row(&self, name: &str) {
-        println!(
-            "| {name} | {:.1} | {:.1} | {:.1} | {:.1} |",
-            self.mean, self.median, self.p99, self.max
-        );
-    }
-}
-
-/// splitmix64: reproducible tile heights without a dependency.
-struct Random(u64);
-
-impl Random {
-    fn unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into())
 }

@@ -14,6 +14,9 @@
 //! [`decide`] and, as the baseline, one plain pass summing `resident_bytes`. The target is
 //! under 50 us a decision.
 
+mod common;
+use common::{Random, Stats, cpu_model};
+
 use std::hint::black_box;
 use std::time::Instant;
 use terrain_client::page::{PagerConfig, PagerView, decide};
@@ -130,58 +133,4 @@ fn main() {
             "MISSED (p99)"
         }
     );
-}
-
-/// Mean, median, p99 and max of nanosecond samples, in microseconds.
-struct Stats {
-    mean: f64,
-    median: f64,
-    p99: f64,
-    max: f64,
-}
-
-impl Stats {
-    fn of(samples_ns: &mut [u64]) -> Stats {
-        samples_ns.sort_unstable();
-        let us = |ns: u64| ns as f64 / 1000.0;
-        let at = |q: f64| us(samples_ns[((samples_ns.len() - 1) as f64 * q).round() as usize]);
-        Stats {
-            mean: samples_ns.iter().sum::<u64>() as f64 / samples_ns.len() as f64 / 1000.0,
-            median: at(0.5),
-            p99: at(0.99),
-            max: at(1.0),
-        }
-    }
-
-    fn row(&self, name: &str) -> String {
-        format!(
-            "| {name} | {:.2} | {:.2} | {:.2} | {:.2} |",
-            self.mean, self.median, self.p99, self.max
-        )
-    }
-}
-
-/// splitmix64, so every run flies the same flight with the same tile sizes.
-struct Random(u64);
-
-impl Random {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        (z ^ (z >> 31)) % n
-    }
-}
-
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into())
 }

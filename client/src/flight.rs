@@ -12,7 +12,7 @@
 //! `flight.png` (the charts), and a summary on stdout.
 
 use crate::fetch::{FetchError, TileClient};
-use crate::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
+use crate::fetcher::{FailureKind, FetchEvent, Fetcher, FetcherConfig, Want};
 use crate::memory::{MemoryBudget, MemoryError, MemorySize, TileBytes};
 use crate::page::{self, PagerConfig, PagerView};
 use crate::path::{CameraPath, PathError};
@@ -430,12 +430,7 @@ impl FlightState {
                     // A tile the server refuses (4xx) will never arrive: the flight cannot
                     // complete its square, so it stops with the server's reason. Corrupt or
                     // unreachable tiles are asked for again by the pager on a later frame.
-                    if !error.is_transient()
-                        && !matches!(
-                            error,
-                            FetchError::HashMismatch { .. } | FetchError::Decode { .. }
-                        )
-                    {
+                    if FailureKind::of(&error) == FailureKind::Permanent {
                         return Err(FlightError::TileFailed {
                             id,
                             message: error.to_string(),
@@ -445,7 +440,6 @@ impl FlightState {
                 }
             }
         }
-        self.in_flight.fill(false);
         fetcher.mark_pending(&mut self.in_flight, self.columns);
         let viewpoint = [
             position[0] / self.tile_extent_m[0],

@@ -231,6 +231,20 @@ impl Manifest {
         if self.mask_levels != crate::mask::level_count(n) {
             return bad(format!("{} mask levels for tiles of {n}", self.mask_levels));
         }
+        let extent = [
+            f64::from(self.raster.width.saturating_sub(1)) * self.spacing_m[0],
+            f64::from(self.raster.height.saturating_sub(1)) * self.spacing_m[1],
+        ];
+        if extent
+            .iter()
+            .zip(self.extent_m)
+            .any(|(derived, stated)| (derived - stated).abs() > 1e-6 * derived.abs().max(1.0))
+        {
+            return bad(format!(
+                "extent {:?} m does not match (raster - 1) * spacing = {extent:?} m",
+                self.extent_m
+            ));
+        }
         if self.texture.levels == 0 || self.texture.level_size(0) == 0 {
             return bad("texture has no levels".into());
         }

@@ -496,3 +496,14 @@ fn ctrl_c_cancels_a_build_and_cleans_up() {
     assert!(!out.exists());
     assert_eq!(leftovers(tmp.path()), Vec::<PathBuf>::new());
 }
+
+#[test]
+fn a_manifest_whose_extent_disagrees_with_its_raster_and_spacing_is_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = terrain_tests::data::build_jacksboro(tmp.path());
+    assert!(Manifest::from_json(&report.manifest.to_json()).is_ok());
+    let mut tampered = report.manifest.clone();
+    tampered.extent_m[0] += 100.0;
+    let error = Manifest::from_json(&tampered.to_json()).expect_err("extent off by 100 m");
+    assert!(error.to_string().contains("extent"), "{error}");
+}
