@@ -15,6 +15,7 @@ for tool in nginx wrk; do
     DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 install -y -qq --no-install-recommends nginx wrk >/dev/null
   }
 done
+source scripts/gpu-env.sh
 cargo build --release --workspace --locked
 bin=target/release
 
@@ -32,6 +33,8 @@ echo "== pager decision time"
 cargo bench -p terrain-client --bench pager 2>/dev/null
 echo "== level of detail per frame (strip masks, importance, budget)"
 cargo bench -p terrain-client --bench lod 2>/dev/null
+echo "== triangles per second on this machine's adapter"
+cargo bench -p terrain-client --bench render 2>/dev/null
 echo "== streaming through 100 Mbit/s"
 cargo bench -p terrain-tests --bench stream -- "$out/db/himalaya_4097" 2>/dev/null
 
@@ -42,7 +45,25 @@ trap 'kill "$server" 2>/dev/null || true' EXIT
 for _ in $(seq 200); do
   url=$(sed -n 's/^listening on //p' "$out/server.stdout"); [ -n "$url" ] && break; sleep 0.05
 done
+# Paging and streaming only (--no-render): the memory figures of the paging benchmarks.
 for memory in 32MiB 256MiB; do
   /usr/bin/time -f "process: peak RSS %M KiB" \
-    "$bin/terrain-client" fly --server "$url" --memory "$memory" --out "$out/flight-himalaya-$memory" --quiet
+    "$bin/terrain-client" fly --server "$url" --memory "$memory" --out "$out/flight-himalaya-$memory" --quiet --no-render
+done
+kill "$server"; wait "$server" 2>/dev/null || true
+
+echo "== frame-rate controller: rendered flights holding a target frame rate"
+for dataset in puget_sound_1k; do
+  "$bin/terrain-server" serve "$out/db/$dataset" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
+  server=$!
+  url=
+  for _ in $(seq 200); do
+    url=$(sed -n 's/^listening on //p' "$out/server.stdout"); [ -n "$url" ] && break; sleep 0.05
+  done
+  for fps in 30 60; do
+    echo "-- $dataset, target $fps fps"
+    "$bin/terrain-client" fly --server "$url" --memory 64MiB --target-fps "$fps" \
+      --out "$out/fps-$dataset-$fps" --frame-every 0 --quiet
+  done
+  kill "$server"; wait "$server" 2>/dev/null || true
 done

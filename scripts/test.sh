@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # The test command: builds the workspace in release (the end-to-end tests run its
 # binaries), runs every test, and checks that docker-compose.yml parses.
-# Installs what it needs when missing (Debian: docker-compose).
+# Installs what it needs when missing (Debian: docker-compose, and Mesa's software Vulkan
+# driver for the render tests on machines without a GPU: see scripts/gpu-env.sh).
 #
 # The data-hungry tests read the data kit from $TERRAIN_DATA_DIR; without it they print
-# "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure.
+# "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure; so does
+# REQUIRE_GPU=1 for render tests without a Vulkan adapter.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,6 +21,8 @@ install_if_missing() { # command package
     return 1
   fi
 }
+
+source scripts/gpu-env.sh
 
 if [ -z "${TERRAIN_DATA_DIR:-}" ]; then
   echo "note: TERRAIN_DATA_DIR is not set: tests that need the data kit will say NOT RUN"

@@ -1,5 +1,6 @@
-//! Charts of a flight as PNG, in the spirit of the bottom panels of the strip-mask paper's
-//! Figures 6 and 7 (memory used over the flight), drawn with plotters from the per-frame
+//! Charts of a flight as PNG, in the spirit of the strip-mask paper's Figures 6 and 7:
+//! memory used over the flight (their bottom panels) and frame rate and triangles per frame
+//! (their top panels), drawn with plotters from the per-frame
 //! records. Pure apart from writing the file: records in, picture out.
 //!
 //! plotters' bitmap backend draws text with a font it is given; the project ships DejaVu
@@ -35,21 +36,19 @@ struct Panel<'a> {
     title: String,
     y_label: &'a str,
     series: Vec<Series<'a>>,
+    /// Top of the y axis; default: 10% above the largest value.
+    y_max: Option<f64>,
 }
 
 /// Writes the flight chart: memory, resident tiles, complete belts and download rate over time.
 pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result<(), ChartError> {
-    register_font();
-    let err = |e: String| ChartError {
-        path: path.display().to_string(),
-        message: e,
-    };
     let time = |r: &FrameRecord| r.time_s;
     let rate = download_rate_mbit(records);
     let panels = [
         Panel {
             title: format!("{title}: memory held by resident tiles"),
             y_label: "MiB",
+            y_max: None,
             series: vec![
                 (
                     "resident",
@@ -72,6 +71,7 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
         Panel {
             title: "tiles".into(),
             y_label: "tiles",
+            y_max: None,
             series: vec![
                 (
                     "resident",
@@ -94,6 +94,7 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
         Panel {
             title: "complete belts around the current tile".into(),
             y_label: "belts",
+            y_max: None,
             series: vec![(
                 "complete belts",
                 GREEN,
@@ -106,22 +107,121 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
         Panel {
             title: "download rate (1 s window)".into(),
             y_label: "Mbit/s",
+            y_max: None,
             series: vec![("downloaded", BLACK, rate)],
         },
     ];
+    let t_max = records.last().map_or(1.0, |r| r.time_s);
+    draw_panels(&panels, path, "flight time (s)", t_max)
+}
+
+/// Writes the rendering chart, the top panels of the strip-mask paper's Figures 6 and 7:
+/// target and obtained frame rate, and triangles per frame with the global budget, over
+/// wall-clock time. Frames without rendering are left out.
+pub fn render_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result<(), ChartError> {
+    let rendered: Vec<(f64, &crate::flight::RenderRecord)> = records
+        .iter()
+        .filter_map(|r| r.render.as_ref().map(|x| (r.wall_s, x)))
+        .collect();
+    let mut rate = vec![(
+        "obtained (1 / frame time)",
+        RGBColor(150, 170, 230),
+        rendered
+            .iter()
+            .map(|(t, r)| (*t, 1e3 / r.frame_ms.max(1e-6)))
+            .collect::<Vec<_>>(),
+    )];
+    rate.push((
+        "obtained (frames in the last second)",
+        BLUE,
+        crate::flight::windowed_fps(records),
+    ));
+    if rendered.iter().any(|(_, r)| r.target_fps.is_some()) {
+        rate.push((
+            "target",
+            RED,
+            rendered
+                .iter()
+                .filter_map(|(t, r)| r.target_fps.map(|f| (*t, f)))
+                .collect(),
+        ));
+    }
+    let target_max = rendered
+        .iter()
+        .filter_map(|(_, r)| r.target_fps)
+        .reduce(f64::max);
+    let panels = [
+        Panel {
+            title: format!("{title}: frame rate"),
+            y_label: "frames/s",
+            // The first frames, with nothing to draw yet, run at hundreds of frames per
+            // second: the axis stops at three times the target so the steady state shows.
+            y_max: target_max.map(|t| 3.0 * t),
+            series: rate,
+        },
+        Panel {
+            title: "triangles per frame".into(),
+            y_label: "triangles",
+            y_max: None,
+            series: vec![
+                (
+                    "drawn (masks)",
+                    BLUE,
+                    rendered
+                        .iter()
+                        .map(|(t, r)| (*t, r.triangles as f64))
+                        .collect(),
+                ),
+                (
+                    "global budget",
+                    RED,
+                    rendered
+                        .iter()
+                        .map(|(t, r)| (*t, f64::from(r.global_budget)))
+                        .collect(),
+                ),
+            ],
+        },
+        Panel {
+            title: "visible tiles".into(),
+            y_label: "tiles",
+            y_max: None,
+            series: vec![(
+                "visible",
+                GREEN,
+                rendered
+                    .iter()
+                    .map(|(t, r)| (*t, f64::from(r.visible_tiles)))
+                    .collect(),
+            )],
+        },
+    ];
+    let t_max = rendered.last().map_or(1.0, |(t, _)| *t);
+    draw_panels(&panels, path, "wall-clock time (s)", t_max)
+}
+
+/// Draws `panels` one above the other into `path`, sharing an x axis from 0 to `x_max`.
+fn draw_panels(panels: &[Panel], path: &Path, x_desc: &str, x_max: f64) -> Result<(), ChartError> {
+    register_font();
+    let err = |e: String| ChartError {
+        path: path.display().to_string(),
+        message: e,
+    };
     let root =
         BitMapBackend::new(path, (WIDTH, PANEL_HEIGHT * panels.len() as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
     let areas = root.split_evenly((panels.len(), 1));
-    let t_max = records.last().map_or(1.0, |r| r.time_s).max(1e-3);
+    let t_max = x_max.max(1e-3);
     for (panel, area) in panels.iter().zip(&areas) {
-        let y_max = panel
-            .series
-            .iter()
-            .flat_map(|(_, _, s)| s.iter().map(|p| p.1))
-            .fold(0.0f64, f64::max)
-            .max(1e-9)
-            * 1.1;
+        let y_max = panel.y_max.unwrap_or_else(|| {
+            panel
+                .series
+                .iter()
+                .flat_map(|(_, _, s)| s.iter().map(|p| p.1))
+                .fold(0.0f64, f64::max)
+                .max(1e-9)
+                * 1.1
+        });
         let mut chart = ChartBuilder::on(area)
             .caption(&panel.title, ("sans-serif", 18))
             .margin(8)
@@ -131,7 +231,7 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
             .map_err(|e| err(e.to_string()))?;
         chart
             .configure_mesh()
-            .x_desc("flight time (s)")
+            .x_desc(x_desc)
             .y_desc(panel.y_label)
             .label_style(("sans-serif", 13))
             .draw()

@@ -1,29 +1,36 @@
-//! A headless flight: the viewpoint follows a camera path while the belt pager keeps the
-//! largest square of complete belts that fits the memory limit, the fetcher streams tiles,
-//! and every frame is recorded.
+//! A headless flight: the camera follows a path while the belt pager keeps the largest
+//! square of complete belts that fits the memory limit, the fetcher streams tiles, the
+//! renderer draws every frame offscreen, and every frame is recorded.
 //!
-//! Per frame, in order: deliveries from the fetcher become resident tiles (their bytes
-//! counted by kind); the pure pager ([`crate::page::decide`]) sees the viewpoint, the
-//! resident bytes and what is in flight, and decides; cancellations and evictions are
-//! carried out and new requests queued; the frame is recorded. The pager never waits: a
-//! frame takes what has arrived and moves on, as a renderer's frame would.
+//! Each frame is a [`Scene::update`] (deliveries, paging, texture budget) and a
+//! [`Scene::draw`] (culling, importance, triangle budget, masks, render). The path's clock
+//! advances `1 / --fps` per frame, whatever the frame took, so every run flies the same
+//! frames; how long a frame took is measured and drives the frame-rate controller. Without
+//! rendering (`--no-render`) frames are paced at `--fps` in wall-clock time.
 //!
 //! Outputs (`--out`): `flight.csv` (one row per frame, columns in [`CSV_HEADER`]),
-//! `flight.png` (the charts), and a summary on stdout.
+//! `flight.png` (memory, tiles, belts, download rate), `render.png` (target and obtained
+//! frame rate, triangles per frame: the top panels of the strip-mask paper's Figures 6 and
+//! 7), `frames/frame-NNNNNN.png` every `--frame-every` frames, and a summary on stdout.
 
 use crate::fetch::{FetchError, TileClient};
-use crate::fetcher::{FailureKind, FetchEvent, Fetcher, FetcherConfig, Want};
-use crate::memory::{MemoryBudget, MemoryError, MemorySize, TileBytes};
-use crate::page::{self, PagerConfig, PagerView};
+use crate::fetcher::{Fetcher, FetcherConfig};
+use crate::lod::budget::{BudgetMode, DEFAULT_TARGET_FPS};
+use crate::lod::importance::{DEFAULT_ALPHA, HeightMeasure};
+use crate::memory::{MemoryBudget, MemoryError, MemorySize};
+use crate::page::PagerConfig;
 use crate::path::{CameraPath, PathError};
+use crate::render::{Camera, CrackFiller, Gpu, GpuError, LodSettings, Offscreen};
+use crate::scene::{RenderConfig, Scene};
 use std::fmt;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use terrain_shared::{Manifest, TileId};
 use thiserror::Error;
 
-/// Frames per second of the flight's clock: the rate a viewer would page at.
+pub use crate::scene::expected_tile_bytes;
+
+/// Frames per second of the flight's clock.
 pub const DEFAULT_FPS: f64 = 30.0;
 
 /// `terrain-client fly`.
@@ -36,17 +43,18 @@ pub struct FlightArgs {
     /// over the whole terrain, then a few seconds still.
     #[arg(long)]
     pub flight: Option<PathBuf>,
-    /// Memory budget for tiles, e.g. 64MiB. Default: the machine's available memory.
+    /// Memory budget for tiles (heights, textures, GPU buffers), e.g. 64MiB. Default: the
+    /// machine's available memory.
     #[arg(long)]
     pub memory: Option<MemorySize>,
     /// Share of the budget the pager fills, in percent (the rest is the margin for the belt
     /// being fetched).
     #[arg(long, default_value_t = crate::memory::DEFAULT_LIMIT_PERCENT)]
     pub limit_percent: f64,
-    /// Directory for flight.csv and flight.png; created if missing.
+    /// Directory for flight.csv, the charts and the frames; created if missing.
     #[arg(long, default_value = "out/flight")]
     pub out: PathBuf,
-    /// Frames per second of the flight.
+    /// Frames per second of the flight's clock: each frame advances the path by 1/fps s.
     #[arg(long, default_value_t = DEFAULT_FPS)]
     pub fps: f64,
     /// HTTP requests at once.
@@ -59,6 +67,123 @@ pub struct FlightArgs {
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub render: RenderArgs,
+}
+
+/// How a flight renders.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RenderArgs {
+    /// Page and stream only: no GPU, no frames.
+    #[arg(long)]
+    pub no_render: bool,
+    /// Frame size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "960x540", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// Write every Nth frame to OUT/frames as PNG (0: none). The last frame is always written.
+    #[arg(long, default_value_t = 30)]
+    pub frame_every: u64,
+    /// Frame rate the triangle budget is predicted to hold.
+    #[arg(long, default_value_t = DEFAULT_TARGET_FPS)]
+    pub target_fps: f64,
+    /// A fixed global triangle budget instead of the frame-rate controller (benchmarks).
+    #[arg(long)]
+    pub fixed_budget: Option<u32>,
+    /// How cracks between tiles of different levels are filled.
+    #[arg(long, value_enum, default_value_t)]
+    pub crack_filler: CrackFiller,
+    /// Weight of distance in a tile's importance; its height gets 1 - alpha.
+    #[arg(long, default_value_t = DEFAULT_ALPHA)]
+    pub alpha: f64,
+    /// Height term of the importance: the bounding box's height or the manifest's roughness.
+    #[arg(long, value_enum, default_value_t)]
+    pub height_measure: HeightMeasure,
+    /// Camera pitch, degrees above the horizon (negative looks down).
+    #[arg(long, default_value_t = crate::render::camera::DEFAULT_PITCH_DEG, allow_negative_numbers = true)]
+    pub pitch_deg: f64,
+}
+
+impl Default for RenderArgs {
+    fn default() -> RenderArgs {
+        RenderArgs {
+            no_render: false,
+            size: (960, 540),
+            frame_every: 30,
+            target_fps: DEFAULT_TARGET_FPS,
+            fixed_budget: None,
+            crack_filler: CrackFiller::default(),
+            alpha: DEFAULT_ALPHA,
+            height_measure: HeightMeasure::default(),
+            pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
+        }
+    }
+}
+
+impl RenderArgs {
+    /// No rendering: paging and streaming only.
+    pub fn off() -> RenderArgs {
+        RenderArgs {
+            no_render: true,
+            ..RenderArgs::default()
+        }
+    }
+
+    /// The scene's render configuration.
+    pub fn config(&self) -> Result<RenderConfig, FlightError> {
+        if !(0.0..=1.0).contains(&self.alpha) {
+            return Err(FlightError::BadOption(format!(
+                "--alpha {} must be in [0, 1]",
+                self.alpha
+            )));
+        }
+        if !(self.target_fps.is_finite() && self.target_fps > 0.0) {
+            return Err(FlightError::BadOption(format!(
+                "--target-fps {} must be positive",
+                self.target_fps
+            )));
+        }
+        let budget = match self.fixed_budget {
+            Some(b) => BudgetMode::Fixed(b),
+            None => match BudgetMode::default() {
+                BudgetMode::Adaptive {
+                    initial_budget,
+                    min_budget,
+                    max_budget,
+                    ..
+                } => BudgetMode::Adaptive {
+                    target_fps: self.target_fps,
+                    initial_budget,
+                    min_budget,
+                    max_budget,
+                },
+                fixed => fixed,
+            },
+        };
+        Ok(RenderConfig {
+            lod: LodSettings {
+                alpha: self.alpha,
+                height: self.height_measure,
+            },
+            filler: self.crack_filler,
+            budget,
+            ..RenderConfig::default()
+        })
+    }
+}
+
+/// Parses `WIDTHxHEIGHT`.
+pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("{text:?}: expected WIDTHxHEIGHT, e.g. 960x540"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&n| (16..=8192).contains(&n))
+            .ok_or_else(|| format!("{text:?}: each side must be a whole number from 16 to 8192"))
+    };
+    Ok((parse(w)?, parse(h)?))
 }
 
 /// Why a flight stopped.
@@ -70,21 +195,53 @@ pub enum FlightError {
     Path(#[from] PathError),
     #[error(transparent)]
     Memory(#[from] MemoryError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
     #[error("tile {id} cannot be fetched: {message}")]
-    TileFailed { id: TileId, message: String },
+    TileFailed {
+        id: terrain_shared::TileId,
+        message: String,
+    },
     #[error("cannot write {path}: {source}")]
     Write {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error("cannot write {path}: {message}")]
+    Image { path: PathBuf, message: String },
     #[error(transparent)]
     Chart(#[from] crate::charts::ChartError),
     #[error("invalid option: {0}")]
     BadOption(String),
 }
 
-/// Columns of `flight.csv`, one row per frame.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes";
+/// Columns of `flight.csv`, one row per frame. The render columns are empty with
+/// `--no-render`; `gpu_ms` is empty where the adapter has no timestamp queries.
+pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,fps,target_fps";
+
+/// What a rendered frame adds to its record.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderRecord {
+    pub visible_tiles: u32,
+    /// Triangles of the tiles' masks.
+    pub triangles: u64,
+    pub filler_triangles: u64,
+    pub draw_calls: u32,
+    /// Global triangle budget the frame was planned with.
+    pub global_budget: u32,
+    /// Tiles per mask level, `level:count` pairs, finest first.
+    pub mask_levels: Vec<(u32, u32)>,
+    /// Culling, importance, budget sharing and mask selection.
+    pub lod_ms: f64,
+    /// CPU time of the frame: paging and uploads, level of detail, command encoding.
+    pub cpu_ms: f64,
+    /// GPU time of the render pass (timestamp queries), when the adapter has them.
+    pub gpu_ms: Option<f64>,
+    /// Whole frame, start to GPU completion (frame PNGs not included).
+    pub frame_ms: f64,
+    /// Frame rate the controller aims for; `None` with a fixed budget.
+    pub target_fps: Option<f64>,
+}
 
 /// One frame of a flight, as written to `flight.csv`.
 #[derive(Debug, Clone, PartialEq)]
@@ -111,12 +268,37 @@ pub struct FrameRecord {
     pub retries: u64,
     /// Downloaded bytes of tiles evicted before they were ever part of the complete square.
     pub evicted_unused_bytes: u64,
+    /// Bytes the texture budget could spend on finer levels this frame.
+    pub texture_budget_bytes: u64,
+    pub render: Option<RenderRecord>,
 }
 
 impl FrameRecord {
     pub fn csv_row(&self) -> String {
+        let render = match &self.render {
+            None => ",,,,,,,,,,,".to_string(),
+            Some(r) => format!(
+                "{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{:.2},{}",
+                r.visible_tiles,
+                r.triangles,
+                r.filler_triangles,
+                r.draw_calls,
+                r.global_budget,
+                r.mask_levels
+                    .iter()
+                    .map(|(l, c)| format!("{l}:{c}"))
+                    .collect::<Vec<_>>()
+                    .join(";"),
+                r.lod_ms,
+                r.cpu_ms,
+                r.gpu_ms.map_or(String::new(), |g| format!("{g:.3}")),
+                r.frame_ms,
+                1e3 / r.frame_ms.max(1e-6),
+                r.target_fps.map_or(String::new(), |t| format!("{t}")),
+            ),
+        };
         format!(
-            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.frame,
             self.time_s,
             self.wall_s,
@@ -136,21 +318,101 @@ impl FrameRecord {
             self.in_flight,
             self.retries,
             self.evicted_unused_bytes,
+            self.texture_budget_bytes,
+            render,
         )
     }
 }
 
-/// A tile held in memory: its data (what a renderer will upload) and what it costs.
-#[derive(Debug, Clone)]
-struct ResidentTile {
-    heights: terrain_shared::Heights,
-    /// Encoded texture levels held, coarsest first.
-    textures: Vec<bytes::Bytes>,
-    bytes: TileBytes,
-    /// Bytes downloaded for it (heights and texture bodies).
-    downloaded: u64,
-    /// Whether it was ever part of the complete square (what a renderer would draw).
-    used: bool,
+/// The obtained frame rate as a viewer shows it: frames drawn in the last second of
+/// wall-clock time, at each rendered frame from the first full second on.
+pub fn windowed_fps(records: &[FrameRecord]) -> Vec<(f64, f64)> {
+    let rendered: Vec<f64> = records
+        .iter()
+        .filter(|r| r.render.is_some())
+        .map(|r| r.wall_s)
+        .collect();
+    let mut start = 0;
+    let mut out = Vec::new();
+    for (i, &t) in rendered.iter().enumerate() {
+        while rendered[start] <= t - 1.0 {
+            start += 1;
+        }
+        if t >= 1.0 {
+            out.push((t, (i + 1 - start) as f64));
+        }
+    }
+    out
+}
+
+/// How the frame rate held its target, over the frames after the first second.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameRateSummary {
+    pub target_fps: Option<f64>,
+    /// Frames after the first second of wall-clock time.
+    pub frames: u64,
+    /// Median obtained frame rate over them, frame by frame (1 / frame time).
+    pub median_fps: f64,
+    /// Share of them whose own frame rate (1 / frame time) is within 10% of the target
+    /// (`None` with a fixed budget).
+    pub within_10_percent: Option<f64>,
+    /// Share of them at which the frame rate over the last second ([`windowed_fps`]) is
+    /// within 10% of the target.
+    pub windowed_within_10_percent: Option<f64>,
+    /// Lowest and highest frame rate over the last second, after the first second.
+    pub windowed_range: (f64, f64),
+    /// Triangles drawn per second of frame time, whole flight.
+    pub triangles_per_s: f64,
+    pub mean_triangles: f64,
+}
+
+impl FrameRateSummary {
+    /// From a flight's records; `None` when nothing was rendered after the first second.
+    pub fn of(records: &[FrameRecord]) -> Option<FrameRateSummary> {
+        let rendered: Vec<&RenderRecord> =
+            records.iter().filter_map(|r| r.render.as_ref()).collect();
+        let settled: Vec<&RenderRecord> = records
+            .iter()
+            .filter(|r| r.wall_s >= 1.0)
+            .filter_map(|r| r.render.as_ref())
+            .collect();
+        if settled.is_empty() {
+            return None;
+        }
+        let mut fps: Vec<f64> = settled.iter().map(|r| 1e3 / r.frame_ms.max(1e-6)).collect();
+        fps.sort_by(f64::total_cmp);
+        let target = settled[0].target_fps;
+        let within = target.map(|t| {
+            fps.iter().filter(|&&f| (f - t).abs() <= 0.1 * t).count() as f64 / fps.len() as f64
+        });
+        let windows = windowed_fps(records);
+        let windowed_within = target.map(|t| {
+            windows
+                .iter()
+                .filter(|(_, f)| (f - t).abs() <= 0.1 * t)
+                .count() as f64
+                / windows.len().max(1) as f64
+        });
+        let windowed_range = windows.iter().fold((f64::MAX, 0.0f64), |(lo, hi), (_, f)| {
+            (lo.min(*f), hi.max(*f))
+        });
+        let triangles: u64 = rendered
+            .iter()
+            .map(|r| r.triangles + r.filler_triangles)
+            .sum();
+        let seconds: f64 = rendered.iter().map(|r| r.frame_ms).sum::<f64>() / 1e3;
+        Some(FrameRateSummary {
+            target_fps: target,
+            frames: settled.len() as u64,
+            median_fps: fps[fps.len() / 2],
+            within_10_percent: within,
+            windowed_within_10_percent: windowed_within,
+            windowed_range,
+            triangles_per_s: triangles as f64 / seconds.max(1e-9),
+            mean_triangles: rendered.iter().map(|r| r.triangles as f64).sum::<f64>()
+                / rendered.len() as f64,
+        })
+    }
 }
 
 /// What the flight ended with.
@@ -172,8 +434,13 @@ pub struct FlightSummary {
     pub failures: u64,
     /// Peak resident set size of this process (VmHWM), when the OS reports it.
     pub peak_rss_bytes: Option<u64>,
+    /// The adapter, when the flight rendered.
+    pub adapter: Option<String>,
+    pub frame_rate: Option<FrameRateSummary>,
+    /// Frame PNGs written.
+    pub frames_written: Vec<PathBuf>,
     pub csv: PathBuf,
-    pub chart: PathBuf,
+    pub charts: Vec<PathBuf>,
 }
 
 impl fmt::Display for FlightSummary {
@@ -205,15 +472,61 @@ impl fmt::Display for FlightSummary {
             self.retries,
             self.failures
         )?;
+        if let Some(adapter) = &self.adapter {
+            writeln!(f, "  adapter   {adapter}")?;
+        }
+        if let Some(r) = &self.frame_rate {
+            write!(
+                f,
+                "  rendering median {:.1} fps after the first second, {:.0} triangles per frame, {:.2} M triangles/s",
+                r.median_fps,
+                r.mean_triangles,
+                r.triangles_per_s / 1e6
+            )?;
+            match (
+                r.target_fps,
+                r.within_10_percent,
+                r.windowed_within_10_percent,
+            ) {
+                (Some(t), Some(w), Some(ww)) => writeln!(
+                    f,
+                    "\n            target {t} fps: frame rate over the last second within 10% of it at {:.0}% of frames (range {:.0}-{:.0}); frame by frame {:.0}%",
+                    100.0 * ww,
+                    r.windowed_range.0,
+                    r.windowed_range.1,
+                    100.0 * w
+                )?,
+                _ => writeln!(f, " (fixed budget)")?,
+            }
+        }
         if let Some(rss) = self.peak_rss_bytes {
             writeln!(f, "  process   peak RSS {:.1} MiB", mib(rss))?;
         }
-        writeln!(
-            f,
-            "  wrote     {} and {}",
-            self.csv.display(),
-            self.chart.display()
-        )
+        write!(f, "  wrote     {}", self.csv.display())?;
+        for chart in &self.charts {
+            write!(f, ", {}", chart.display())?;
+        }
+        if let (Some(first), n) = (self.frames_written.first(), self.frames_written.len()) {
+            write!(
+                f,
+                " and {n} frames in {}",
+                first.parent().unwrap_or(first).display()
+            )?;
+        }
+        writeln!(f)
+    }
+}
+
+/// The camera's heading along the path: towards where the path is in a second, or the last
+/// heading when the path holds still.
+fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
+    let a = path.position_at(time_s);
+    let b = path.position_at(time_s + 1.0);
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    if dx.hypot(dy) < 1e-3 {
+        previous
+    } else {
+        dy.atan2(dx)
     }
 }
 
@@ -230,6 +543,9 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             "--concurrency must be at least 1".into(),
         ));
     }
+    let render_config = (!args.render.no_render)
+        .then(|| args.render.config())
+        .transpose()?;
     let budget = MemoryBudget::new(args.memory, args.limit_percent)?;
     let client = TileClient::new(&args.server)?;
     let manifest = Arc::new(client.manifest().await?);
@@ -237,10 +553,24 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),
     };
-    std::fs::create_dir_all(&args.out).map_err(|source| FlightError::Write {
-        path: args.out.clone(),
-        source,
-    })?;
+    let write_err = |path: &std::path::Path| {
+        let path = path.to_path_buf();
+        move |source| FlightError::Write { path, source }
+    };
+    std::fs::create_dir_all(&args.out).map_err(write_err(&args.out))?;
+    let frames_dir = args.out.join("frames");
+    let render = match render_config {
+        Some(config) => {
+            let gpu = Gpu::headless()?;
+            if args.render.frame_every > 0 {
+                std::fs::create_dir_all(&frames_dir).map_err(write_err(&frames_dir))?;
+            }
+            let (w, h) = args.render.size;
+            let target = Offscreen::new(&gpu, w, h);
+            Some((gpu, target, config))
+        }
+        None => None,
+    };
 
     let config = FetcherConfig {
         concurrency: args.concurrency,
@@ -271,48 +601,131 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
 
-    let mut flight = FlightState::new(&manifest, pager);
+    let (target, adapter) = match &render {
+        Some((gpu, target, _)) => (Some(target), Some(gpu.description())),
+        None => (None, None),
+    };
+    let mut scene = Scene::new(
+        Arc::clone(&manifest),
+        pager,
+        render.as_ref().map(|(gpu, _, config)| {
+            (
+                gpu.clone(),
+                crate::render::offscreen::OFFSCREEN_FORMAT,
+                *config,
+            )
+        }),
+    );
     let started = Instant::now();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.fps));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut records = Vec::with_capacity(frames as usize);
+    let mut frames_written = Vec::new();
+    let centre = [manifest.extent_m[0] / 2.0, manifest.extent_m[1] / 2.0];
+    let start = path.position_at(0.0);
+    let mut yaw = (centre[1] - start[1]).atan2(centre[0] - start[0]);
     for frame in 0..frames {
-        ticker.tick().await;
+        if target.is_some() {
+            // Rendering sets the pace; let the runtime's tasks run between frames.
+            tokio::task::yield_now().await;
+        } else {
+            ticker.tick().await;
+        }
+        let frame_started = Instant::now();
         let time_s = frame as f64 / args.fps;
         let position = path.position_at(time_s);
-        let record = flight.frame(
-            &mut fetcher,
+        let update = scene.update(&mut fetcher, frame, position)?;
+        let update_ms = frame_started.elapsed().as_secs_f64() * 1e3;
+        yaw = heading(&path, time_s, yaw);
+        let camera = Camera::new(position, yaw, args.render.pitch_deg.to_radians());
+        let drawn = target.and_then(|t| scene.draw(&t.view, &camera, frame_started));
+        let render_record = drawn.map(|d| RenderRecord {
+            visible_tiles: d.plan.draws.len() as u32,
+            triangles: d.stats.triangles,
+            filler_triangles: d.stats.filler_triangles,
+            draw_calls: d.stats.draw_calls,
+            global_budget: d.plan.budget,
+            mask_levels: d.plan.level_histogram(),
+            lod_ms: d.lod_ms,
+            cpu_ms: update_ms + d.lod_ms + d.stats.encode_ms,
+            gpu_ms: d.stats.gpu_ms,
+            frame_ms: frame_started.elapsed().as_secs_f64() * 1e3,
+            target_fps: args
+                .render
+                .fixed_budget
+                .is_none()
+                .then_some(args.render.target_fps),
+        });
+        if let (Some(t), Some((gpu, _, _))) = (target, &render)
+            && args.render.frame_every > 0
+            && (frame % args.render.frame_every == 0 || frame + 1 == frames)
+        {
+            let file = frames_dir.join(format!("frame-{frame:06}.png"));
+            let image = t.read(gpu)?;
+            image.save(&file).map_err(|e| FlightError::Image {
+                path: file.clone(),
+                message: e.to_string(),
+            })?;
+            frames_written.push(file);
+        }
+        let stats = fetcher.stats();
+        let record = FrameRecord {
             frame,
             time_s,
-            started.elapsed().as_secs_f64(),
-            position,
-        )?;
+            wall_s: started.elapsed().as_secs_f64(),
+            position_m: position,
+            ground_m: scene.ground_under(position),
+            current: [update.decision.current.x, update.decision.current.y],
+            farthest_complete_belt: update.decision.farthest_complete_belt,
+            complete_belts: update.decision.complete_belts,
+            resident_tiles: scene.resident_tiles(),
+            resident_bytes: scene.resident_bytes(),
+            memory_limit_bytes: scene.memory_limit(),
+            bytes_downloaded: stats.bytes_downloaded,
+            in_flight: scene.in_flight(),
+            retries: stats.retries,
+            evicted_unused_bytes: scene.evicted_unused_bytes,
+            texture_budget_bytes: update.texture_budget,
+            render: render_record,
+        };
         bar.set_position(frame + 1);
-        bar.set_message(format!(
-            "{} tiles, {:.1}/{:.1} MiB",
-            record.resident_tiles,
-            record.resident_bytes as f64 / 1048576.0,
-            record.memory_limit_bytes as f64 / 1048576.0
-        ));
+        bar.set_message(match &record.render {
+            Some(r) => format!(
+                "{} tiles, {:.1}/{:.1} MiB, {:.0} fps, {} triangles",
+                record.resident_tiles,
+                record.resident_bytes as f64 / 1048576.0,
+                record.memory_limit_bytes as f64 / 1048576.0,
+                1e3 / r.frame_ms.max(1e-6),
+                r.triangles
+            ),
+            None => format!(
+                "{} tiles, {:.1}/{:.1} MiB",
+                record.resident_tiles,
+                record.resident_bytes as f64 / 1048576.0,
+                record.memory_limit_bytes as f64 / 1048576.0
+            ),
+        });
         records.push(record);
     }
     bar.finish_and_clear();
     fetcher.cancel(&manifest.tiles.iter().map(|t| t.id()).collect::<Vec<_>>());
 
     let csv = args.out.join("flight.csv");
-    let mut text = String::with_capacity(records.len() * 120);
+    let mut text = String::with_capacity(records.len() * 200);
     text.push_str(CSV_HEADER);
     text.push('\n');
     for record in &records {
         text.push_str(&record.csv_row());
         text.push('\n');
     }
-    std::fs::write(&csv, text).map_err(|source| FlightError::Write {
-        path: csv.clone(),
-        source,
-    })?;
-    let chart = args.out.join("flight.png");
-    crate::charts::flight_chart(&records, &manifest.dataset, &chart)?;
+    std::fs::write(&csv, text).map_err(write_err(&csv))?;
+    let mut charts = vec![args.out.join("flight.png")];
+    crate::charts::flight_chart(&records, &manifest.dataset, &charts[0])?;
+    if records.iter().any(|r| r.render.is_some()) {
+        let chart = args.out.join("render.png");
+        crate::charts::render_chart(&records, &manifest.dataset, &chart)?;
+        charts.push(chart);
+    }
 
     let stats = fetcher.stats();
     let last = records.last().cloned();
@@ -329,202 +742,18 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             .max()
             .unwrap_or(0),
         final_complete_belts: last.as_ref().map_or(0, |r| r.complete_belts),
-        tiles_fetched: flight.tiles_fetched,
+        tiles_fetched: scene.tiles_fetched,
         bytes_downloaded: stats.bytes_downloaded,
-        evicted_unused_bytes: flight.evicted_unused_bytes,
+        evicted_unused_bytes: scene.evicted_unused_bytes,
         retries: stats.retries,
         failures: stats.failures,
         peak_rss_bytes: peak_rss_bytes(),
+        adapter,
+        frame_rate: FrameRateSummary::of(&records),
+        frames_written,
         csv,
-        chart,
+        charts,
     })
-}
-
-/// The flight's memory: what is resident, and the counters of the CSV.
-#[derive(Debug)]
-struct FlightState {
-    columns: u32,
-    tile_size: u32,
-    tile_extent_m: [f64; 2],
-    pager: PagerConfig,
-    tiles: Vec<Option<ResidentTile>>,
-    resident_bytes: Vec<u64>,
-    /// What each tile will hold once resident, from the manifest's sizes: the pager admits a
-    /// belt only if it fits.
-    expected_bytes: Vec<u64>,
-    in_flight: Vec<bool>,
-    tiles_fetched: u64,
-    evicted_unused_bytes: u64,
-}
-
-impl FlightState {
-    fn new(manifest: &Manifest, pager: PagerConfig) -> FlightState {
-        let count = manifest.tiles.len();
-        let cells = f64::from(manifest.tile_size - 1);
-        FlightState {
-            columns: manifest.grid.columns,
-            tile_size: manifest.tile_size,
-            tile_extent_m: [cells * manifest.spacing_m[0], cells * manifest.spacing_m[1]],
-            pager,
-            tiles: vec![None; count],
-            resident_bytes: vec![0; count],
-            expected_bytes: manifest
-                .tiles
-                .iter()
-                .map(|t| expected_tile_bytes(manifest, t).total())
-                .collect(),
-            in_flight: vec![false; count],
-            tiles_fetched: 0,
-            evicted_unused_bytes: 0,
-        }
-    }
-
-    fn index(&self, id: TileId) -> usize {
-        id.y as usize * self.columns as usize + id.x as usize
-    }
-
-    /// One frame: deliveries, decision, actions, record.
-    fn frame(
-        &mut self,
-        fetcher: &mut Fetcher,
-        frame: u64,
-        time_s: f64,
-        wall_s: f64,
-        position: [f64; 3],
-    ) -> Result<FrameRecord, FlightError> {
-        for event in fetcher.poll() {
-            match event {
-                FetchEvent::Tile {
-                    id,
-                    heights,
-                    heights_bytes,
-                    coarsest_texture,
-                    ..
-                } => {
-                    let bytes = TileBytes {
-                        decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
-                        textures: coarsest_texture.len() as u64,
-                        ..TileBytes::default()
-                    };
-                    let i = self.index(id);
-                    self.resident_bytes[i] = bytes.total();
-                    self.tiles[i] = Some(ResidentTile {
-                        heights,
-                        downloaded: heights_bytes + coarsest_texture.len() as u64,
-                        textures: vec![coarsest_texture],
-                        bytes,
-                        used: false,
-                    });
-                    self.tiles_fetched += 1;
-                }
-                FetchEvent::TextureLevel { id, bytes, .. } => {
-                    let i = self.index(id);
-                    if let Some(tile) = &mut self.tiles[i] {
-                        tile.bytes.textures += bytes.len() as u64;
-                        tile.downloaded += bytes.len() as u64;
-                        tile.textures.push(bytes);
-                        self.resident_bytes[i] = tile.bytes.total();
-                    }
-                }
-                FetchEvent::Failed { id, error, .. } => {
-                    // A tile the server refuses (4xx) will never arrive: the flight cannot
-                    // complete its square, so it stops with the server's reason. Corrupt or
-                    // unreachable tiles are asked for again by the pager on a later frame.
-                    if FailureKind::of(&error) == FailureKind::Permanent {
-                        return Err(FlightError::TileFailed {
-                            id,
-                            message: error.to_string(),
-                        });
-                    }
-                    tracing::warn!(tile = %id, error = %error, "tile failed after retries; it will be requested again");
-                }
-            }
-        }
-        fetcher.mark_pending(&mut self.in_flight, self.columns);
-        let viewpoint = [
-            position[0] / self.tile_extent_m[0],
-            position[1] / self.tile_extent_m[1],
-        ];
-        let view = PagerView {
-            viewpoint,
-            resident_bytes: &self.resident_bytes,
-            in_flight: &self.in_flight,
-            expected_bytes: Some(&self.expected_bytes),
-        };
-        let decision = page::decide(&self.pager, &view);
-
-        fetcher.cancel(&decision.cancel);
-        for &id in &decision.evict {
-            let i = self.index(id);
-            if let Some(tile) = self.tiles[i].take()
-                && !tile.used
-            {
-                self.evicted_unused_bytes += tile.downloaded;
-            }
-            self.resident_bytes[i] = 0;
-        }
-        for (rank, &id) in decision.fetch.iter().enumerate() {
-            // Earlier frames' requests go first; within a frame, the pager's order (nearest first).
-            fetcher.request(id, Want::Tile, (frame << 20) | rank as u64);
-        }
-        for id in page::square_tiles(&self.pager, decision.current, decision.complete_belts) {
-            let i = self.index(id);
-            if let Some(tile) = &mut self.tiles[i] {
-                tile.used = true;
-            }
-        }
-
-        let stats = fetcher.stats();
-        Ok(FrameRecord {
-            frame,
-            time_s,
-            wall_s,
-            position_m: position,
-            ground_m: self.ground_under(position),
-            current: [decision.current.x, decision.current.y],
-            farthest_complete_belt: decision.farthest_complete_belt,
-            complete_belts: decision.complete_belts,
-            resident_tiles: self.tiles.iter().filter(|t| t.is_some()).count() as u64,
-            resident_bytes: self.resident_bytes.iter().sum(),
-            memory_limit_bytes: self.pager.memory_limit,
-            bytes_downloaded: stats.bytes_downloaded,
-            in_flight: fetcher.pending_count() as u64,
-            retries: stats.retries,
-            evicted_unused_bytes: self.evicted_unused_bytes,
-        })
-    }
-}
-
-impl FlightState {
-    /// Height of the nearest sample under `position`, if its tile is resident.
-    fn ground_under(&self, position: [f64; 3]) -> Option<f64> {
-        let cells = f64::from(self.tile_size - 1);
-        let (tx, ty) = (
-            position[0] / self.tile_extent_m[0],
-            position[1] / self.tile_extent_m[1],
-        );
-        if tx < 0.0
-            || ty < 0.0
-            || tx >= f64::from(self.columns)
-            || ty >= (self.tiles.len() / self.columns as usize) as f64
-        {
-            return None;
-        }
-        let tile = self.tiles[self.index(TileId::new(tx as u32, ty as u32))].as_ref()?;
-        let x = ((tx - tx.floor()) * cells).round() as usize;
-        let y = ((ty - ty.floor()) * cells).round() as usize;
-        Some(tile.heights.metres(x, y))
-    }
-}
-
-/// What a tile holds once resident, known from the manifest before it is fetched: the same
-/// accounting as a delivered tile's (decoded codes, coarsest texture level).
-pub fn expected_tile_bytes(manifest: &Manifest, tile: &terrain_shared::TileRecord) -> TileBytes {
-    TileBytes {
-        decoded_heights: u64::from(manifest.tile_size).pow(2) * std::mem::size_of::<i32>() as u64,
-        textures: tile.texture.first().map_or(0, |level| level.bytes),
-        ..TileBytes::default()
-    }
 }
 
 /// Peak resident set size of this process, from /proc/self/status (Linux).
@@ -532,4 +761,58 @@ pub fn peak_rss_bytes() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     Some(line.split_whitespace().nth(1)?.parse::<u64>().ok()? * 1024)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_parse_and_bad_ones_say_why() {
+        assert_eq!(parse_size("960x540"), Ok((960, 540)));
+        assert_eq!(parse_size("64X48"), Ok((64, 48)));
+        assert!(parse_size("960").is_err_and(|e| e.contains("WIDTHxHEIGHT")));
+        assert!(parse_size("0x10").is_err_and(|e| e.contains("16 to 8192")));
+    }
+
+    #[test]
+    fn csv_rows_have_one_field_per_column_with_and_without_rendering() {
+        let mut record = FrameRecord {
+            frame: 1,
+            time_s: 0.0,
+            wall_s: 0.0,
+            position_m: [0.0; 3],
+            ground_m: None,
+            current: [0, 0],
+            farthest_complete_belt: None,
+            complete_belts: 0,
+            resident_tiles: 0,
+            resident_bytes: 0,
+            memory_limit_bytes: 0,
+            bytes_downloaded: 0,
+            in_flight: 0,
+            retries: 0,
+            evicted_unused_bytes: 0,
+            texture_budget_bytes: 0,
+            render: None,
+        };
+        let columns = CSV_HEADER.split(',').count();
+        assert_eq!(record.csv_row().split(',').count(), columns);
+        record.render = Some(RenderRecord {
+            visible_tiles: 3,
+            triangles: 10,
+            filler_triangles: 6,
+            draw_calls: 6,
+            global_budget: 12,
+            mask_levels: vec![(0, 1), (5, 2)],
+            lod_ms: 0.1,
+            cpu_ms: 1.0,
+            gpu_ms: None,
+            frame_ms: 2.0,
+            target_fps: Some(60.0),
+        });
+        let row = record.csv_row();
+        assert_eq!(row.split(',').count(), columns);
+        assert!(row.contains(",0:1;5:2,"), "{row}");
+    }
 }

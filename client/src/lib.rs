@@ -9,12 +9,13 @@
 //! 2. **page** ([`page`]): which belts of tiles around the viewpoint to hold, fetch and
 //!    drop within the memory limit ([`memory`]), Algorithm 1 of the strip-mask paper.
 //! 3. **choose LOD** ([`lod`]): each visible tile's visual importance, the global triangle
-//!    budget shared greedily by importance, and the strip mask each tile draws with (pure;
-//!    the renderer that uses it is not written yet).
-//! 4. **render** (not yet): upload and draw.
+//!    budget shared greedily by importance, and the strip mask each tile draws with (pure).
+//! 4. **render** ([`render`]): culling, upload of samples and textures, the render pass
+//!    with strip masks and crack fillers, offscreen read-back.
 //!
-//! [`flight`] drives the steps frame by frame along a camera path ([`path`]) and records
-//! each frame; [`charts`] draws the records.
+//! [`scene`] runs steps 2 to 4 a frame at a time (with the texture budget). [`flight`]
+//! drives a scene headless along a camera path ([`path`]) and records each frame;
+//! [`viewer`] drives one in a window; [`charts`] draws the records.
 //!
 //! Deciding code (paging, camera paths, the [`overview`] mosaic, the [`report`] of a fetch)
 //! is pure: values in, values out, no sockets, clocks or GPU, so it is tested with plain
@@ -34,4 +35,7 @@ pub mod memory;
 pub mod overview;
 pub mod page;
 pub mod path;
+pub mod render;
 pub mod report;
+pub mod scene;
+pub mod viewer;

@@ -21,10 +21,12 @@ enum Command {
     /// Fly a camera path headless: page tiles in belts around the viewpoint within a memory
     /// budget, and write flight.csv (one row per frame) and flight.png (charts).
     Fly(terrain_client::flight::FlightArgs),
+    /// Open a window and fly over the streamed terrain with mouse and keyboard (needs an
+    /// X11 display): the same paging, streaming and rendering as `fly`.
+    View(terrain_client::viewer::ViewArgs),
 }
 
-#[tokio::main]
-async fn main() -> ExitCode {
+fn main() -> ExitCode {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -36,14 +38,21 @@ async fn main() -> ExitCode {
         .with_ansi(std::io::stderr().is_terminal())
         .init();
     let result: anyhow::Result<()> = match cli.command {
-        Command::Fetch(args) => terrain_client::cli::run_fetch(&args)
-            .await
-            .map(|summary| println!("{summary}"))
-            .map_err(anyhow::Error::from),
-        Command::Fly(args) => terrain_client::flight::fly(&args)
-            .await
-            .map(|summary| print!("{summary}"))
-            .map_err(anyhow::Error::from),
+        // The window's event loop needs the main thread, outside any async runtime; the
+        // viewer builds the runtime its fetcher runs on.
+        Command::View(args) => terrain_client::viewer::run(&args).map_err(anyhow::Error::from),
+        Command::Fetch(args) => in_runtime(async move {
+            terrain_client::cli::run_fetch(&args)
+                .await
+                .map(|summary| println!("{summary}"))
+                .map_err(anyhow::Error::from)
+        }),
+        Command::Fly(args) => in_runtime(async move {
+            terrain_client::flight::fly(&args)
+                .await
+                .map(|summary| print!("{summary}"))
+                .map_err(anyhow::Error::from)
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -52,4 +61,13 @@ async fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Runs `work` to completion in a multi-threaded tokio runtime (subcommands without a
+/// window).
+fn in_runtime(work: impl Future<Output = anyhow::Result<()>>) -> anyhow::Result<()> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(work)
 }

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use terrain_client::flight::{CSV_HEADER, FlightArgs, fly};
+use terrain_client::flight::{CSV_HEADER, FlightArgs, RenderArgs, fly};
 use terrain_client::memory::MemorySize;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};
@@ -28,6 +28,7 @@ fn args(server: &TestServer, out: &Path, memory: Option<u64>) -> FlightArgs {
         concurrency: 4,
         no_nearest_when_outside: false,
         quiet: true,
+        render: RenderArgs::off(),
     }
 }
 
@@ -118,8 +119,8 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
         metres("ground_m"),
         f64::from(codes[(sy * width + sx) as usize])
     );
-    assert!(summary.chart.exists());
-    let chart = image::open(&summary.chart).expect("flight.png is an image");
+    assert_eq!(summary.charts.len(), 1, "no render chart without rendering");
+    let chart = image::open(&summary.charts[0]).expect("flight.png is an image");
     assert!(chart.width() >= 800 && chart.height() >= 600);
 }
 
@@ -208,6 +209,7 @@ fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
         concurrency: 4,
         no_nearest_when_outside: false,
         quiet: true,
+        render: RenderArgs::off(),
     };
     let flight = std::thread::spawn(move || runtime().block_on(fly(&args)));
     // Down from 0.5 s to 3.5 s of the 12 s lap: the pager fetches several times in between

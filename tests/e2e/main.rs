@@ -4,4 +4,5 @@ mod build;
 mod fetcher;
 mod flight;
 mod http;
+mod render;
 mod round_trip;

@@ -33,10 +33,11 @@ pub struct TileView {
 }
 
 /// Which height a tile's height term uses.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum HeightMeasure {
     /// The bounding box's height, as in the paper.
     #[default]
+    #[value(name = "bbox")]
     BoundingBox,
     /// Roughness: the paper's suggested alternative (a ruggedness index), which does not
     /// reward a smooth but steep slope.

@@ -1,0 +1,118 @@
+//! The wgpu adapter and device, headless or for a window.
+//!
+//! `REQUIRE_GPU=1` (CI sets it) turns "no adapter" into an error and insists on a Vulkan
+//! adapter: wgpu's GL fallback draws strips wrongly, so a run that silently fell back to it
+//! would test nothing. Without the variable, the backends come from `WGPU_BACKEND` (all
+//! native backends when unset).
+
+use thiserror::Error;
+pub use wgpu::Backend;
+
+/// Set to 1 to require a Vulkan adapter (and fail without one).
+pub const REQUIRE_GPU_VAR: &str = "REQUIRE_GPU";
+
+#[derive(Debug, Error)]
+pub enum GpuError {
+    #[error(
+        "no graphics adapter: {0}. On a machine without a GPU install Mesa's software Vulkan driver \
+         (Debian/Ubuntu: apt-get install mesa-vulkan-drivers libvulkan1) and set WGPU_BACKEND=vulkan"
+    )]
+    NoAdapter(String),
+    #[error("the adapter {adapter} refused a device: {message}")]
+    Device { adapter: String, message: String },
+    #[error("{REQUIRE_GPU_VAR}=1 needs a Vulkan adapter, but wgpu chose {0}")]
+    NotVulkan(String),
+    #[error("cannot read the frame back from the GPU: {0}")]
+    Readback(String),
+    #[error("cannot create a surface for the window: {0}")]
+    Surface(String),
+}
+
+/// An adapter, its device and queue.
+#[derive(Debug, Clone)]
+pub struct Gpu {
+    pub instance: wgpu::Instance,
+    pub adapter: wgpu::Adapter,
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+}
+
+/// Whether `REQUIRE_GPU=1` is set.
+pub fn gpu_required() -> bool {
+    std::env::var(REQUIRE_GPU_VAR).is_ok_and(|v| v == "1")
+}
+
+impl Gpu {
+    /// A device for offscreen rendering.
+    pub fn headless() -> Result<Gpu, GpuError> {
+        let instance = Self::instance();
+        Self::with_instance(instance, None)
+    }
+
+    /// The instance every device of this program comes from: backends from `WGPU_BACKEND`,
+    /// Vulkan only when `REQUIRE_GPU=1`.
+    pub fn instance() -> wgpu::Instance {
+        let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+        if gpu_required() {
+            descriptor.backends = wgpu::Backends::VULKAN;
+        }
+        wgpu::Instance::new(descriptor)
+    }
+
+    /// A device from `instance` able to present to `surface`, when given.
+    pub fn with_instance(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Gpu, GpuError> {
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: surface,
+            apply_limit_buckets: false,
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        if gpu_required() && info.backend != wgpu::Backend::Vulkan {
+            return Err(GpuError::NotVulkan(describe(&info)));
+        }
+        // Timestamps measure the GPU's share of a frame; adapters without them still render.
+        let required_features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("terrain"),
+            required_features,
+            required_limits: wgpu::Limits::default().using_resolution(adapter.limits()),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: describe(&info),
+            message: e.to_string(),
+        })?;
+        Ok(Gpu {
+            instance,
+            adapter,
+            device,
+            queue,
+        })
+    }
+
+    /// "llvmpipe (LLVM 15.0.6, 256 bits), Vulkan, Cpu": what a benchmark names it ran on.
+    pub fn description(&self) -> String {
+        describe(&self.adapter.get_info())
+    }
+
+    /// Whether GPU frame times can be measured.
+    pub fn has_timestamps(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// Largest texture side the device accepts.
+    pub fn max_texture_side(&self) -> u32 {
+        self.device.limits().max_texture_dimension_2d
+    }
+}
+
+fn describe(info: &wgpu::AdapterInfo) -> String {
+    format!("{}, {:?}, {:?}", info.name, info.backend, info.device_type)
+}

@@ -1,0 +1,82 @@
+//! An offscreen colour target and its read-back into an image.
+
+use super::gpu::{Gpu, GpuError};
+
+/// Format of offscreen targets: 8-bit sRGB, as PNG frames are stored.
+pub const OFFSCREEN_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
+
+/// A colour texture to render into and read back.
+#[derive(Debug)]
+pub struct Offscreen {
+    pub texture: wgpu::Texture,
+    pub view: wgpu::TextureView,
+}
+
+impl Offscreen {
+    pub fn new(gpu: &Gpu, width: u32, height: u32) -> Offscreen {
+        let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("offscreen"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: OFFSCREEN_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        Offscreen { texture, view }
+    }
+
+    /// The target's pixels, waiting for the GPU.
+    pub fn read(&self, gpu: &Gpu) -> Result<image::RgbaImage, GpuError> {
+        let (width, height) = (self.texture.width(), self.texture.height());
+        // Rows of a buffer copy are aligned to 256 bytes.
+        let row = (4 * width).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size: u64::from(row) * u64::from(height),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(row),
+                    rows_per_image: Some(height),
+                },
+            },
+            self.texture.size(),
+        );
+        gpu.queue.submit([encoder.finish()]);
+        let slice = buffer.slice(..);
+        slice.map_async(wgpu::MapMode::Read, |_| {});
+        let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
+        let data = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let mut pixels = Vec::with_capacity((4 * width * height) as usize);
+        for y in 0..height as usize {
+            let start = y * row as usize;
+            pixels.extend_from_slice(&data[start..start + 4 * width as usize]);
+        }
+        drop(data);
+        buffer.unmap();
+        image::RgbaImage::from_raw(width, height, pixels)
+            .ok_or_else(|| GpuError::Readback("short read-back".into()))
+    }
+}

@@ -1,0 +1,752 @@
+//! The terrain renderer: GPU resources of resident tiles and one render pass per frame.
+//!
+//! Every tile has a storage buffer of its samples (height and normal, 8 bytes each, see
+//! [`super::mesh`]) and a texture holding the finest level it has so far, with the coarser
+//! levels as its mips. Every mask level has one index buffer, built and uploaded the first
+//! time a tile draws it and shared by every tile (the strip-mask paper's section 5.1); the
+//! shader turns an index into a position from the tile's origin and spacing. Cracks between
+//! tiles of different levels are filled by [`CrackFiller`].
+//!
+//! `render` draws into any `TextureView` of the renderer's format: an offscreen texture for
+//! the headless flight and tests, or a window's surface for the viewer.
+
+use super::camera::Camera;
+use super::gpu::Gpu;
+use super::mesh;
+use super::plan::{Draw, Layout};
+use std::collections::HashMap;
+use terrain_shaders::{FrameUniform, Sample, TileUniform};
+use terrain_shared::{Heights, TileId};
+
+/// Background colour: what a crack shows when nothing fills it.
+pub const SKY: [f64; 3] = [0.55, 0.71, 0.88];
+/// Depth format of the renderer's depth buffer (reversed: cleared to 0, nearer is greater).
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// Largest stretch of a planar shadow's corner projection (see the shader).
+pub const SHADOW_MAX_STRETCH: f32 = 64.0;
+/// Share of the light that is ambient.
+pub const AMBIENT: f32 = 0.45;
+
+/// How cracks between tiles of different mask levels are filled (section 5.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum CrackFiller {
+    /// Nothing: cracks show the background.
+    None,
+    /// Vertical bands along each tile's border down below the tile (the paper's filleting).
+    Skirts,
+    /// A textured quad under each tile, its corners projected from the viewpoint onto a
+    /// plane below the tile (the paper's method).
+    #[default]
+    PlanarShadow,
+}
+
+impl CrackFiller {
+    pub fn name(self) -> &'static str {
+        match self {
+            CrackFiller::None => "none",
+            CrackFiller::Skirts => "skirts",
+            CrackFiller::PlanarShadow => "planar-shadow",
+        }
+    }
+}
+
+/// What one frame drew.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderStats {
+    /// Triangles of the tiles' masks (strip joins not counted).
+    pub triangles: u64,
+    /// Triangles of the crack fillers.
+    pub filler_triangles: u64,
+    pub draw_calls: u32,
+    /// CPU time of uniforms, command encoding and submission.
+    pub encode_ms: f64,
+    /// GPU time of the render pass, when the adapter has timestamp queries.
+    pub gpu_ms: Option<f64>,
+}
+
+/// A resident tile on the GPU.
+#[derive(Debug)]
+struct GpuTile {
+    samples: wgpu::Buffer,
+    texture: wgpu::Texture,
+    bind_group: wgpu::BindGroup,
+    /// Finest texture level uploaded (manifest numbering: 0 is the coarsest).
+    texture_level: Option<u32>,
+    min_m: f64,
+    sample_bytes: u64,
+    texture_bytes: u64,
+}
+
+#[derive(Debug)]
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    period_ns: f32,
+}
+
+/// The terrain renderer. See the module documentation.
+#[derive(Debug)]
+pub struct TerrainRenderer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    layout: Layout,
+    masks: std::sync::Arc<crate::lod::strips::MaskSet>,
+    frame_buffer: wgpu::Buffer,
+    frame_group: wgpu::BindGroup,
+    tile_group_layout: wgpu::BindGroupLayout,
+    uniform_layout: wgpu::BindGroupLayout,
+    tile_uniforms: wgpu::Buffer,
+    tile_uniform_group: wgpu::BindGroup,
+    uniform_capacity: u64,
+    uniform_stride: u64,
+    /// The one pipeline: surfaces, skirts and shadows differ only by their indices.
+    surface_pipeline: wgpu::RenderPipeline,
+    sampler: wgpu::Sampler,
+    strips: HashMap<u32, (wgpu::Buffer, u32)>,
+    /// Indices of the shadow's four corners (`terrain_shaders::shadow_base`).
+    quad: wgpu::Buffer,
+    skirts: HashMap<u32, (wgpu::Buffer, u32)>,
+    tiles: HashMap<TileId, GpuTile>,
+    depth: Option<(wgpu::Texture, wgpu::TextureView)>,
+    timestamps: Option<Timestamps>,
+    max_texture_side: u32,
+}
+
+impl TerrainRenderer {
+    /// A renderer drawing into targets of `format`, for tiles laid out as `layout`, sharing
+    /// `masks` with the level-of-detail planner.
+    pub fn new(
+        gpu: &Gpu,
+        format: wgpu::TextureFormat,
+        layout: Layout,
+        masks: std::sync::Arc<crate::lod::strips::MaskSet>,
+    ) -> TerrainRenderer {
+        let device = gpu.device.clone();
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("terrain"),
+            source: wgpu::ShaderSource::Wgsl(terrain_shaders::TERRAIN.into()),
+        });
+        let uniform_entry = |dynamic: bool, size: u64| wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: dynamic,
+                min_binding_size: wgpu::BufferSize::new(size),
+            },
+            count: None,
+        };
+        let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("frame"),
+            entries: &[uniform_entry(false, size_of::<FrameUniform>() as u64)],
+        });
+        let uniform_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tile uniforms"),
+            entries: &[uniform_entry(true, size_of::<TileUniform>() as u64)],
+        });
+        let tile_group_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tile"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::VERTEX,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(size_of::<Sample>() as u64),
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("terrain"),
+            bind_group_layouts: &[
+                Some(&frame_layout),
+                Some(&uniform_layout),
+                Some(&tile_group_layout),
+            ],
+            immediate_size: 0,
+        });
+        let pipeline = |entry: &str, strip_index_format: Option<wgpu::IndexFormat>| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                vertex: wgpu::VertexState {
+                    module: &shader,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    buffers: &[],
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleStrip,
+                    strip_index_format,
+                    // Terrain is seen from below too (a camera under the surface); strips
+                    // and skirts are drawn two-sided.
+                    cull_mode: None,
+                    ..Default::default()
+                },
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: DEPTH_FORMAT,
+                    depth_write_enabled: Some(true),
+                    depth_compare: Some(wgpu::CompareFunction::Greater),
+                    stencil: Default::default(),
+                    bias: Default::default(),
+                }),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &shader,
+                    entry_point: Some(terrain_shaders::entry::FRAGMENT),
+                    compilation_options: Default::default(),
+                    targets: &[Some(wgpu::ColorTargetState {
+                        format,
+                        blend: None,
+                        write_mask: wgpu::ColorWrites::ALL,
+                    })],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let surface_pipeline = pipeline(
+            terrain_shaders::entry::SURFACE,
+            Some(wgpu::IndexFormat::Uint32),
+        );
+
+        let frame_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("frame"),
+            size: size_of::<FrameUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let frame_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame"),
+            layout: &frame_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: frame_buffer.as_entire_binding(),
+            }],
+        });
+        let uniform_stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
+            .max(size_of::<TileUniform>() as u64);
+        let (tile_uniforms, tile_uniform_group) =
+            uniform_buffer(&device, &uniform_layout, 64, uniform_stride);
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("tile"),
+            address_mode_u: wgpu::AddressMode::ClampToEdge,
+            address_mode_v: wgpu::AddressMode::ClampToEdge,
+            mag_filter: wgpu::FilterMode::Linear,
+            min_filter: wgpu::FilterMode::Linear,
+            mipmap_filter: wgpu::MipmapFilterMode::Linear,
+            ..Default::default()
+        });
+        let timestamps = gpu.has_timestamps().then(|| Timestamps {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("frame time"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps"),
+                size: 16,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            readback: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps readback"),
+                size: 16,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            period_ns: gpu.queue.get_timestamp_period(),
+        });
+        let quad = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("shadow quad"),
+            size: 16,
+            usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let corner = terrain_shaders::shadow_base(layout.tile_size);
+        gpu.queue.write_buffer(
+            &quad,
+            0,
+            bytemuck::cast_slice(&[corner, corner + 1, corner + 2, corner + 3]),
+        );
+        TerrainRenderer {
+            quad,
+            queue: gpu.queue.clone(),
+            layout,
+            masks,
+            frame_buffer,
+            frame_group,
+            tile_group_layout,
+            uniform_layout,
+            tile_uniforms,
+            tile_uniform_group,
+            uniform_capacity: 64,
+            uniform_stride,
+            surface_pipeline,
+            sampler,
+            strips: HashMap::new(),
+            skirts: HashMap::new(),
+            tiles: HashMap::new(),
+            depth: None,
+            timestamps,
+            max_texture_side: device.limits().max_texture_dimension_2d,
+            device,
+        }
+    }
+
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// Whether `id` is on the GPU.
+    pub fn has_tile(&self, id: TileId) -> bool {
+        self.tiles.contains_key(&id)
+    }
+
+    /// Finest texture level `id` holds on the GPU.
+    pub fn texture_level(&self, id: TileId) -> Option<u32> {
+        self.tiles.get(&id).and_then(|t| t.texture_level)
+    }
+
+    /// GPU bytes `id` holds (samples and texture).
+    pub fn tile_bytes(&self, id: TileId) -> u64 {
+        self.tiles
+            .get(&id)
+            .map_or(0, |t| t.sample_bytes + t.texture_bytes)
+    }
+
+    /// Uploads a tile's samples (heights and normals); it draws with a grey texture until
+    /// [`TerrainRenderer::upload_texture`]. Returns the GPU bytes of its samples.
+    pub fn upload_tile(&mut self, id: TileId, heights: &Heights, min_m: f64) -> u64 {
+        let samples = mesh::tile_samples(heights, self.layout.spacing_m);
+        let bytes: &[u8] = bytemuck::cast_slice(&samples);
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("tile samples"),
+            size: bytes.len() as u64,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.queue.write_buffer(&buffer, 0, bytes);
+        let texture = self.texture(&[image::RgbaImage::from_pixel(
+            1,
+            1,
+            image::Rgba([128, 128, 128, 255]),
+        )]);
+        let bind_group = self.tile_bind_group(&buffer, &texture);
+        self.tiles.insert(
+            id,
+            GpuTile {
+                sample_bytes: bytes.len() as u64,
+                samples: buffer,
+                texture,
+                bind_group,
+                texture_level: None,
+                min_m,
+                texture_bytes: 4,
+            },
+        );
+        bytes.len() as u64
+    }
+
+    /// Replaces `id`'s texture by `levels`, coarsest first: the last is the finest and the
+    /// texture's top mip, `level` its manifest level. Levels whose side exceeds the
+    /// device's limit are left out. Returns the texture's GPU bytes (0 for an absent tile).
+    pub fn upload_texture(&mut self, id: TileId, level: u32, levels: &[image::RgbaImage]) -> u64 {
+        if !self.tiles.contains_key(&id) || levels.is_empty() {
+            return 0;
+        }
+        let fitting: Vec<image::RgbaImage> = levels
+            .iter()
+            .filter(|l| l.width().max(l.height()) <= self.max_texture_side)
+            .cloned()
+            .collect();
+        if fitting.is_empty() {
+            return 0;
+        }
+        let dropped = (levels.len() - fitting.len()) as u32;
+        let texture = self.texture(&fitting);
+        let bytes: u64 = fitting
+            .iter()
+            .map(|l| u64::from(l.width()) * u64::from(l.height()) * 4)
+            .sum();
+        let Some(tile) = self.tiles.get(&id) else {
+            return 0;
+        };
+        let bind_group = self.tile_bind_group(&tile.samples, &texture);
+        if let Some(tile) = self.tiles.get_mut(&id) {
+            tile.texture = texture;
+            tile.bind_group = bind_group;
+            tile.texture_level = Some(level.saturating_sub(dropped));
+            tile.texture_bytes = bytes;
+        }
+        bytes
+    }
+
+    /// Frees `id`'s GPU resources.
+    pub fn remove_tile(&mut self, id: TileId) {
+        self.tiles.remove(&id);
+    }
+
+    /// Tiles on the GPU.
+    pub fn tile_count(&self) -> usize {
+        self.tiles.len()
+    }
+
+    /// Draws `draws` seen from `camera` into `target` (cleared to [`SKY`] first), fills
+    /// cracks with `filler`, and waits for the GPU to finish.
+    pub fn render(
+        &mut self,
+        target: &wgpu::TextureView,
+        camera: &Camera,
+        draws: &[Draw],
+        filler: CrackFiller,
+    ) -> RenderStats {
+        let started = std::time::Instant::now();
+        let size = target.texture().size();
+        let aspect = f64::from(size.width) / f64::from(size.height.max(1));
+        self.ensure_depth(size.width, size.height);
+        let drawn: Vec<&Draw> = draws
+            .iter()
+            .filter(|d| self.tiles.contains_key(&d.id))
+            .collect();
+        self.ensure_uniform_capacity(drawn.len() as u64);
+        for d in &drawn {
+            self.ensure_strip(d.level);
+            if filler == CrackFiller::Skirts {
+                self.ensure_skirt(d.level);
+            }
+        }
+
+        // Uniforms: the frame's, then one slot per drawn tile.
+        let light = Camera::to_render(glam::DVec3::new(
+            -0.5,
+            -0.5,
+            std::f64::consts::FRAC_1_SQRT_2,
+        ))
+        .normalize();
+        // The anchor: the sample nearest the camera. Positions are built from sample
+        // indices relative to it (see the shader), exact in f32.
+        let anchor = [
+            (camera.position[0] / self.layout.spacing_m[0]).round(),
+            (camera.position[1] / self.layout.spacing_m[1]).round(),
+        ];
+        let frame = FrameUniform {
+            view_proj: camera.view_proj_f32(aspect).to_cols_array_2d(),
+            light_dir: [light.x as f32, light.y as f32, light.z as f32, 0.0],
+            params: [AMBIENT, 0.0, 0.0, 0.0],
+            camera: [
+                (camera.position[0] - anchor[0] * self.layout.spacing_m[0]) as f32,
+                camera.position[2] as f32,
+                (camera.position[1] - anchor[1] * self.layout.spacing_m[1]) as f32,
+                0.0,
+            ],
+        };
+        self.queue
+            .write_buffer(&self.frame_buffer, 0, bytemuck::bytes_of(&frame));
+        let mut uniforms = vec![0u8; (self.uniform_stride * drawn.len() as u64) as usize];
+        let n = self.layout.tile_size;
+        let extent = self.layout.tile_extent_m();
+        for (slot, d) in drawn.iter().enumerate() {
+            let tile = &self.tiles[&d.id];
+            let cells = f64::from(n - 1);
+            // Filler depth below the tile: a tenth of its side, at least 1 m.
+            let drop = (0.1 * extent[0].min(extent[1])).max(1.0);
+            let u = TileUniform {
+                origin: [
+                    (f64::from(d.id.x) * cells - anchor[0]) as f32,
+                    0.0,
+                    (f64::from(d.id.y) * cells - anchor[1]) as f32,
+                    0.0,
+                ],
+                spacing: [
+                    self.layout.spacing_m[0] as f32,
+                    self.layout.spacing_m[1] as f32,
+                    n as f32,
+                    (tile.min_m - drop) as f32,
+                ],
+                shadow: [(tile.min_m - drop) as f32, SHADOW_MAX_STRETCH, 0.0, 0.0],
+                pad: [0.0; 4],
+            };
+            let at = slot * self.uniform_stride as usize;
+            uniforms[at..at + size_of::<TileUniform>()].copy_from_slice(bytemuck::bytes_of(&u));
+        }
+        if !uniforms.is_empty() {
+            self.queue.write_buffer(&self.tile_uniforms, 0, &uniforms);
+        }
+
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        let mut stats = RenderStats::default();
+        {
+            let depth = &self.depth.as_ref().expect("ensured above").1;
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("terrain"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color {
+                            r: SKY[0],
+                            g: SKY[1],
+                            b: SKY[2],
+                            a: 1.0,
+                        }),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(0.0),
+                        store: wgpu::StoreOp::Discard,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: self.timestamps.as_ref().map(|t| {
+                    wgpu::RenderPassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(0),
+                        end_of_pass_write_index: Some(1),
+                    }
+                }),
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_bind_group(0, &self.frame_group, &[]);
+            pass.set_pipeline(&self.surface_pipeline);
+            for (slot, d) in drawn.iter().enumerate() {
+                let tile = &self.tiles[&d.id];
+                let offset = (slot as u64 * self.uniform_stride) as u32;
+                pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
+                pass.set_bind_group(2, &tile.bind_group, &[]);
+                let (buffer, len) = &self.strips[&d.level];
+                pass.set_index_buffer(buffer.slice(..), wgpu::IndexFormat::Uint32);
+                pass.draw_indexed(0..*len, 0, 0..1);
+                stats.triangles += u64::from(self.masks.triangle_count(d.level));
+                stats.draw_calls += 1;
+                if filler == CrackFiller::Skirts {
+                    let (buffer, len) = &self.skirts[&d.level];
+                    pass.set_index_buffer(buffer.slice(..), wgpu::IndexFormat::Uint32);
+                    pass.draw_indexed(0..*len, 0, 0..1);
+                    stats.filler_triangles += u64::from(mesh::skirt_triangles(n, d.level));
+                    stats.draw_calls += 1;
+                }
+            }
+            if filler == CrackFiller::PlanarShadow {
+                pass.set_index_buffer(self.quad.slice(..), wgpu::IndexFormat::Uint32);
+                for (slot, d) in drawn.iter().enumerate() {
+                    let tile = &self.tiles[&d.id];
+                    let offset = (slot as u64 * self.uniform_stride) as u32;
+                    pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
+                    pass.set_bind_group(2, &tile.bind_group, &[]);
+                    pass.draw_indexed(0..4, 0, 0..1);
+                    stats.filler_triangles += 2;
+                    stats.draw_calls += 1;
+                }
+            }
+        }
+        if let Some(t) = &self.timestamps {
+            encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, 16);
+        }
+        self.queue.submit([encoder.finish()]);
+        stats.encode_ms = started.elapsed().as_secs_f64() * 1e3;
+        if let Some(t) = &self.timestamps {
+            let slice = t.readback.slice(..);
+            slice.map_async(wgpu::MapMode::Read, |_| {});
+            let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+            if let Ok(data) = slice.get_mapped_range() {
+                let stamps: &[u64] = bytemuck::cast_slice(&data);
+                let ticks = stamps[1].saturating_sub(stamps[0]);
+                stats.gpu_ms = Some(ticks as f64 * f64::from(t.period_ns) / 1.0e6);
+            }
+            t.readback.unmap();
+        } else {
+            let _ = self.device.poll(wgpu::PollType::wait_indefinitely());
+        }
+        stats
+    }
+
+    fn ensure_depth(&mut self, width: u32, height: u32) {
+        if let Some((texture, _)) = &self.depth
+            && texture.width() == width
+            && texture.height() == height
+        {
+            return;
+        }
+        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("depth"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        self.depth = Some((texture, view));
+    }
+
+    fn ensure_uniform_capacity(&mut self, slots: u64) {
+        if slots <= self.uniform_capacity {
+            return;
+        }
+        let capacity = slots.next_power_of_two();
+        let (buffer, group) = uniform_buffer(
+            &self.device,
+            &self.uniform_layout,
+            capacity,
+            self.uniform_stride,
+        );
+        self.tile_uniforms = buffer;
+        self.tile_uniform_group = group;
+        self.uniform_capacity = capacity;
+    }
+
+    fn ensure_strip(&mut self, level: u32) {
+        if !self.strips.contains_key(&level) {
+            let indices = self.masks.strip(level);
+            let buffer = self.index_buffer(indices);
+            self.strips.insert(level, (buffer, indices.len() as u32));
+        }
+    }
+
+    fn ensure_skirt(&mut self, level: u32) {
+        if !self.skirts.contains_key(&level) {
+            let indices = mesh::skirt_strip(self.layout.tile_size, level);
+            let buffer = self.index_buffer(&indices);
+            self.skirts.insert(level, (buffer, indices.len() as u32));
+        }
+    }
+
+    fn index_buffer(&self, indices: &[u32]) -> wgpu::Buffer {
+        let bytes: &[u8] = bytemuck::cast_slice(indices);
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("mask strip"),
+            size: bytes.len() as u64,
+            usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.queue.write_buffer(&buffer, 0, bytes);
+        buffer
+    }
+
+    /// A texture with `levels` (coarsest first) as its mips, finest as mip 0.
+    fn texture(&self, levels: &[image::RgbaImage]) -> wgpu::Texture {
+        let finest = &levels[levels.len() - 1];
+        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("tile texture"),
+            size: wgpu::Extent3d {
+                width: finest.width(),
+                height: finest.height(),
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: levels.len() as u32,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        for (mip, image) in levels.iter().rev().enumerate() {
+            self.queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &texture,
+                    mip_level: mip as u32,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                image.as_raw(),
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(4 * image.width()),
+                    rows_per_image: Some(image.height()),
+                },
+                wgpu::Extent3d {
+                    width: image.width(),
+                    height: image.height(),
+                    depth_or_array_layers: 1,
+                },
+            );
+        }
+        texture
+    }
+
+    fn tile_bind_group(&self, samples: &wgpu::Buffer, texture: &wgpu::Texture) -> wgpu::BindGroup {
+        let view = texture.create_view(&Default::default());
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tile"),
+            layout: &self.tile_group_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: samples.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+            ],
+        })
+    }
+}
+
+fn uniform_buffer(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    slots: u64,
+    stride: u64,
+) -> (wgpu::Buffer, wgpu::BindGroup) {
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("tile uniforms"),
+        size: slots * stride,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("tile uniforms"),
+        layout,
+        entries: &[wgpu::BindGroupEntry {
+            binding: 0,
+            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: &buffer,
+                offset: 0,
+                size: wgpu::BufferSize::new(size_of::<TileUniform>() as u64),
+            }),
+        }],
+    });
+    (buffer, group)
+}

@@ -1,0 +1,109 @@
+//! The texture budget: how fine each tile's texture goes (the strip-mask paper's
+//! progressive texture transfer, section 4).
+//!
+//! A tile arrives with its coarsest texture level; finer levels are fetched one at a time,
+//! coarse to fine, while the tile's share of the texture budget pays for them. The budget is
+//! the memory the pager leaves free: its limit, less what the resident tiles hold at their
+//! coarsest level, less what the tiles still coming will hold. It is shared greedily by
+//! importance, like the triangle budget ([`crate::lod::budget::share`]): each tile is offered
+//! `pool * importance / remaining importance`, takes the finest level whose extra cost fits,
+//! and leaves the rest to the tiles after it. A tile over its share drops back at once, so
+//! the pager's limit holds whatever textures arrive.
+
+/// One tile competing for the texture budget.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TextureCandidate {
+    /// Its visual importance (visible tiles); 0 for tiles out of view, which are served last.
+    pub importance: f64,
+    /// Extra bytes of holding each level, index = level: 0 for the coarsest (paid by the
+    /// pager's accounting), then non-decreasing.
+    pub extra_cost: Vec<u64>,
+}
+
+/// The finest level each candidate may hold, in the candidates' order.
+pub fn share_texture_budget(candidates: &[TextureCandidate], budget: u64) -> Vec<u32> {
+    let mut order: Vec<usize> = (0..candidates.len()).collect();
+    order.sort_by(|&a, &b| {
+        candidates[b]
+            .importance
+            .total_cmp(&candidates[a].importance)
+            .then(a.cmp(&b))
+    });
+    let mut remaining: f64 = candidates.iter().map(|c| c.importance.max(0.0)).sum();
+    let mut pool = budget;
+    let mut levels = vec![0u32; candidates.len()];
+    for (served, &i) in order.iter().enumerate() {
+        let candidate = &candidates[i];
+        let importance = candidate.importance.max(0.0);
+        let offer = if remaining > 0.0 && importance > 0.0 {
+            ((pool as f64) * (importance / remaining).min(1.0)).floor() as u64
+        } else if remaining > 0.0 {
+            0
+        } else {
+            // Only tiles of importance 0 are left: share evenly.
+            pool / (order.len() - served) as u64
+        };
+        let level = candidate
+            .extra_cost
+            .iter()
+            .rposition(|&cost| cost <= offer)
+            .unwrap_or(0);
+        let cost = candidate.extra_cost.get(level).copied().unwrap_or(0);
+        pool = pool.saturating_sub(cost);
+        remaining = (remaining - importance).max(0.0);
+        levels[i] = level as u32;
+    }
+    levels
+}
+
+/// Bytes of an RGBA8 texture whose finest mip is `side` texels square, with every mip down
+/// to `mips` levels.
+pub fn rgba_mip_bytes(side: u32, mips: u32) -> u64 {
+    (0..mips)
+        .map(|m| u64::from((side >> m).max(1)).pow(2) * 4)
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn candidate(importance: f64) -> TextureCandidate {
+        TextureCandidate {
+            importance,
+            extra_cost: vec![0, 100, 300, 1000],
+        }
+    }
+
+    #[test]
+    fn the_budget_goes_to_the_most_important_tiles_and_is_never_exceeded() {
+        let tiles = [candidate(0.1), candidate(0.6), candidate(0.3)];
+        // 1000 bytes: tile 1 is offered 600 (takes 300), the 700 left go 0.3/0.4 to tile 2
+        // (525: 300), then tile 0 gets the 400 left (300).
+        assert_eq!(share_texture_budget(&tiles, 1000), vec![2, 2, 2]);
+        assert_eq!(share_texture_budget(&tiles, 400), vec![1, 1, 1]);
+        assert_eq!(share_texture_budget(&tiles, 0), vec![0, 0, 0]);
+        for budget in (0..3000).step_by(37) {
+            let levels = share_texture_budget(&tiles, budget);
+            let spent: u64 = levels
+                .iter()
+                .zip(&tiles)
+                .map(|(&l, t)| t.extra_cost[l as usize])
+                .sum();
+            assert!(spent <= budget, "budget {budget}: spent {spent}");
+        }
+    }
+
+    #[test]
+    fn tiles_out_of_view_share_what_visible_tiles_leave() {
+        let tiles = [candidate(0.0), candidate(1.0), candidate(0.0)];
+        assert_eq!(share_texture_budget(&tiles, 1000 + 600), vec![2, 3, 2]);
+        assert_eq!(share_texture_budget(&tiles, 1000), vec![0, 3, 0]);
+    }
+
+    #[test]
+    fn mip_chains_are_counted_down_to_one_texel() {
+        assert_eq!(rgba_mip_bytes(8, 4), (64 + 16 + 4 + 1) * 4);
+        assert_eq!(rgba_mip_bytes(1, 3), 12);
+    }
+}

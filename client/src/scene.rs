@@ -1,0 +1,558 @@
+//! The scene: resident tiles, paged under the memory limit, streamed by the fetcher, and,
+//! when a GPU is given, uploaded, textured within a budget and drawn. The headless flight
+//! and the windowed viewer both drive one, a frame at a time.
+//!
+//! Per frame, [`Scene::update`]: deliveries become resident tiles (uploaded to the GPU when
+//! rendering); the pure pager ([`crate::page::decide`]) sees the viewpoint, the tiles'
+//! bytes at their coarsest texture, and what is in flight, and decides; cancellations,
+//! evictions and requests follow; then the texture budget (what the limit leaves once the
+//! tiles in flight are paid for) sets how fine each tile's texture goes, dropping levels at
+//! once and asking for finer ones one at a time. [`Scene::draw`] then plans the frame
+//! (culling, importance, budget sharing, masks) and renders it, and feeds the frame's time
+//! back to the frame-rate controller. Nothing waits on the network: a frame takes what has
+//! arrived.
+//!
+//! **Memory.** A tile's bytes are its decoded heights and encoded texture levels (CPU) plus,
+//! when rendering, its GPU samples and texture. The pager admits a belt only if it fits at
+//! the coarsest texture; finer levels are paid from what is left, so the total stays under
+//! the limit whatever arrives.
+
+use crate::fetcher::{FailureKind, FetchEvent, Fetcher, Want};
+use crate::flight::FlightError;
+use crate::lod::budget::{BudgetMode, FrameRateController};
+use crate::lod::strips::MaskSet;
+use crate::memory::TileBytes;
+use crate::page::{self, Decision, PagerConfig, PagerView};
+use crate::render::plan::{self, Candidate, FramePlan, Layout, LodSettings};
+use crate::render::textures::{TextureCandidate, share_texture_budget};
+use crate::render::{Camera, CrackFiller, Gpu, RenderStats, TerrainRenderer};
+use std::sync::Arc;
+use std::time::Instant;
+use terrain_shared::{Manifest, TileId};
+
+/// How a scene renders.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderConfig {
+    pub lod: LodSettings,
+    pub filler: CrackFiller,
+    pub budget: BudgetMode,
+    /// Texture uploads at most per frame, so that a burst of arrivals cannot stall one.
+    pub uploads_per_frame: usize,
+}
+
+impl Default for RenderConfig {
+    fn default() -> RenderConfig {
+        RenderConfig {
+            lod: LodSettings::default(),
+            filler: CrackFiller::default(),
+            budget: BudgetMode::default(),
+            uploads_per_frame: 8,
+        }
+    }
+}
+
+/// A tile held in memory.
+#[derive(Debug, Clone)]
+struct ResidentTile {
+    heights: terrain_shared::Heights,
+    /// Encoded texture levels held, coarsest first.
+    textures: Vec<bytes::Bytes>,
+    /// Levels of `textures` on the GPU (0 before the first upload).
+    uploaded_levels: usize,
+    bytes: TileBytes,
+    downloaded: u64,
+    /// Whether it was ever part of the complete square.
+    used: bool,
+}
+
+/// What [`Scene::update`] decided this frame.
+#[derive(Debug, Clone)]
+pub struct Update {
+    pub decision: Decision,
+    /// Bytes the texture budget had this frame.
+    pub texture_budget: u64,
+}
+
+/// What [`Scene::draw`] did this frame.
+#[derive(Debug, Clone, Default)]
+pub struct DrawReport {
+    pub plan: FramePlan,
+    pub stats: RenderStats,
+    /// Time of culling, importance, budget sharing and mask selection.
+    pub lod_ms: f64,
+    /// Time from the start of the draw to the GPU's completion.
+    pub draw_ms: f64,
+}
+
+/// The rendering half of a scene.
+#[derive(Debug)]
+struct Rendering {
+    gpu: Gpu,
+    renderer: TerrainRenderer,
+    masks: Arc<MaskSet>,
+    controller: FrameRateController,
+    config: RenderConfig,
+    /// Target texture level per tile (index as `tiles`), from the last texture budget.
+    texture_target: Vec<u32>,
+    /// Importance per tile in the last planned frame (0 when not visible).
+    importance: Vec<f64>,
+}
+
+/// Resident tiles, paging, and optionally rendering. See the module documentation.
+#[derive(Debug)]
+pub struct Scene {
+    manifest: Arc<Manifest>,
+    layout: Layout,
+    pager: PagerConfig,
+    tiles: Vec<Option<ResidentTile>>,
+    /// Bytes per tile at the coarsest texture (what the pager sees).
+    base_bytes: Vec<u64>,
+    expected_bytes: Vec<u64>,
+    in_flight: Vec<bool>,
+    pub tiles_fetched: u64,
+    pub evicted_unused_bytes: u64,
+    rendering: Option<Rendering>,
+}
+
+impl Scene {
+    /// A scene of `manifest`'s tiles paged by `pager`; with `render`, drawn by `gpu` into
+    /// targets of `format`.
+    pub fn new(
+        manifest: Arc<Manifest>,
+        pager: PagerConfig,
+        render: Option<(Gpu, wgpu::TextureFormat, RenderConfig)>,
+    ) -> Scene {
+        let count = manifest.tiles.len();
+        let layout = Layout {
+            tile_size: manifest.tile_size,
+            spacing_m: manifest.spacing_m,
+        };
+        let rendering = render.map(|(gpu, format, config)| {
+            let masks = Arc::new(MaskSet::new(manifest.tile_size));
+            Rendering {
+                renderer: TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks)),
+                gpu,
+                masks,
+                controller: FrameRateController::new(config.budget),
+                config,
+                texture_target: vec![0; count],
+                importance: vec![0.0; count],
+            }
+        });
+        let rendering_on = rendering.is_some();
+        Scene {
+            expected_bytes: manifest
+                .tiles
+                .iter()
+                .map(|t| expected_tile_bytes(&manifest, t, rendering_on).total())
+                .collect(),
+            layout,
+            pager,
+            tiles: vec![None; count],
+            base_bytes: vec![0; count],
+            in_flight: vec![false; count],
+            tiles_fetched: 0,
+            evicted_unused_bytes: 0,
+            rendering,
+            manifest,
+        }
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// The adapter, when rendering.
+    pub fn gpu(&self) -> Option<&Gpu> {
+        self.rendering.as_ref().map(|r| &r.gpu)
+    }
+
+    /// The global triangle budget the next frame is planned with.
+    pub fn triangle_budget(&self) -> Option<u32> {
+        self.rendering.as_ref().map(|r| r.controller.budget())
+    }
+
+    fn index(&self, id: TileId) -> usize {
+        id.y as usize * self.manifest.grid.columns as usize + id.x as usize
+    }
+
+    /// Bytes held by resident tiles, textures included.
+    pub fn resident_bytes(&self) -> u64 {
+        self.tiles.iter().flatten().map(|t| t.bytes.total()).sum()
+    }
+
+    pub fn resident_tiles(&self) -> u64 {
+        self.tiles.iter().filter(|t| t.is_some()).count() as u64
+    }
+
+    /// Tiles the pager counts as in flight.
+    pub fn in_flight(&self) -> u64 {
+        self.in_flight.iter().filter(|&&f| f).count() as u64
+    }
+
+    pub fn memory_limit(&self) -> u64 {
+        self.pager.memory_limit
+    }
+
+    /// Deliveries, paging and the texture budget for a viewpoint at `position` (metres).
+    pub fn update(
+        &mut self,
+        fetcher: &mut Fetcher,
+        frame: u64,
+        position: [f64; 3],
+    ) -> Result<Update, FlightError> {
+        for event in fetcher.poll() {
+            self.deliver(event)?;
+        }
+        fetcher.mark_pending(&mut self.in_flight, self.manifest.grid.columns);
+        // A resident tile waiting for a finer texture is not "in flight" for the pager.
+        for (flag, tile) in self.in_flight.iter_mut().zip(&self.tiles) {
+            *flag &= tile.is_none();
+        }
+        let extent = self.layout.tile_extent_m();
+        let view = PagerView {
+            viewpoint: [position[0] / extent[0], position[1] / extent[1]],
+            resident_bytes: &self.base_bytes,
+            in_flight: &self.in_flight,
+            expected_bytes: Some(&self.expected_bytes),
+        };
+        let decision = page::decide(&self.pager, &view);
+        fetcher.cancel(&decision.cancel);
+        fetcher.cancel(&decision.evict);
+        for &id in &decision.evict {
+            let i = self.index(id);
+            if let Some(tile) = self.tiles[i].take()
+                && !tile.used
+            {
+                self.evicted_unused_bytes += tile.downloaded;
+            }
+            self.base_bytes[i] = 0;
+            if let Some(r) = &mut self.rendering {
+                r.renderer.remove_tile(id);
+            }
+        }
+        for (rank, &id) in decision.fetch.iter().enumerate() {
+            // Earlier frames' requests go first; within a frame, the pager's order.
+            fetcher.request(id, Want::Tile, (frame << 20) | rank as u64);
+            let i = self.index(id);
+            self.in_flight[i] = true;
+        }
+        for id in page::square_tiles(&self.pager, decision.current, decision.complete_belts) {
+            let i = self.index(id);
+            if let Some(tile) = &mut self.tiles[i] {
+                tile.used = true;
+            }
+        }
+        let texture_budget = self.share_textures(fetcher, frame);
+        Ok(Update {
+            decision,
+            texture_budget,
+        })
+    }
+
+    fn deliver(&mut self, event: FetchEvent) -> Result<(), FlightError> {
+        match event {
+            FetchEvent::Tile {
+                id,
+                heights,
+                heights_bytes,
+                coarsest_texture,
+                ..
+            } => {
+                let i = self.index(id);
+                let mut bytes = TileBytes {
+                    decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
+                    textures: coarsest_texture.len() as u64,
+                    ..TileBytes::default()
+                };
+                let mut uploaded_levels = 0;
+                if let Some(r) = &mut self.rendering {
+                    let record = &self.manifest.tiles[i];
+                    r.renderer
+                        .upload_tile(id, &heights, f64::from(record.min_m));
+                    if let Some(image) = decode_texture(&coarsest_texture, id, 0) {
+                        r.renderer.upload_texture(id, 0, &[image]);
+                        uploaded_levels = 1;
+                    }
+                    bytes.gpu = r.renderer.tile_bytes(id);
+                }
+                let base = bytes.total();
+                self.base_bytes[i] = base;
+                self.tiles[i] = Some(ResidentTile {
+                    heights,
+                    downloaded: heights_bytes + coarsest_texture.len() as u64,
+                    textures: vec![coarsest_texture],
+                    uploaded_levels,
+                    bytes,
+                    used: false,
+                });
+                self.tiles_fetched += 1;
+            }
+            FetchEvent::TextureLevel { id, level, bytes } => {
+                let i = self.index(id);
+                let target = self.rendering.as_ref().map_or(0, |r| r.texture_target[i]);
+                if let Some(tile) = &mut self.tiles[i]
+                    && level as usize == tile.textures.len()
+                    && level <= target
+                {
+                    tile.bytes.textures += bytes.len() as u64;
+                    tile.downloaded += bytes.len() as u64;
+                    tile.textures.push(bytes);
+                }
+            }
+            FetchEvent::Failed {
+                id, error, want, ..
+            } => {
+                // A tile the server refuses (4xx) will never arrive: the flight cannot
+                // complete its square, so it stops with the server's reason. Corrupt or
+                // unreachable tiles are asked for again on a later frame.
+                if want == Want::Tile && FailureKind::of(&error) == FailureKind::Permanent {
+                    return Err(FlightError::TileFailed {
+                        id,
+                        message: error.to_string(),
+                    });
+                }
+                tracing::warn!(tile = %id, error = %error, "request failed after retries; it will be made again");
+            }
+        }
+        Ok(())
+    }
+
+    /// Shares the texture budget, drops levels over it, uploads levels that arrived and
+    /// requests the next finer level of tiles under their target. Returns the budget.
+    fn share_textures(&mut self, fetcher: &mut Fetcher, frame: u64) -> u64 {
+        let Some(r) = &mut self.rendering else {
+            return 0;
+        };
+        let base: u64 = self.base_bytes.iter().sum();
+        let coming: u64 = self
+            .in_flight
+            .iter()
+            .zip(&self.expected_bytes)
+            .filter(|(f, _)| **f)
+            .map(|(_, b)| b)
+            .sum();
+        let budget = self.pager.memory_limit.saturating_sub(base + coming);
+        let texture = &self.manifest.texture;
+        let mut indices = Vec::new();
+        let mut candidates = Vec::new();
+        for (i, tile) in self.tiles.iter().enumerate() {
+            if tile.is_none() {
+                continue;
+            }
+            let record = &self.manifest.tiles[i];
+            let mut cost = 0u64;
+            let extra_cost = (0..record.texture.len())
+                .map(|level| {
+                    if level > 0 {
+                        let side = u64::from(texture.level_size(level as u32));
+                        cost += record.texture[level].bytes + side * side * 4;
+                    }
+                    cost
+                })
+                .collect();
+            indices.push(i);
+            candidates.push(TextureCandidate {
+                importance: r.importance[i],
+                extra_cost,
+            });
+        }
+        let targets = share_texture_budget(&candidates, budget);
+        // Levels to keep: what each tile holds, unless the held levels together exceed the
+        // budget; then the least important tiles drop to their target first. Dropping only
+        // when the limit demands it keeps textures from being dropped and fetched again as
+        // importances shift from frame to frame.
+        let held = |i: usize| self.tiles[i].as_ref().map_or(1, |t| t.textures.len()) as u32 - 1;
+        let mut keep: Vec<u32> = indices.iter().map(|&i| held(i)).collect();
+        let mut spent: u64 = keep
+            .iter()
+            .zip(&candidates)
+            .map(|(&l, c)| c.extra_cost.get(l as usize).copied().unwrap_or(0))
+            .sum();
+        if spent > budget {
+            let mut by_importance: Vec<usize> = (0..indices.len()).collect();
+            by_importance.sort_by(|&a, &b| {
+                candidates[a]
+                    .importance
+                    .total_cmp(&candidates[b].importance)
+                    .then(b.cmp(&a))
+            });
+            for k in by_importance {
+                if spent <= budget {
+                    break;
+                }
+                if keep[k] > targets[k] {
+                    let cost = &candidates[k].extra_cost;
+                    spent -= cost[keep[k] as usize] - cost[targets[k] as usize];
+                    keep[k] = targets[k];
+                }
+            }
+        }
+        let mut uploads = 0;
+        for (k, (&i, &target)) in indices.iter().zip(&targets).enumerate() {
+            r.texture_target[i] = target.max(keep[k]);
+            let Some(tile) = &mut self.tiles[i] else {
+                continue;
+            };
+            let id = self.manifest.tiles[i].id();
+            let kept = keep[k] as usize + 1;
+            let mut changed = false;
+            if tile.textures.len() > kept {
+                // Over the limit: drop the finer levels now.
+                for dropped in tile.textures.drain(kept..) {
+                    tile.bytes.textures -= dropped.len() as u64;
+                }
+                changed = true;
+            } else if tile.textures.len() < target as usize + 1 {
+                let next = tile.textures.len() as u32;
+                let priority = (frame << 20) | (1 << 19) | (candidates.len() as u64 - 1);
+                fetcher.request(id, Want::TextureLevel(next), priority);
+            }
+            if (changed || tile.uploaded_levels != tile.textures.len())
+                && uploads < r.config.uploads_per_frame
+            {
+                let images: Option<Vec<image::RgbaImage>> = tile
+                    .textures
+                    .iter()
+                    .enumerate()
+                    .map(|(level, b)| decode_texture(b, id, level as u32))
+                    .collect();
+                if let Some(images) = images {
+                    let level = images.len() as u32 - 1;
+                    r.renderer.upload_texture(id, level, &images);
+                    tile.bytes.gpu = r.renderer.tile_bytes(id);
+                    tile.uploaded_levels = tile.textures.len();
+                    uploads += 1;
+                }
+            }
+        }
+        budget
+    }
+
+    /// Plans and renders a frame seen from `camera` into `target`, then feeds its time to
+    /// the frame-rate controller. `frame_started` is when the frame began (its update
+    /// included), so the controller sees the whole frame. `None` when not rendering.
+    pub fn draw(
+        &mut self,
+        target: &wgpu::TextureView,
+        camera: &Camera,
+        frame_started: Instant,
+    ) -> Option<DrawReport> {
+        let r = self.rendering.as_mut()?;
+        let started = Instant::now();
+        let size = target.texture().size();
+        let aspect = f64::from(size.width) / f64::from(size.height.max(1));
+        let candidates: Vec<Candidate> = self
+            .tiles
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.is_some())
+            .map(|(i, _)| {
+                let record = &self.manifest.tiles[i];
+                Candidate {
+                    id: record.id(),
+                    min_m: f64::from(record.min_m),
+                    max_m: f64::from(record.max_m),
+                    roughness_m: f64::from(record.roughness_m),
+                }
+            })
+            .collect();
+        let plan = plan::plan_frame(
+            camera,
+            aspect,
+            &self.layout,
+            &candidates,
+            r.controller.budget(),
+            &r.masks,
+            &r.config.lod,
+        );
+        r.importance.fill(0.0);
+        let columns = self.manifest.grid.columns as usize;
+        for (d, &imp) in plan.draws.iter().zip(&plan.importances) {
+            r.importance[d.id.y as usize * columns + d.id.x as usize] = imp;
+        }
+        let lod_ms = started.elapsed().as_secs_f64() * 1e3;
+        let stats = r
+            .renderer
+            .render(target, camera, &plan.draws, r.config.filler);
+        let draw_ms = started.elapsed().as_secs_f64() * 1e3;
+        let frame_s = frame_started.elapsed().as_secs_f64();
+        r.controller
+            .next_budget(u32::try_from(stats.triangles).unwrap_or(u32::MAX), frame_s);
+        Some(DrawReport {
+            plan,
+            stats,
+            lod_ms,
+            draw_ms,
+        })
+    }
+
+    /// Height of the nearest sample under `position`, if its tile is resident.
+    pub fn ground_under(&self, position: [f64; 3]) -> Option<f64> {
+        let extent = self.layout.tile_extent_m();
+        let cells = f64::from(self.layout.tile_size - 1);
+        let (tx, ty) = (position[0] / extent[0], position[1] / extent[1]);
+        if tx < 0.0
+            || ty < 0.0
+            || tx >= f64::from(self.manifest.grid.columns)
+            || ty >= f64::from(self.manifest.grid.rows)
+        {
+            return None;
+        }
+        let tile = self.tiles[self.index(TileId::new(tx as u32, ty as u32))].as_ref()?;
+        let x = ((tx - tx.floor()) * cells).round() as usize;
+        let y = ((ty - ty.floor()) * cells).round() as usize;
+        Some(tile.heights.metres(x, y))
+    }
+
+    /// Sum of the finest texture level index held over resident tiles, and the tile count:
+    /// how far the progressive textures got.
+    pub fn texture_levels(&self) -> (u64, u64) {
+        let held: u64 = self
+            .tiles
+            .iter()
+            .flatten()
+            .map(|t| t.textures.len() as u64 - 1)
+            .sum();
+        (held, self.resident_tiles())
+    }
+}
+
+/// Decodes one texture level; a level that does not decode is logged and left out (the
+/// tile keeps its coarser texture: its hash was verified, so this is a format the client
+/// cannot read, not a transfer error).
+fn decode_texture(bytes: &[u8], id: TileId, level: u32) -> Option<image::RgbaImage> {
+    match image::load_from_memory(bytes) {
+        Ok(image) => Some(image.into_rgba8()),
+        Err(e) => {
+            tracing::warn!(tile = %id, level, error = %e, "texture level does not decode");
+            None
+        }
+    }
+}
+
+/// What a tile holds once resident at its coarsest texture, known from the manifest before
+/// it is fetched: decoded codes and the coarsest level's bytes, plus, when rendering, its GPU
+/// samples (8 bytes each) and the coarsest level as RGBA.
+pub fn expected_tile_bytes(
+    manifest: &Manifest,
+    tile: &terrain_shared::TileRecord,
+    rendering: bool,
+) -> TileBytes {
+    let samples = u64::from(manifest.tile_size).pow(2);
+    let coarsest_side = u64::from(manifest.texture.level_size(0));
+    TileBytes {
+        decoded_heights: samples * std::mem::size_of::<i32>() as u64,
+        textures: tile.texture.first().map_or(0, |level| level.bytes),
+        vertices: 0,
+        gpu: if rendering {
+            samples * size_of::<terrain_shaders::Sample>() as u64 + coarsest_side.pow(2) * 4
+        } else {
+            0
+        },
+    }
+}

@@ -1,0 +1,1048 @@
+//! `terrain-client view`: a window onto the streamed terrain, flown with mouse and keyboard.
+//!
+//! The viewer drives the same [`Scene`] as the headless flight ([`crate::flight`]): each
+//! frame is a [`Scene::update`] (deliveries, paging, texture budget) at the camera's
+//! position and a [`Scene::draw`] into the window's surface. Only where the camera goes
+//! differs: the user steers it ([`FlyCamera`], pure and tested) instead of a path.
+//!
+//! Threads: winit's event loop owns the main thread; the fetcher's requests run on a tokio
+//! multi-thread runtime built here, which the loop never blocks on. Nothing waits on the
+//! network: a frame draws what has arrived.
+//!
+//! Controls (also printed at start, [`CONTROLS`]): W/S forward and back along the view,
+//! A/D strafe, E or Space up, Q or Ctrl down, Shift five times faster, left mouse drag
+//! looks around, the mouse wheel changes the speed, Escape quits.
+
+use crate::fetch::{FetchError, TileClient};
+use crate::fetcher::{Fetcher, FetcherConfig};
+use crate::flight::{FlightError, RenderArgs};
+use crate::memory::{MemoryBudget, MemoryError, MemorySize};
+use crate::page::PagerConfig;
+use crate::render::{Camera, Gpu, GpuError};
+use crate::scene::{DrawReport, RenderConfig, Scene};
+use std::f64::consts::{FRAC_PI_2, TAU};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use terrain_shared::Manifest;
+use thiserror::Error;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+/// Steepest pitch the camera takes, degrees above or below the horizon.
+pub const MAX_PITCH_DEG: f64 = 89.0;
+/// Speed factor while Shift is held.
+pub const FAST_FACTOR: f64 = 5.0;
+/// Speed factor per notch of the mouse wheel.
+pub const WHEEL_FACTOR: f64 = 1.25;
+/// Radians the view turns per pixel of mouse drag.
+pub const LOOK_RADIANS_PER_PIXEL: f64 = 0.003;
+/// Metres the camera keeps above the ground under it (where that tile is resident; the
+/// terrain's lowest point elsewhere).
+pub const GROUND_CLEARANCE_M: f64 = 2.0;
+/// Longest time step a frame moves the camera by: after a stall (a window drag, a slow
+/// frame) the camera does not jump.
+pub const MAX_STEP_S: f64 = 0.25;
+/// How often the window title is updated.
+pub const TITLE_INTERVAL: Duration = Duration::from_millis(250);
+/// How often `--print-stats` prints the title to stderr.
+pub const PRINT_INTERVAL: Duration = Duration::from_secs(2);
+/// Slowest and fastest speeds the wheel can set, m/s.
+const SPEED_RANGE: (f64, f64) = (0.1, 1.0e7);
+/// The camera stays within this many metres of the origin on each axis.
+const POSITION_LIMIT_M: f64 = 1.0e9;
+
+/// The controls, as printed at start.
+pub const CONTROLS: &str = "controls:
+  W / S            forward / back (along the view)
+  A / D            strafe left / right
+  E or Space       up
+  Q or Ctrl        down
+  Shift            5x speed while held
+  left mouse drag  look around
+  mouse wheel      faster / slower
+  Escape           quit";
+
+/// `terrain-client view`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ViewArgs {
+    /// Base URL of the tile server, e.g. http://127.0.0.1:8080.
+    #[arg(long, env = "TERRAIN_SERVER")]
+    pub server: String,
+    /// Memory budget for tiles (heights, textures, GPU buffers), e.g. 256MiB. Default: the
+    /// machine's available memory.
+    #[arg(long)]
+    pub memory: Option<MemorySize>,
+    /// Share of the budget the pager fills, in percent (the rest is the margin for the belt
+    /// being fetched).
+    #[arg(long, default_value_t = crate::memory::DEFAULT_LIMIT_PERCENT)]
+    pub limit_percent: f64,
+    /// HTTP requests at once.
+    #[arg(long, default_value_t = 8)]
+    pub concurrency: usize,
+    /// Where the camera starts, X,Y,Z metres (x east and y south from the north-west
+    /// corner, z up), e.g. --start=1000,2000,800. Default: above the terrain's centre, 5% of
+    /// its larger extent above its highest point, looking north.
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true, value_name = "X,Y,Z")]
+    pub start: Option<[f64; 3]>,
+    /// Flying speed, metres per second (Shift: 5x; the mouse wheel changes it). Default: a
+    /// tenth of the terrain's larger extent per second.
+    #[arg(long)]
+    pub speed: Option<f64>,
+    /// Print the window title's statistics to stderr every 2 s (they are also logged at
+    /// debug level: RUST_LOG=terrain_client=debug).
+    #[arg(long)]
+    pub print_stats: bool,
+    /// Rendering, as for `fly`: --size is the window's initial size and --pitch-deg the
+    /// initial pitch; --frame-every does not apply and --no-render is refused.
+    #[command(
+        flatten,
+        next_help_heading = "Rendering (as for `fly`; --size: initial window size, --pitch-deg: \
+                             initial pitch; --no-render and --frame-every do not apply)"
+    )]
+    pub render: RenderArgs,
+}
+
+/// Why the viewer could not start or stopped.
+#[derive(Debug, Error)]
+pub enum ViewError {
+    #[error(
+        "a window needs an X11 display ({0}); set DISPLAY, or for headless use run \
+         `terrain-client fly`, which renders offscreen and writes frames and flight.csv"
+    )]
+    NoDisplay(String),
+    #[error("cannot open the window: {0}")]
+    Window(String),
+    #[error("cannot start the async runtime for the fetcher: {0}")]
+    Runtime(std::io::Error),
+    #[error("invalid option: {0}")]
+    BadOption(String),
+    #[error(transparent)]
+    Fetch(#[from] FetchError),
+    #[error(transparent)]
+    Memory(#[from] MemoryError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    #[error(transparent)]
+    Flight(#[from] FlightError),
+}
+
+/// Parses `X,Y,Z` (metres, finite).
+pub fn parse_point(text: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(format!(
+            "{text:?}: expected X,Y,Z in metres, e.g. 1000,2000,800"
+        ));
+    };
+    let parse = |v: &str| {
+        v.parse::<f64>()
+            .ok()
+            .filter(|n| n.is_finite())
+            .ok_or_else(|| format!("{text:?}: {v:?} is not a finite number of metres"))
+    };
+    Ok([parse(x)?, parse(y)?, parse(z)?])
+}
+
+/// Where the camera starts by default: above the terrain's centre, 5% of its larger extent
+/// above its highest point (the height of [`crate::path::CameraPath::default_for`]).
+pub fn default_start(manifest: &Manifest) -> [f64; 3] {
+    let [w, h] = manifest.extent_m;
+    [w / 2.0, h / 2.0, manifest.heights.max_m + 0.05 * w.max(h)]
+}
+
+/// The default speed: a tenth of the terrain's larger extent per second.
+pub fn default_speed(manifest: &Manifest) -> f64 {
+    let [w, h] = manifest.extent_m;
+    (0.1 * w.max(h)).clamp(SPEED_RANGE.0, SPEED_RANGE.1)
+}
+
+/// What the user asks of the camera over one frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FlyInput {
+    /// +1 forward, -1 back.
+    pub forward: f64,
+    /// +1 right, -1 left.
+    pub right: f64,
+    /// +1 up, -1 down.
+    pub up: f64,
+    /// Shift held: [`FAST_FACTOR`] times faster.
+    pub fast: bool,
+    /// Mouse drag since the last frame, pixels (right, down).
+    pub look: [f64; 2],
+    /// Mouse wheel notches since the last frame (positive: faster).
+    pub wheel: f64,
+}
+
+/// A free-flying camera: position, heading and speed. Pure: [`FlyCamera::apply`] moves it
+/// by an input over a time step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlyCamera {
+    /// Metres, x east, y south, z up.
+    pub position: [f64; 3],
+    /// Radians: 0 looks east, pi/2 south.
+    pub yaw: f64,
+    /// Radians above the horizon, within ±[`MAX_PITCH_DEG`].
+    pub pitch: f64,
+    /// Metres per second without Shift.
+    pub speed: f64,
+}
+
+impl FlyCamera {
+    pub fn new(position: [f64; 3], yaw: f64, pitch: f64, speed: f64) -> FlyCamera {
+        let max = MAX_PITCH_DEG.to_radians();
+        FlyCamera {
+            position,
+            yaw: if yaw.is_finite() {
+                yaw.rem_euclid(TAU)
+            } else {
+                0.0
+            },
+            pitch: if pitch.is_finite() {
+                pitch.clamp(-max, max)
+            } else {
+                0.0
+            },
+            speed: if speed.is_finite() {
+                speed.clamp(SPEED_RANGE.0, SPEED_RANGE.1)
+            } else {
+                SPEED_RANGE.0
+            },
+        }
+    }
+
+    /// Unit view direction (east, south, up).
+    pub fn direction(&self) -> [f64; 3] {
+        [
+            self.pitch.cos() * self.yaw.cos(),
+            self.pitch.cos() * self.yaw.sin(),
+            self.pitch.sin(),
+        ]
+    }
+
+    /// Unit horizontal direction to the right of the view.
+    pub fn right(&self) -> [f64; 3] {
+        [-self.yaw.sin(), self.yaw.cos(), 0.0]
+    }
+
+    /// Applies `input` over `dt` seconds (clamped to [0, [`MAX_STEP_S`]]): the wheel sets
+    /// the speed, the drag turns the view (pitch clamped), then the camera moves forward
+    /// along the view, sideways horizontally and up vertically. A step that would leave the
+    /// position non-finite is not taken.
+    pub fn apply(&mut self, input: &FlyInput, dt: f64) {
+        let dt = if dt.is_finite() {
+            dt.clamp(0.0, MAX_STEP_S)
+        } else {
+            0.0
+        };
+        if input.wheel.is_finite() {
+            self.speed =
+                (self.speed * WHEEL_FACTOR.powf(input.wheel)).clamp(SPEED_RANGE.0, SPEED_RANGE.1);
+        }
+        let [dx, dy] = input.look;
+        if dx.is_finite() && dy.is_finite() {
+            let max = MAX_PITCH_DEG.to_radians();
+            self.yaw = (self.yaw + dx * LOOK_RADIANS_PER_PIXEL).rem_euclid(TAU);
+            self.pitch = (self.pitch - dy * LOOK_RADIANS_PER_PIXEL).clamp(-max, max);
+        }
+        let speed = self.speed * if input.fast { FAST_FACTOR } else { 1.0 };
+        let step = speed * dt;
+        let (f, r, u) = (
+            input.forward.clamp(-1.0, 1.0),
+            input.right.clamp(-1.0, 1.0),
+            input.up.clamp(-1.0, 1.0),
+        );
+        let forward = self.direction();
+        let right = self.right();
+        let next: [f64; 3] = std::array::from_fn(|i| {
+            let vertical = if i == 2 { u } else { 0.0 };
+            self.position[i] + step * (f * forward[i] + r * right[i] + vertical)
+        });
+        if next.iter().all(|v| v.is_finite()) {
+            self.position = next.map(|v| v.clamp(-POSITION_LIMIT_M, POSITION_LIMIT_M));
+        }
+    }
+
+    /// Lifts the camera to [`GROUND_CLEARANCE_M`] above `ground` (metres) when below it.
+    pub fn keep_above(&mut self, ground: Option<f64>) {
+        if let Some(g) = ground.filter(|g| g.is_finite()) {
+            self.position[2] = self.position[2].max(g + GROUND_CLEARANCE_M);
+        }
+    }
+
+    /// The renderer's camera.
+    pub fn camera(&self) -> Camera {
+        Camera::new(self.position, self.yaw, self.pitch)
+    }
+}
+
+/// Keys and buttons held, and what happened since the last frame.
+#[derive(Debug, Clone, Default)]
+struct InputState {
+    forward: bool,
+    back: bool,
+    left: bool,
+    right: bool,
+    up: bool,
+    down: bool,
+    /// Left and right Shift separately, so releasing one keeps the other's effect.
+    shift: [bool; 2],
+    dragging: bool,
+    cursor: Option<[f64; 2]>,
+    look: [f64; 2],
+    wheel: f64,
+}
+
+impl InputState {
+    /// Records a key; returns true when it is one of the controls.
+    fn key(&mut self, code: KeyCode, pressed: bool) -> bool {
+        let slot = match code {
+            KeyCode::KeyW | KeyCode::ArrowUp => &mut self.forward,
+            KeyCode::KeyS | KeyCode::ArrowDown => &mut self.back,
+            KeyCode::KeyA | KeyCode::ArrowLeft => &mut self.left,
+            KeyCode::KeyD | KeyCode::ArrowRight => &mut self.right,
+            KeyCode::KeyE | KeyCode::Space | KeyCode::PageUp => &mut self.up,
+            KeyCode::KeyQ | KeyCode::ControlLeft | KeyCode::ControlRight | KeyCode::PageDown => {
+                &mut self.down
+            }
+            KeyCode::ShiftLeft => &mut self.shift[0],
+            KeyCode::ShiftRight => &mut self.shift[1],
+            _ => return false,
+        };
+        *slot = pressed;
+        true
+    }
+
+    fn cursor_moved(&mut self, x: f64, y: f64) {
+        if self.dragging
+            && let Some([px, py]) = self.cursor
+        {
+            self.look[0] += x - px;
+            self.look[1] += y - py;
+        }
+        self.cursor = Some([x, y]);
+    }
+
+    /// Releases everything held (the window lost focus: its key-ups will not come).
+    fn release_all(&mut self) {
+        *self = InputState {
+            cursor: self.cursor,
+            ..InputState::default()
+        };
+    }
+
+    /// This frame's input; the drag and the wheel are consumed.
+    fn take(&mut self) -> FlyInput {
+        let axis = |plus: bool, minus: bool| f64::from(u8::from(plus)) - f64::from(u8::from(minus));
+        let input = FlyInput {
+            forward: axis(self.forward, self.back),
+            right: axis(self.right, self.left),
+            up: axis(self.up, self.down),
+            fast: self.shift[0] || self.shift[1],
+            look: self.look,
+            wheel: self.wheel,
+        };
+        self.look = [0.0; 2];
+        self.wheel = 0.0;
+        input
+    }
+}
+
+/// What the title shows.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ViewStats {
+    pub fps: f64,
+    pub triangles: u64,
+    pub visible_tiles: usize,
+    pub resident_tiles: u64,
+    pub total_tiles: usize,
+    pub resident_bytes: u64,
+    pub memory_limit: u64,
+}
+
+/// The window title: dataset and frame statistics.
+pub fn title(dataset: &str, s: &ViewStats) -> String {
+    let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+    format!(
+        "terrain-client view — {dataset} — {:.0} fps, {} triangles, {} tiles visible, {}/{} tiles resident, {:.1}/{:.1} MiB",
+        s.fps,
+        s.triangles,
+        s.visible_tiles,
+        s.resident_tiles,
+        s.total_tiles,
+        mib(s.resident_bytes),
+        mib(s.memory_limit)
+    )
+}
+
+/// Opens the window and flies until it is closed or Escape is pressed. Runs the event loop
+/// on the calling thread, which must be the main thread and not inside a tokio runtime.
+pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
+    if args.render.no_render {
+        return Err(ViewError::BadOption(
+            "--no-render: the viewer always renders; use `terrain-client fly --no-render` to \
+             page and stream without a GPU"
+                .into(),
+        ));
+    }
+    if args.concurrency == 0 {
+        return Err(ViewError::BadOption(
+            "--concurrency must be at least 1".into(),
+        ));
+    }
+    if let Some(speed) = args.speed
+        && !(speed.is_finite() && speed > 0.0)
+    {
+        return Err(ViewError::BadOption(format!(
+            "--speed {speed} must be a positive number of metres per second"
+        )));
+    }
+    let render_config = args.render.config()?;
+    let budget = MemoryBudget::new(args.memory, args.limit_percent)?;
+    // Before any network traffic: without a display there is nothing to show it on.
+    let display_set = |name: &str| std::env::var_os(name).is_some_and(|v| !v.is_empty());
+    if !display_set("DISPLAY") {
+        let reason = if display_set("WAYLAND_DISPLAY") {
+            "DISPLAY is not set, and this build has no Wayland support (XWayland sets DISPLAY)"
+        } else {
+            "DISPLAY is not set"
+        };
+        return Err(ViewError::NoDisplay(reason.into()));
+    }
+    let event_loop = EventLoop::new().map_err(|e| {
+        // winit says "os error at FILE:LINE: WHY"; the user needs WHY and the display.
+        let text = e.to_string();
+        let why = match text.strip_prefix("os error at ") {
+            Some(rest) => rest.split_once(": ").map_or(rest, |(_, why)| why),
+            None => &text,
+        };
+        let display = std::env::var("DISPLAY").unwrap_or_default();
+        ViewError::NoDisplay(format!("DISPLAY={display}: {why}"))
+    })?;
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("terrain-fetch")
+        .build()
+        .map_err(ViewError::Runtime)?;
+    let client = TileClient::new(&args.server)?;
+    let manifest = Arc::new(runtime.block_on(client.manifest())?);
+    let fetcher = Fetcher::new(
+        client,
+        Arc::clone(&manifest),
+        FetcherConfig {
+            concurrency: args.concurrency,
+            ..FetcherConfig::default()
+        },
+        runtime.handle().clone(),
+    );
+    let pager = PagerConfig {
+        columns: manifest.grid.columns,
+        rows: manifest.grid.rows,
+        memory_limit: budget.limit_bytes(),
+        nearest_when_outside: true,
+    };
+    let start = args.start.unwrap_or_else(|| default_start(&manifest));
+    let speed = args.speed.unwrap_or_else(|| default_speed(&manifest));
+    // Looking north by default.
+    let camera = FlyCamera::new(start, -FRAC_PI_2, args.render.pitch_deg.to_radians(), speed);
+    println!(
+        "viewing {} ({} tiles, {:.0} x {:.0} m) from {}; memory limit {:.1} MiB; start at \
+         {:.0},{:.0},{:.0} m, {:.0} m/s",
+        manifest.dataset,
+        manifest.tiles.len(),
+        manifest.extent_m[0],
+        manifest.extent_m[1],
+        args.server,
+        budget.limit_bytes() as f64 / 1048576.0,
+        start[0],
+        start[1],
+        start[2],
+        camera.speed
+    );
+    println!("{CONTROLS}");
+
+    let mut app = App {
+        manifest,
+        fetcher,
+        pager,
+        render_config,
+        window_size: args.render.size,
+        print_stats: args.print_stats,
+        camera,
+        input: InputState::default(),
+        view: None,
+        error: None,
+        frame: 0,
+        last_frame: None,
+        window_stats: WindowStats::new(Instant::now()),
+    };
+    let run = event_loop.run_app(&mut app);
+    // Stop the downloads (dropping the fetcher aborts them) before the runtime goes.
+    let error = app.error.take();
+    drop(app);
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    match (error, run) {
+        (Some(error), _) => Err(error),
+        (None, run) => run.map_err(|e| ViewError::Window(e.to_string())),
+    }
+}
+
+/// The window, its surface and the scene drawn into it.
+#[derive(Debug)]
+struct View {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    /// Format views of the surface's textures take (the sRGB form of `config.format`).
+    view_format: wgpu::TextureFormat,
+    gpu: Gpu,
+    scene: Scene,
+}
+
+impl View {
+    fn open(
+        event_loop: &ActiveEventLoop,
+        manifest: &Arc<Manifest>,
+        pager: PagerConfig,
+        render: RenderConfig,
+        size: (u32, u32),
+    ) -> Result<View, ViewError> {
+        let attributes = Window::default_attributes()
+            .with_title(format!("terrain-client view — {}", manifest.dataset))
+            .with_inner_size(PhysicalSize::new(size.0, size.1));
+        let window = Arc::new(
+            event_loop
+                .create_window(attributes)
+                .map_err(|e| ViewError::Window(e.to_string()))?,
+        );
+        let instance = Gpu::instance();
+        let surface = instance
+            .create_surface(Arc::clone(&window))
+            .map_err(|e| GpuError::Surface(e.to_string()))?;
+        let gpu = Gpu::with_instance(instance, Some(&surface))?;
+        let capabilities = surface.get_capabilities(&gpu.adapter);
+        let inner = window.inner_size();
+        let mut config = surface
+            .get_default_config(&gpu.adapter, inner.width.max(1), inner.height.max(1))
+            .ok_or_else(|| {
+                GpuError::Surface(format!(
+                    "the adapter {} cannot present to this window",
+                    gpu.description()
+                ))
+            })?;
+        // sRGB, as the offscreen frames are: the shader writes linear colour.
+        config.format = capabilities
+            .formats
+            .iter()
+            .copied()
+            .find(wgpu::TextureFormat::is_srgb)
+            .unwrap_or(config.format);
+        let view_format = config.format.add_srgb_suffix();
+        if view_format != config.format {
+            config.view_formats = vec![view_format];
+        }
+        config.present_mode = wgpu::PresentMode::AutoVsync;
+        surface.configure(&gpu.device, &config);
+        tracing::info!(
+            adapter = %gpu.description(),
+            format = ?config.format,
+            width = config.width,
+            height = config.height,
+            "window open"
+        );
+        let scene = Scene::new(
+            Arc::clone(manifest),
+            pager,
+            Some((gpu.clone(), view_format, render)),
+        );
+        Ok(View {
+            window,
+            surface,
+            config,
+            view_format,
+            gpu,
+            scene,
+        })
+    }
+
+    fn resize(&mut self, size: PhysicalSize<u32>) {
+        if size.width == 0 || size.height == 0 {
+            return;
+        }
+        self.config.width = size.width;
+        self.config.height = size.height;
+        self.surface.configure(&self.gpu.device, &self.config);
+    }
+
+    /// The next texture to draw into, and whether the surface should be reconfigured
+    /// once it is presented (suboptimal); `None` when this frame cannot be drawn (the
+    /// surface timed out, is hidden, or was reconfigured or recreated).
+    fn acquire(&mut self) -> Result<Option<(wgpu::SurfaceTexture, bool)>, ViewError> {
+        use wgpu::CurrentSurfaceTexture as Current;
+        Ok(match self.surface.get_current_texture() {
+            Current::Success(texture) => Some((texture, false)),
+            Current::Suboptimal(texture) => Some((texture, true)),
+            Current::Timeout | Current::Occluded => None,
+            Current::Outdated => {
+                self.resize(self.window.inner_size());
+                None
+            }
+            Current::Lost => {
+                tracing::warn!("the window's surface was lost; creating it again");
+                self.surface = self
+                    .gpu
+                    .instance
+                    .create_surface(Arc::clone(&self.window))
+                    .map_err(|e| GpuError::Surface(e.to_string()))?;
+                self.surface.configure(&self.gpu.device, &self.config);
+                None
+            }
+            Current::Validation => {
+                tracing::warn!("acquiring the window's next texture raised a validation error");
+                None
+            }
+        })
+    }
+}
+
+/// Frame counts and the last draw, between title updates.
+#[derive(Debug, Clone)]
+struct WindowStats {
+    since: Instant,
+    frames: u64,
+    last_print: Instant,
+    last: Option<(u64, usize)>,
+}
+
+impl WindowStats {
+    fn new(now: Instant) -> WindowStats {
+        WindowStats {
+            since: now,
+            frames: 0,
+            last_print: now,
+            last: None,
+        }
+    }
+}
+
+#[derive(Debug)]
+struct App {
+    manifest: Arc<Manifest>,
+    fetcher: Fetcher,
+    pager: PagerConfig,
+    render_config: RenderConfig,
+    window_size: (u32, u32),
+    print_stats: bool,
+    camera: FlyCamera,
+    input: InputState,
+    view: Option<View>,
+    /// Why the loop was stopped, reported once it returns.
+    error: Option<ViewError>,
+    frame: u64,
+    last_frame: Option<Instant>,
+    window_stats: WindowStats,
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, error: ViewError) {
+        if self.error.is_none() {
+            self.error = Some(error);
+        }
+        event_loop.exit();
+    }
+
+    /// One frame: move the camera, page and stream, draw, present.
+    fn redraw(&mut self) -> Result<(), ViewError> {
+        let Some(view) = &mut self.view else {
+            return Ok(());
+        };
+        // Acquire first: a vsync wait there is not the frame's work, and the frame-rate
+        // controller should see only the work.
+        let texture = view.acquire()?;
+        let now = Instant::now();
+        let dt = self
+            .last_frame
+            .map_or(0.0, |t| now.duration_since(t).as_secs_f64());
+        self.last_frame = Some(now);
+        self.camera.apply(&self.input.take(), dt);
+        // Off the terrain, or over a tile not yet resident, the lowest point is the floor.
+        let ground = view.scene.ground_under(self.camera.position);
+        self.camera
+            .keep_above(Some(ground.unwrap_or(self.manifest.heights.min_m)));
+        view.scene
+            .update(&mut self.fetcher, self.frame, self.camera.position)?;
+        self.frame += 1;
+        if let Some((texture, suboptimal)) = texture {
+            let target = texture.texture.create_view(&wgpu::TextureViewDescriptor {
+                format: Some(view.view_format),
+                ..Default::default()
+            });
+            let report: Option<DrawReport> = view.scene.draw(&target, &self.camera.camera(), now);
+            // Nothing may hold the surface's texture when it is reconfigured.
+            drop(target);
+            view.window.pre_present_notify();
+            view.gpu.queue.present(texture);
+            if suboptimal {
+                view.resize(view.window.inner_size());
+            }
+            if let Some(report) = report {
+                self.window_stats.last = Some((report.stats.triangles, report.plan.draws.len()));
+            }
+            self.window_stats.frames += 1;
+        } else {
+            // Hidden or reconfigured: page on, but do not spin.
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        self.update_title();
+        Ok(())
+    }
+
+    fn update_title(&mut self) {
+        let Some(view) = &self.view else {
+            return;
+        };
+        let now = Instant::now();
+        let s = &mut self.window_stats;
+        let elapsed = now.duration_since(s.since);
+        if elapsed < TITLE_INTERVAL {
+            return;
+        }
+        let (triangles, visible_tiles) = s.last.unwrap_or((0, 0));
+        let stats = ViewStats {
+            fps: s.frames as f64 / elapsed.as_secs_f64(),
+            triangles,
+            visible_tiles,
+            resident_tiles: view.scene.resident_tiles(),
+            total_tiles: self.manifest.tiles.len(),
+            resident_bytes: view.scene.resident_bytes(),
+            memory_limit: view.scene.memory_limit(),
+        };
+        s.since = now;
+        s.frames = 0;
+        let text = title(&self.manifest.dataset, &stats);
+        view.window.set_title(&text);
+        if now.duration_since(s.last_print) >= PRINT_INTERVAL {
+            s.last_print = now;
+            let [x, y, z] = self.camera.position;
+            tracing::debug!(x, y, z, speed = self.camera.speed, "{text}");
+            if self.print_stats {
+                eprintln!(
+                    "{text} — camera at {x:.0},{y:.0},{z:.0} m, yaw {:.0}°, pitch {:.0}°, {:.0} m/s",
+                    self.camera.yaw.to_degrees(),
+                    self.camera.pitch.to_degrees(),
+                    self.camera.speed
+                );
+            }
+        }
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.view.is_some() {
+            return;
+        }
+        match View::open(
+            event_loop,
+            &self.manifest,
+            self.pager,
+            self.render_config,
+            self.window_size,
+        ) {
+            Ok(view) => {
+                view.window.request_redraw();
+                self.view = Some(view);
+            }
+            Err(error) => self.fail(event_loop, error),
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                if let Some(view) = &mut self.view {
+                    view.resize(size);
+                }
+            }
+            WindowEvent::Focused(false) => self.input.release_all(),
+            WindowEvent::KeyboardInput { event, .. } => {
+                let pressed = event.state == ElementState::Pressed;
+                if let PhysicalKey::Code(code) = event.physical_key {
+                    if code == KeyCode::Escape && pressed {
+                        event_loop.exit();
+                    } else {
+                        self.input.key(code, pressed);
+                    }
+                }
+            }
+            WindowEvent::MouseInput {
+                state,
+                button: MouseButton::Left,
+                ..
+            } => self.input.dragging = state == ElementState::Pressed,
+            WindowEvent::CursorMoved { position, .. } => {
+                self.input.cursor_moved(position.x, position.y);
+            }
+            WindowEvent::CursorLeft { .. } => self.input.cursor = None,
+            WindowEvent::MouseWheel { delta, .. } => {
+                self.input.wheel += match delta {
+                    MouseScrollDelta::LineDelta(_, y) => f64::from(y),
+                    // Touchpads: about 40 pixels a notch.
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(error) = self.redraw() {
+                    self.fail(event_loop, error);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        if let Some(view) = &self.view {
+            view.window.request_redraw();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: [f64; 3], b: [f64; 3]) -> bool {
+        a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-9)
+    }
+
+    #[test]
+    fn forward_moves_along_the_heading_at_the_speed() {
+        // Looking south (y grows southwards), level.
+        let mut camera = FlyCamera::new([100.0, 200.0, 50.0], FRAC_PI_2, 0.0, 10.0);
+        let input = FlyInput {
+            forward: 1.0,
+            ..FlyInput::default()
+        };
+        camera.apply(&input, 0.1);
+        assert!(
+            close(camera.position, [100.0, 201.0, 50.0]),
+            "{:?}",
+            camera.position
+        );
+        // Back undoes it.
+        camera.apply(
+            &FlyInput {
+                forward: -1.0,
+                ..FlyInput::default()
+            },
+            0.1,
+        );
+        assert!(
+            close(camera.position, [100.0, 200.0, 50.0]),
+            "{:?}",
+            camera.position
+        );
+    }
+
+    #[test]
+    fn forward_follows_the_pitch_and_strafe_and_up_do_not() {
+        let mut camera = FlyCamera::new([0.0; 3], 0.0, (-45.0f64).to_radians(), 10.0);
+        camera.apply(
+            &FlyInput {
+                forward: 1.0,
+                ..FlyInput::default()
+            },
+            0.1,
+        );
+        let h = 0.5f64.sqrt();
+        assert!(
+            close(camera.position, [h, 0.0, -h]),
+            "{:?}",
+            camera.position
+        );
+        // Looking east, right is south; up is world up whatever the pitch.
+        let mut camera = FlyCamera::new([0.0; 3], 0.0, (-45.0f64).to_radians(), 10.0);
+        camera.apply(
+            &FlyInput {
+                right: 1.0,
+                up: 1.0,
+                ..FlyInput::default()
+            },
+            0.1,
+        );
+        assert!(
+            close(camera.position, [0.0, 1.0, 1.0]),
+            "{:?}",
+            camera.position
+        );
+    }
+
+    #[test]
+    fn shift_and_the_wheel_scale_the_speed() {
+        let forward = FlyInput {
+            forward: 1.0,
+            ..FlyInput::default()
+        };
+        let mut slow = FlyCamera::new([0.0; 3], 0.0, 0.0, 10.0);
+        let mut fast = slow;
+        slow.apply(&forward, 0.1);
+        fast.apply(
+            &FlyInput {
+                fast: true,
+                ..forward
+            },
+            0.1,
+        );
+        assert!((fast.position[0] - FAST_FACTOR * slow.position[0]).abs() < 1e-9);
+        let mut camera = FlyCamera::new([0.0; 3], 0.0, 0.0, 10.0);
+        camera.apply(
+            &FlyInput {
+                wheel: 2.0,
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert!((camera.speed - 10.0 * WHEEL_FACTOR * WHEEL_FACTOR).abs() < 1e-9);
+        assert_eq!(camera.position, [0.0; 3], "no time, no movement");
+        camera.apply(
+            &FlyInput {
+                wheel: -1e6,
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert_eq!(
+            camera.speed, SPEED_RANGE.0,
+            "the wheel cannot stop the camera"
+        );
+    }
+
+    #[test]
+    fn pitch_is_clamped_and_yaw_wraps() {
+        let mut camera = FlyCamera::new([0.0; 3], 0.0, 0.0, 10.0);
+        camera.apply(
+            &FlyInput {
+                look: [0.0, -1e6],
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert!((camera.pitch - MAX_PITCH_DEG.to_radians()).abs() < 1e-12);
+        camera.apply(
+            &FlyInput {
+                look: [0.0, 1e6],
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert!((camera.pitch + MAX_PITCH_DEG.to_radians()).abs() < 1e-12);
+        // Dragging right turns right: from east towards south.
+        let mut camera = FlyCamera::new([0.0; 3], 0.0, 0.0, 10.0);
+        camera.apply(
+            &FlyInput {
+                look: [100.0, 0.0],
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert!(camera.yaw > 0.0 && camera.yaw < FRAC_PI_2, "{}", camera.yaw);
+        camera.apply(
+            &FlyInput {
+                look: [-200.0, 0.0],
+                ..FlyInput::default()
+            },
+            0.0,
+        );
+        assert!((0.0..TAU).contains(&camera.yaw), "{}", camera.yaw);
+    }
+
+    #[test]
+    fn the_position_stays_finite_and_long_stalls_do_not_jump() {
+        let mut camera = FlyCamera::new([1.0, 2.0, 3.0], 0.0, 0.0, 10.0);
+        let forward = FlyInput {
+            forward: 1.0,
+            ..FlyInput::default()
+        };
+        camera.apply(&forward, f64::NAN);
+        camera.apply(
+            &FlyInput {
+                look: [f64::INFINITY, f64::NAN],
+                wheel: f64::NAN,
+                ..forward
+            },
+            0.0,
+        );
+        assert_eq!(camera.position, [1.0, 2.0, 3.0]);
+        assert!(camera.yaw.is_finite() && camera.pitch.is_finite() && camera.speed == 10.0);
+        camera.apply(&forward, 100.0);
+        assert!((camera.position[0] - (1.0 + 10.0 * MAX_STEP_S)).abs() < 1e-9);
+        let mut huge = FlyCamera::new([0.0; 3], 0.0, 0.0, f64::MAX);
+        huge.apply(&forward, MAX_STEP_S);
+        assert!(huge.position.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn the_camera_keeps_clear_of_the_ground() {
+        let mut camera = FlyCamera::new([0.0, 0.0, 100.0], 0.0, 0.0, 10.0);
+        camera.keep_above(Some(99.0));
+        assert_eq!(camera.position[2], 99.0 + GROUND_CLEARANCE_M);
+        camera.keep_above(Some(10.0));
+        camera.keep_above(None);
+        assert_eq!(camera.position[2], 99.0 + GROUND_CLEARANCE_M);
+    }
+
+    #[test]
+    fn keys_make_axes_and_drags_only_count_while_the_button_is_held() {
+        let mut input = InputState::default();
+        assert!(input.key(KeyCode::KeyW, true));
+        assert!(input.key(KeyCode::KeyA, true));
+        assert!(input.key(KeyCode::Space, true));
+        assert!(input.key(KeyCode::ShiftRight, true));
+        assert!(!input.key(KeyCode::KeyZ, true));
+        input.cursor_moved(10.0, 10.0);
+        input.cursor_moved(20.0, 30.0);
+        let i = input.take();
+        assert_eq!((i.forward, i.right, i.up, i.fast), (1.0, -1.0, 1.0, true));
+        assert_eq!(i.look, [0.0, 0.0], "not dragging");
+        input.dragging = true;
+        input.cursor_moved(25.0, 28.0);
+        assert_eq!(input.take().look, [5.0, -2.0]);
+        assert_eq!(input.take().look, [0.0, 0.0], "a drag is consumed once");
+        input.release_all();
+        assert_eq!(input.take(), FlyInput::default());
+    }
+
+    #[test]
+    fn points_parse_and_bad_ones_say_why() {
+        assert_eq!(parse_point("1,-2.5, 3e2"), Ok([1.0, -2.5, 300.0]));
+        assert!(parse_point("1,2").is_err_and(|e| e.contains("X,Y,Z")));
+        assert!(parse_point("1,x,3").is_err_and(|e| e.contains("finite")));
+        assert!(parse_point("1,inf,3").is_err_and(|e| e.contains("finite")));
+    }
+
+    #[test]
+    fn the_title_names_dataset_and_counts() {
+        let text = title(
+            "jacksboro",
+            &ViewStats {
+                fps: 59.6,
+                triangles: 12345,
+                visible_tiles: 7,
+                resident_tiles: 9,
+                total_tiles: 16,
+                resident_bytes: 3 * 1048576,
+                memory_limit: 64 * 1048576,
+            },
+        );
+        assert_eq!(
+            text,
+            "terrain-client view — jacksboro — 60 fps, 12345 triangles, 7 tiles visible, \
+             9/16 tiles resident, 3.0/64.0 MiB"
+        );
+    }
+}

@@ -1,0 +1,134 @@
+// Terrain tiles: one vertex shader for a tile's surface, skirts and planar shadow (indexed
+// triangle strips over its samples), one fragment shader.
+//
+// Render space is camera-relative and right-handed: x east, y up, z south, in metres, with
+// the camera at the origin. The Rust mirrors of these structs are in src/lib.rs.
+
+struct Frame {
+    // Camera-relative render space to clip space (reversed depth: near is 1, far is 0).
+    view_proj: mat4x4<f32>,
+    // Unit vector towards the light, render space.
+    light_dir: vec4<f32>,
+    // x: ambient share of the light, in [0, 1].
+    params: vec4<f32>,
+    // The camera relative to its anchor sample: (east m, height m, south m). Positions are
+    // (sample index relative to the anchor) * spacing - this, so two tiles compute a
+    // shared border sample from the same integers and place it bit for bit identically.
+    camera: vec4<f32>,
+};
+
+struct Tile {
+    // Sample (0, 0) of the tile as sample indices relative to the camera's anchor sample:
+    // (east, 0, south). Whole numbers, exact in f32 up to 2^24.
+    origin: vec4<f32>,
+    // x, y: metres between samples east and south; z: samples per side; w: skirt bottom,
+    // metres above the datum.
+    spacing: vec4<f32>,
+    // x: height of the shadow plane, metres above the datum; y: the largest factor a
+    // corner's projection may stretch by (it grows without bound at grazing angles).
+    shadow: vec4<f32>,
+    pad: vec4<f32>,
+};
+
+struct Sample {
+    height: f32,
+    // Unit normal, render space, packed with pack4x8snorm (w unused).
+    normal: u32,
+};
+
+@group(0) @binding(0) var<uniform> frame: Frame;
+@group(1) @binding(0) var<uniform> tile: Tile;
+@group(2) @binding(0) var<storage, read> samples: array<Sample>;
+@group(2) @binding(1) var tile_texture: texture_2d<f32>;
+@group(2) @binding(2) var tile_sampler: sampler;
+
+struct Varyings {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) uv: vec2<f32>,
+    @location(1) normal: vec3<f32>,
+};
+
+// Render-space position of sample (column, row) at `height`.
+fn position_of(column: u32, row: u32, height: f32) -> vec3<f32> {
+    return vec3<f32>(
+        (tile.origin.x + f32(column)) * tile.spacing.x - frame.camera.x,
+        height - frame.camera.y,
+        (tile.origin.z + f32(row)) * tile.spacing.y - frame.camera.z,
+    );
+}
+
+// Clip position and texture coordinates of sample (column, row) at `height`.
+fn place(column: u32, row: u32, height: f32) -> Varyings {
+    let cells = tile.spacing.z - 1.0;
+    let position = position_of(column, row, height);
+    var out: Varyings;
+    out.clip = frame.view_proj * vec4<f32>(position, 1.0);
+    out.uv = vec2<f32>(f32(column), f32(row)) / cells;
+    out.normal = vec3<f32>(0.0, 1.0, 0.0);
+    return out;
+}
+
+// One vertex shader for everything a tile draws, told apart by the index:
+// - below n*n: sample i (the strip masks);
+// - n*n + i: the foot of sample i's skirt, at the skirt's bottom;
+// - 2*n*n + k, k in 0..4: corner k of the planar shadow.
+// One pipeline for all three keeps the render pass free of pipeline switches.
+@vertex
+fn vs_surface(@builtin(vertex_index) vertex: u32) -> Varyings {
+    let n = u32(tile.spacing.z);
+    let count = n * n;
+    if vertex >= 2u * count {
+        return shadow_corner(vertex - 2u * count);
+    }
+    var index = vertex;
+    var skirt = false;
+    if vertex >= count {
+        index = vertex - count;
+        skirt = true;
+    }
+    let sample = samples[index];
+    var height = sample.height;
+    if skirt {
+        height = tile.spacing.w;
+    }
+    var out = place(index % n, index / n, height);
+    out.normal = unpack4x8snorm(sample.normal).xyz;
+    return out;
+}
+
+// The planar shadow (strip-mask paper, section 5.4): the tile's four corners projected from
+// the viewpoint onto a horizontal plane below the tile. Corners 0..3 are the north-west,
+// south-west, north-east and south-east corners, a two-triangle strip.
+fn shadow_corner(corner_index: u32) -> Varyings {
+    let n = u32(tile.spacing.z);
+    let column = (corner_index / 2u) * (n - 1u);
+    let row = (corner_index % 2u) * (n - 1u);
+    let sample = samples[row * n + column];
+    var out = place(column, row, sample.height);
+    let corner = position_of(column, row, sample.height);
+    // The camera is at the origin: the ray through the corner meets the plane at
+    // corner * t, t = plane / corner.y (both below the camera). Near grazing angles, or with
+    // the corner above the camera, t is capped: the shadow then misses (the method's known
+    // failure), but stays finite.
+    let plane = tile.shadow.x - frame.camera.y;
+    var t = 1.0;
+    if plane < 0.0 {
+        t = -plane / max(-corner.y, -plane / tile.shadow.y);
+    }
+    var position = corner * t;
+    if plane >= 0.0 {
+        // The camera is below the plane: nothing to project from; lay the quad on the plane.
+        position.y = plane;
+    }
+    out.clip = frame.view_proj * vec4<f32>(position, 1.0);
+    out.normal = unpack4x8snorm(sample.normal).xyz;
+    return out;
+}
+
+@fragment
+fn fs_main(in: Varyings) -> @location(0) vec4<f32> {
+    let albedo = textureSample(tile_texture, tile_sampler, in.uv).rgb;
+    let lambert = max(dot(normalize(in.normal), frame.light_dir.xyz), 0.0);
+    let ambient = frame.params.x;
+    return vec4<f32>(albedo * (ambient + (1.0 - ambient) * lambert), 1.0);
+}

@@ -1,0 +1,376 @@
+//! Rendering with a real adapter (lavapipe in CI) over the jacksboro fixture, served by a
+//! real server and fetched over HTTP: golden images of fixed cameras, crack filling counted,
+//! and a rendered flight's records.
+
+use std::path::Path;
+use terrain_client::fetch::TileClient;
+use terrain_client::flight::{FlightArgs, RenderArgs, fly};
+use terrain_client::lod::strips::MaskSet;
+use terrain_client::memory::MemorySize;
+use terrain_client::render::plan::{Candidate, plan_frame};
+use terrain_client::render::{
+    Camera, CrackFiller, Draw, Gpu, Layout, LodSettings, Offscreen, TerrainRenderer,
+};
+use terrain_shared::{Manifest, TileId};
+use terrain_tests::data::build_jacksboro;
+use terrain_tests::golden;
+use terrain_tests::server::TestServer;
+
+const WIDTH: u32 = 320;
+const HEIGHT: u32 = 240;
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime")
+}
+
+/// Every tile of jacksboro, fetched from a real server: heights and all texture levels.
+struct Terrain {
+    manifest: Manifest,
+    tiles: Vec<(TileId, terrain_shared::Heights, Vec<image::RgbaImage>)>,
+}
+
+fn fetch_jacksboro(dir: &Path) -> Terrain {
+    let report = build_jacksboro(dir);
+    let server = TestServer::start(&report.out);
+    runtime().block_on(async {
+        let client = TileClient::new(server.base_url()).expect("client");
+        let manifest = client.manifest().await.expect("manifest");
+        let mut tiles = Vec::new();
+        for record in &manifest.tiles {
+            let id = record.id();
+            let heights = client.heights(&manifest, id).await.expect("heights");
+            let mut levels = Vec::new();
+            for level in 0..record.texture.len() as u32 {
+                let bytes = client.texture(&manifest, id, level).await.expect("texture");
+                levels.push(
+                    image::load_from_memory(&bytes)
+                        .expect("texture decodes")
+                        .into_rgba8(),
+                );
+            }
+            tiles.push((id, heights, levels));
+        }
+        Terrain { manifest, tiles }
+    })
+}
+
+fn layout(manifest: &Manifest) -> Layout {
+    Layout {
+        tile_size: manifest.tile_size,
+        spacing_m: manifest.spacing_m,
+    }
+}
+
+/// A renderer holding every tile at its finest texture.
+fn renderer(gpu: &Gpu, terrain: &Terrain, masks: &std::sync::Arc<MaskSet>) -> TerrainRenderer {
+    let mut renderer = TerrainRenderer::new(
+        gpu,
+        terrain_client::render::offscreen::OFFSCREEN_FORMAT,
+        layout(&terrain.manifest),
+        std::sync::Arc::clone(masks),
+    );
+    for (id, heights, levels) in &terrain.tiles {
+        let record = terrain.manifest.tile(*id).expect("in grid");
+        renderer.upload_tile(*id, heights, f64::from(record.min_m));
+        renderer.upload_texture(*id, levels.len() as u32 - 1, levels);
+    }
+    renderer
+}
+
+fn candidates(manifest: &Manifest) -> Vec<Candidate> {
+    manifest
+        .tiles
+        .iter()
+        .map(|t| Candidate {
+            id: t.id(),
+            min_m: f64::from(t.min_m),
+            max_m: f64::from(t.max_m),
+            roughness_m: f64::from(t.roughness_m),
+        })
+        .collect()
+}
+
+fn draw(
+    gpu: &Gpu,
+    renderer: &mut TerrainRenderer,
+    camera: &Camera,
+    draws: &[Draw],
+    filler: CrackFiller,
+) -> image::RgbaImage {
+    let target = Offscreen::new(gpu, WIDTH, HEIGHT);
+    renderer.render(&target.view, camera, draws, filler);
+    target.read(gpu).expect("read back")
+}
+
+/// The fixed cameras of the golden images, over the 29.9 x 31.8 km fixture (heights 236 to
+/// 1076 m).
+fn cameras() -> Vec<(&'static str, Camera)> {
+    vec![
+        (
+            "jacksboro-overview",
+            Camera::looking_at([-4000.0, 38000.0, 9000.0], [15000.0, 15000.0, 500.0]),
+        ),
+        (
+            "jacksboro-low-north",
+            Camera::looking_at([15000.0, 33000.0, 1500.0], [15000.0, 12000.0, 500.0]),
+        ),
+        (
+            "jacksboro-close",
+            Camera::looking_at([6000.0, 6000.0, 2600.0], [12000.0, 11000.0, 600.0]),
+        ),
+    ]
+}
+
+#[test]
+fn fixed_cameras_over_jacksboro_match_their_golden_images() {
+    let Some(gpu) = golden::gpu("render::fixed_cameras_over_jacksboro_match_their_golden_images")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let mut renderer = renderer(&gpu, &terrain, &masks);
+    let tiles = candidates(&terrain.manifest);
+    for (name, camera) in cameras() {
+        // A fixed budget: golden images must not depend on the machine's speed.
+        let plan = plan_frame(
+            &camera,
+            f64::from(WIDTH) / f64::from(HEIGHT),
+            &layout(&terrain.manifest),
+            &tiles,
+            60_000,
+            &masks,
+            &LodSettings::default(),
+        );
+        assert!(!plan.draws.is_empty(), "{name}: the terrain is in view");
+        assert!(
+            plan.triangles <= 60_000,
+            "{name}: {} triangles",
+            plan.triangles
+        );
+        let image = draw(
+            &gpu,
+            &mut renderer,
+            &camera,
+            &plan.draws,
+            CrackFiller::PlanarShadow,
+        );
+        golden::compare(name, &image);
+    }
+}
+
+#[test]
+fn the_adapter_is_vulkan_when_a_gpu_is_required() {
+    let Some(gpu) = golden::gpu("render::the_adapter_is_vulkan_when_a_gpu_is_required") else {
+        return;
+    };
+    let description = gpu.description();
+    eprintln!("adapter: {description}");
+    if terrain_client::render::gpu::gpu_required() {
+        assert_eq!(
+            gpu.adapter.get_info().backend,
+            wgpu_backend_vulkan(),
+            "{description}"
+        );
+    }
+}
+
+fn wgpu_backend_vulkan() -> terrain_client::render::gpu::Backend {
+    terrain_client::render::gpu::Backend::Vulkan
+}
+
+/// Pixels where `reference` shows terrain and `frame` shows the sky: holes in the surface.
+fn crack_pixels(reference: &image::RgbaImage, frame: &image::RgbaImage, sky: [u8; 4]) -> u64 {
+    reference
+        .pixels()
+        .zip(frame.pixels())
+        .filter(|(r, f)| r.0 != sky && f.0 == sky)
+        .count() as u64
+}
+
+#[test]
+fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_levels() {
+    let test = "render::planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_levels";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let mut renderer = renderer(&gpu, &terrain, &masks);
+    let sky = draw(&gpu, &mut renderer, &cameras()[0].1, &[], CrackFiller::None)
+        .get_pixel(0, 0)
+        .0;
+    let mut totals = [0u64; 3];
+    for (name, camera) in cameras() {
+        let all: Vec<TileId> = terrain.manifest.tiles.iter().map(|t| t.id()).collect();
+        // The reference: every tile at the finest mask, no filler: no crack anywhere.
+        let finest: Vec<Draw> = all.iter().map(|&id| Draw { id, level: 0 }).collect();
+        let reference = draw(&gpu, &mut renderer, &camera, &finest, CrackFiller::None);
+        // A checkerboard of the finest and a coarse mask: every shared edge is a crack.
+        let mixed: Vec<Draw> = all
+            .iter()
+            .map(|&id| Draw {
+                id,
+                level: if (id.x + id.y) % 2 == 0 { 0 } else { 31 },
+            })
+            .collect();
+        let mut counts = [0u64; 3];
+        for (k, filler) in [
+            CrackFiller::None,
+            CrackFiller::Skirts,
+            CrackFiller::PlanarShadow,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let frame = draw(&gpu, &mut renderer, &camera, &mixed, filler);
+            counts[k] = crack_pixels(&reference, &frame, sky);
+            if filler == CrackFiller::PlanarShadow && name == "jacksboro-overview" {
+                golden::compare("jacksboro-cracks-planar-shadow", &frame);
+            }
+            if filler == CrackFiller::None && name == "jacksboro-overview" {
+                golden::compare("jacksboro-cracks-none", &frame);
+            }
+        }
+        eprintln!(
+            "{name}: sky pixels where the reference has terrain: none {}, skirts {}, planar-shadow {}",
+            counts[0], counts[1], counts[2]
+        );
+        assert_eq!(
+            crack_pixels(&reference, &reference, sky),
+            0,
+            "{name}: the reference has no hole"
+        );
+        for k in 0..3 {
+            totals[k] += counts[k];
+        }
+    }
+    eprintln!(
+        "all cameras: none {}, skirts {}, planar-shadow {}",
+        totals[0], totals[1], totals[2]
+    );
+    assert!(
+        totals[0] > 100,
+        "the mixed levels do open cracks: {}",
+        totals[0]
+    );
+    assert!(
+        totals[2] * 4 < totals[0],
+        "planar shadows fill at least three quarters of the cracks: {} against {}",
+        totals[2],
+        totals[0]
+    );
+    assert!(
+        totals[1] * 4 < totals[0],
+        "skirts fill at least three quarters of the cracks: {} against {}",
+        totals[1],
+        totals[0]
+    );
+}
+
+#[test]
+fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts() {
+    let test =
+        "render::a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts";
+    if golden::gpu(test).is_none() {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = build_jacksboro(tmp.path());
+    let server = TestServer::start(&report.out);
+    let expected: u64 = report
+        .manifest
+        .tiles
+        .iter()
+        .map(|t| terrain_client::flight::expected_tile_bytes(&report.manifest, t, true).total())
+        .sum();
+    // Room for every tile at its coarsest texture and a little more: finer texture levels
+    // must fit in what is left.
+    let memory = expected * 12 / 10 * 100 / 90;
+    let args = FlightArgs {
+        server: server.base_url().to_string(),
+        flight: None,
+        memory: Some(MemorySize(memory)),
+        limit_percent: 90.0,
+        out: tmp.path().join("flight"),
+        fps: 10.0,
+        concurrency: 4,
+        no_nearest_when_outside: false,
+        quiet: true,
+        render: RenderArgs {
+            size: (160, 120),
+            frame_every: 40,
+            fixed_budget: Some(20_000),
+            ..RenderArgs::default()
+        },
+    };
+    let summary = runtime().block_on(fly(&args)).expect("flight");
+    let text = std::fs::read_to_string(&summary.csv).expect("csv");
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let column = |name: &str| header.iter().position(|h| *h == name).expect(name);
+    let mut finer_textures = false;
+    let mut drew = false;
+    for line in lines {
+        let row: Vec<&str> = line.split(',').collect();
+        let int = |name: &str| row[column(name)].parse::<u64>().expect(name);
+        assert!(
+            int("resident_bytes") <= int("memory_limit_bytes"),
+            "frame {}: {} > {}",
+            row[0],
+            int("resident_bytes"),
+            int("memory_limit_bytes")
+        );
+        assert_eq!(int("global_budget"), 20_000);
+        let visible = int("visible_tiles");
+        // Every visible tile draws at least its coarsest mask (2 triangles); beyond that
+        // the budget holds.
+        assert!(
+            int("triangles") <= 20_000.max(2 * visible),
+            "frame {}: {} triangles",
+            row[0],
+            int("triangles")
+        );
+        let histogram = row[column("mask_levels")];
+        let tiles_in_histogram: u64 = histogram
+            .split(';')
+            .filter(|s| !s.is_empty())
+            .map(|pair| {
+                pair.split(':')
+                    .nth(1)
+                    .expect("level:count")
+                    .parse::<u64>()
+                    .expect("count")
+            })
+            .sum();
+        assert_eq!(tiles_in_histogram, visible, "frame {}", row[0]);
+        assert!(row[column("frame_ms")].parse::<f64>().expect("frame_ms") > 0.0);
+        drew |= int("triangles") > 0;
+        finer_textures |= int("texture_budget_bytes") > 0;
+    }
+    assert!(drew, "the flight drew triangles");
+    assert!(finer_textures, "the limit left room for finer textures");
+    assert!(
+        summary.frames_written.len() >= 3,
+        "{:?}",
+        summary.frames_written
+    );
+    for frame in &summary.frames_written {
+        let image = image::open(frame).expect("a PNG frame").into_rgba8();
+        assert_eq!(image.dimensions(), (160, 120));
+    }
+    // The last frame, over the centre with every tile resident, shows terrain, not sky.
+    let last = image::open(summary.frames_written.last().expect("frames"))
+        .expect("png")
+        .into_rgba8();
+    let sky = last.get_pixel(0, 0).0;
+    let terrain = last.pixels().filter(|p| p.0 != sky).count();
+    assert!(terrain > 160 * 120 / 3, "{terrain} terrain pixels");
+    assert_eq!(summary.charts.len(), 2);
+    assert!(summary.charts[1].ends_with("render.png") && summary.charts[1].exists());
+}

@@ -1,0 +1,129 @@
+//! A real adapter for render tests, and golden-image comparison.
+//!
+//! **Adapter.** [`gpu`] returns a headless device, or `None` after saying on stderr that
+//! the test did not run; with `REQUIRE_GPU=1` (CI) a missing adapter, or one that is not
+//! Vulkan, fails the test instead.
+//!
+//! **Golden images** live in `tests/golden/`. [`compare`] passes when at most
+//! [`MAX_DIFFERING_SHARE`] of the pixels differ from the golden image by more than
+//! [`CHANNEL_TOLERANCE`] in some channel: lavapipe renders bit for bit the same on every
+//! run, and the tolerance leaves room for other adapters' rasterisation and filtering
+//! (a pixel along an edge, a texel's rounding). On failure it writes
+//! `target/golden/NAME-actual.png` and `NAME-diff.png` (differing pixels in red over a
+//! faded copy of the golden image) and says where. `UPDATE_GOLDEN=1` rewrites the golden
+//! images instead of comparing; look at them before committing.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use terrain_client::render::Gpu;
+use terrain_client::render::gpu::gpu_required;
+
+/// Largest per-channel difference (0-255) for a pixel to count as equal.
+pub const CHANNEL_TOLERANCE: u8 = 12;
+/// Largest share of pixels allowed to differ.
+pub const MAX_DIFFERING_SHARE: f64 = 0.005;
+
+/// A headless device, or `None` (said on stderr) when there is none and none is required.
+pub fn gpu(test: &str) -> Option<Gpu> {
+    match Gpu::headless() {
+        Ok(gpu) => Some(gpu),
+        Err(e) => {
+            assert!(!gpu_required(), "{test}: REQUIRE_GPU=1 but {e}");
+            let _ = writeln!(
+                std::io::stderr(),
+                "NOT RUN: {test} needs a graphics adapter: {e}"
+            );
+            None
+        }
+    }
+}
+
+fn golden_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("golden")
+}
+
+fn failure_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/golden")
+}
+
+/// Pixels whose channels differ by more than the tolerance.
+pub fn differing_pixels(a: &image::RgbaImage, b: &image::RgbaImage) -> u64 {
+    a.pixels()
+        .zip(b.pixels())
+        .filter(|(p, q)| {
+            p.0.iter()
+                .zip(q.0.iter())
+                .any(|(x, y)| x.abs_diff(*y) > CHANNEL_TOLERANCE)
+        })
+        .count() as u64
+}
+
+/// Compares `actual` with `tests/golden/NAME.png` (see the module docs).
+pub fn compare(name: &str, actual: &image::RgbaImage) {
+    let golden_path = golden_dir().join(format!("{name}.png"));
+    if std::env::var("UPDATE_GOLDEN").is_ok_and(|v| v == "1") {
+        std::fs::create_dir_all(golden_dir()).expect("tests/golden");
+        actual.save(&golden_path).expect("golden image written");
+        let _ = writeln!(std::io::stderr(), "updated {}", golden_path.display());
+        return;
+    }
+    let golden = match image::open(&golden_path) {
+        Ok(image) => image.into_rgba8(),
+        Err(e) => {
+            let out = write_failure(name, actual, None);
+            panic!(
+                "{name}: no golden image at {} ({e}); the frame is at {}. Look at it, then run with UPDATE_GOLDEN=1 to make it the golden image",
+                golden_path.display(),
+                out.display()
+            );
+        }
+    };
+    assert_eq!(
+        golden.dimensions(),
+        actual.dimensions(),
+        "{name}: size differs from {}",
+        golden_path.display()
+    );
+    let differing = differing_pixels(&golden, actual);
+    let total = u64::from(actual.width()) * u64::from(actual.height());
+    let share = differing as f64 / total as f64;
+    if share > MAX_DIFFERING_SHARE {
+        let out = write_failure(name, actual, Some(&golden));
+        panic!(
+            "{name}: {differing} of {total} pixels ({:.2}%) differ from {} by more than {CHANNEL_TOLERANCE} (allowed {:.2}%); see {}-actual.png and -diff.png",
+            100.0 * share,
+            golden_path.display(),
+            100.0 * MAX_DIFFERING_SHARE,
+            out.with_extension("").display()
+        );
+    }
+}
+
+/// Writes NAME-actual.png (and NAME-diff.png against `golden`); returns the actual's path.
+fn write_failure(
+    name: &str,
+    actual: &image::RgbaImage,
+    golden: Option<&image::RgbaImage>,
+) -> PathBuf {
+    let dir = failure_dir();
+    let _ = std::fs::create_dir_all(&dir);
+    let actual_path = dir.join(format!("{name}-actual.png"));
+    let _ = actual.save(&actual_path);
+    if let Some(golden) = golden {
+        let diff = image::RgbaImage::from_fn(actual.width(), actual.height(), |x, y| {
+            let (p, q) = (actual.get_pixel(x, y), golden.get_pixel(x, y));
+            let differs =
+                p.0.iter()
+                    .zip(q.0.iter())
+                    .any(|(a, b)| a.abs_diff(*b) > CHANNEL_TOLERANCE);
+            if differs {
+                image::Rgba([255, 0, 0, 255])
+            } else {
+                let grey = (u16::from(q.0[0]) + u16::from(q.0[1]) + u16::from(q.0[2])) / 6 + 128;
+                image::Rgba([grey as u8, grey as u8, grey as u8, 255])
+            }
+        });
+        let _ = diff.save(dir.join(format!("{name}-diff.png")));
+    }
+    actual_path
+}
