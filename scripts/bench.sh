@@ -53,7 +53,8 @@ done
 kill "$server"; wait "$server" 2>/dev/null || true
 
 echo "== frame-rate controller: rendered flights holding a target frame rate"
-for dataset in puget_sound_1k; do
+"$bin/terrain-server" build tests/fixtures/jacksboro/jacksboro_fault_dem.png --out "$out/db/jacksboro" --force --quiet
+for dataset in jacksboro puget_sound_1k; do
   "$bin/terrain-server" serve "$out/db/$dataset" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
   server=$!
   url=
@@ -62,7 +63,7 @@ for dataset in puget_sound_1k; do
   done
   for fps in 30 60; do
     echo "-- $dataset, target $fps fps"
-    "$bin/terrain-client" fly --server "$url" --memory 64MiB --target-fps "$fps" \
+    "$bin/terrain-client" fly --server "$url" --memory 16MiB --target-fps "$fps" \
       --out "$out/fps-$dataset-$fps" --frame-every 0 --quiet
   done
   kill "$server"; wait "$server" 2>/dev/null || true
