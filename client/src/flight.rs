@@ -217,7 +217,7 @@ pub enum FlightError {
 
 /// Columns of `flight.csv`, one row per frame. The render columns are empty with
 /// `--no-render`; `gpu_ms` is empty where the adapter has no timestamp queries.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,fps,target_fps";
+pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,fps,target_fps";
 
 /// What a rendered frame adds to its record.
 #[derive(Debug, Clone, PartialEq)]
@@ -225,6 +225,9 @@ pub struct RenderRecord {
     pub visible_tiles: u32,
     /// Triangles of the tiles' masks.
     pub triangles: u64,
+    /// The fewest mask triangles keeping every drawn tile within 1 pixel of screen-space
+    /// error ([`crate::lod::needed`]).
+    pub triangles_needed: u64,
     pub filler_triangles: u64,
     pub draw_calls: u32,
     /// Global triangle budget the frame was planned with.
@@ -276,11 +279,12 @@ pub struct FrameRecord {
 impl FrameRecord {
     pub fn csv_row(&self) -> String {
         let render = match &self.render {
-            None => ",,,,,,,,,,,".to_string(),
+            None => ",,,,,,,,,,,,".to_string(),
             Some(r) => format!(
-                "{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{:.2},{}",
+                "{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{:.2},{}",
                 r.visible_tiles,
                 r.triangles,
+                r.triangles_needed,
                 r.filler_triangles,
                 r.draw_calls,
                 r.global_budget,
@@ -642,6 +646,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         let render_record = drawn.map(|d| RenderRecord {
             visible_tiles: d.plan.draws.len() as u32,
             triangles: d.stats.triangles,
+            triangles_needed: d.triangles_needed,
             filler_triangles: d.stats.filler_triangles,
             draw_calls: d.stats.draw_calls,
             global_budget: d.plan.budget,
@@ -801,6 +806,7 @@ mod tests {
         record.render = Some(RenderRecord {
             visible_tiles: 3,
             triangles: 10,
+            triangles_needed: 4,
             filler_triangles: 6,
             draw_calls: 6,
             global_budget: 12,

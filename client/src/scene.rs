@@ -82,7 +82,13 @@ pub struct DrawReport {
     pub lod_ms: f64,
     /// Time from the start of the draw to the GPU's completion.
     pub draw_ms: f64,
+    /// The fewest triangles that keep every drawn tile's projected error within
+    /// [`NEEDED_THRESHOLD_PX`] ([`crate::lod::needed`]).
+    pub triangles_needed: u64,
 }
+
+/// Screen-space error threshold, pixels, of [`DrawReport::triangles_needed`].
+pub const NEEDED_THRESHOLD_PX: f64 = 1.0;
 
 /// The rendering half of a scene.
 #[derive(Debug)]
@@ -476,6 +482,31 @@ impl Scene {
             r.importance[d.id.y as usize * columns + d.id.x as usize] = imp;
         }
         let lod_ms = started.elapsed().as_secs_f64() * 1e3;
+        let extent = self.layout.tile_extent_m();
+        let triangles_needed = plan
+            .draws
+            .iter()
+            .map(|d| {
+                let record = &self.manifest.tiles[d.id.y as usize * columns + d.id.x as usize];
+                let [x0, y0] = self.layout.tile_origin_m(d.id);
+                let distance = crate::lod::needed::distance_to_box(
+                    camera.position,
+                    [x0, y0, f64::from(record.min_m)],
+                    [x0 + extent[0], y0 + extent[1], f64::from(record.max_m)],
+                );
+                let k = crate::lod::needed::pixels_per_metre(
+                    distance,
+                    camera.fov_y,
+                    f64::from(size.height),
+                );
+                let level = crate::lod::needed::coarsest_level_within(
+                    &record.mask_errors_m,
+                    k,
+                    NEEDED_THRESHOLD_PX,
+                );
+                u64::from(r.masks.triangle_count(level))
+            })
+            .sum();
         let stats = r
             .renderer
             .render(target, camera, &plan.draws, r.config.filler);
@@ -488,6 +519,7 @@ impl Scene {
             stats,
             lod_ms,
             draw_ms,
+            triangles_needed,
         })
     }
 

@@ -377,6 +377,13 @@ fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts()
             })
             .sum();
         assert_eq!(tiles_in_histogram, visible, "frame {}", row[0]);
+        // What the frame needs lies between every tile's coarsest and finest mask.
+        let needed = int("triangles_needed");
+        assert!(
+            (2 * visible..=32_768 * visible).contains(&needed),
+            "frame {}: {needed} triangles needed for {visible} tiles",
+            row[0]
+        );
         assert!(row[column("frame_ms")].parse::<f64>().expect("frame_ms") > 0.0);
         drew |= int("triangles") > 0;
         finer_textures |= int("texture_budget_bytes") > 0;

@@ -18,4 +18,5 @@
 
 pub mod budget;
 pub mod importance;
+pub mod needed;
 pub mod strips;
