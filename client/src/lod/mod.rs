@@ -11,6 +11,9 @@
 //! 3. [`strips`]: the mask set every tile shares, one triangle strip per mask level, built
 //!    lazily, and the choice of the finest mask that fits a tile's budget (section 5.1).
 //!
+//! Beside them, [`needed`] measures a frame against what it needs: per tile, the coarsest
+//! mask whose projected error stays within a pixel threshold.
+//!
 //! The module owns these decisions and nothing else. Which tiles are visible, their
 //! distances and the measured frame times come from the caller; uploading the strips and
 //! drawing them is the renderer's. Nothing here reads a clock, does IO or touches the GPU:
