@@ -5,7 +5,7 @@ use clap::{Parser, Subcommand};
 use std::io::IsTerminal;
 use std::process::ExitCode;
 
-/// Fetch and inspect terrain tiles from a terrain-server.
+/// Stream, inspect and render terrain tiles from a terrain-server.
 #[derive(Debug, Parser)]
 #[command(name = "terrain-client", version, about, long_about = None)]
 struct Cli {
@@ -19,7 +19,9 @@ enum Command {
     /// overview.png and tiles.csv.
     Fetch(terrain_client::cli::FetchArgs),
     /// Fly a camera path headless: page tiles in belts around the viewpoint within a memory
-    /// budget, and write flight.csv (one row per frame) and flight.png (charts).
+    /// budget, render every frame offscreen (strip masks under a triangle budget that holds
+    /// a target frame rate, crack filling, textures refined within the budget), and write
+    /// frames, flight.csv (one row per frame) and charts (flight.png, render.png).
     Fly(terrain_client::flight::FlightArgs),
     /// Open a window and fly over the streamed terrain with mouse and keyboard (needs an
     /// X11 display): the same paging, streaming and rendering as `fly`.
