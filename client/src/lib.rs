@@ -15,7 +15,8 @@
 //!
 //! [`scene`] runs steps 2 to 4 a frame at a time (with the texture budget). [`flight`]
 //! drives a scene headless along a camera path ([`path`]) and records each frame;
-//! [`viewer`] drives one in a window; [`charts`] draws the records.
+//! [`viewer`] drives one in a window; [`charts`] draws the records; [`eval`] measures
+//! frames against the true surface and a reference.
 //!
 //! Deciding code (paging, camera paths, the [`overview`] mosaic, the [`report`] of a fetch)
 //! is pure: values in, values out, no sockets, clocks or GPU, so it is tested with plain
@@ -27,6 +28,7 @@
 
 pub mod charts;
 pub mod cli;
+pub mod eval;
 pub mod fetch;
 pub mod fetcher;
 pub mod flight;
