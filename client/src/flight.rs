@@ -33,16 +33,12 @@ pub use crate::scene::expected_tile_bytes;
 /// Frames per second of the flight's clock.
 pub const DEFAULT_FPS: f64 = 30.0;
 
-/// `terrain-client fly`.
+/// Where the tiles come from and how much of them to hold: shared by `fly` and `view`.
 #[derive(Debug, Clone, clap::Args)]
-pub struct FlightArgs {
+pub struct StreamArgs {
     /// Base URL of the tile server, e.g. http://127.0.0.1:8080.
     #[arg(long, env = "TERRAIN_SERVER")]
     pub server: String,
-    /// Camera path: a .json or .csv file of keyframes (see docs/flight.md). Default: a lap
-    /// over the whole terrain, then a few seconds still.
-    #[arg(long)]
-    pub flight: Option<PathBuf>,
     /// Memory budget for tiles (heights, textures, GPU buffers), e.g. 64MiB. Default: the
     /// machine's available memory.
     #[arg(long)]
@@ -51,15 +47,56 @@ pub struct FlightArgs {
     /// being fetched).
     #[arg(long, default_value_t = crate::memory::DEFAULT_LIMIT_PERCENT)]
     pub limit_percent: f64,
+    /// HTTP requests at once.
+    #[arg(long, default_value_t = 8)]
+    pub concurrency: usize,
+}
+
+impl StreamArgs {
+    /// Options for `server` with the defaults of the command line.
+    pub fn new(server: impl Into<String>, memory: Option<MemorySize>) -> StreamArgs {
+        StreamArgs {
+            server: server.into(),
+            memory,
+            limit_percent: crate::memory::DEFAULT_LIMIT_PERCENT,
+            concurrency: 8,
+        }
+    }
+
+    /// The memory budget, once the options are checked.
+    pub fn budget(&self) -> Result<MemoryBudget, FlightError> {
+        if self.concurrency == 0 {
+            return Err(FlightError::BadOption(
+                "--concurrency must be at least 1".into(),
+            ));
+        }
+        Ok(MemoryBudget::new(self.memory, self.limit_percent)?)
+    }
+
+    /// The fetcher's configuration.
+    pub fn fetcher_config(&self) -> FetcherConfig {
+        FetcherConfig {
+            concurrency: self.concurrency,
+            ..FetcherConfig::default()
+        }
+    }
+}
+
+/// `terrain-client fly`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FlightArgs {
+    #[command(flatten)]
+    pub stream: StreamArgs,
+    /// Camera path: a .json or .csv file of keyframes (see docs/flight.md). Default: a lap
+    /// over the whole terrain, then a few seconds still.
+    #[arg(long)]
+    pub flight: Option<PathBuf>,
     /// Directory for flight.csv, the charts and the frames; created if missing.
     #[arg(long, default_value = "out/flight")]
     pub out: PathBuf,
     /// Frames per second of the flight's clock: each frame advances the path by 1/fps s.
     #[arg(long, default_value_t = DEFAULT_FPS)]
     pub fps: f64,
-    /// HTTP requests at once.
-    #[arg(long, default_value_t = 8)]
-    pub concurrency: usize,
     /// Do not make the nearest tile current when the viewpoint is off the terrain (for
     /// terrains placed side by side).
     #[arg(long)]
@@ -67,22 +104,39 @@ pub struct FlightArgs {
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Page and stream only: no GPU, no frames.
+    #[arg(long)]
+    pub no_render: bool,
+    /// Write every Nth frame to OUT/frames as PNG (0: none). The last frame is always written.
+    #[arg(long, default_value_t = 30)]
+    pub frame_every: u64,
     #[command(flatten)]
     pub render: RenderArgs,
 }
 
-/// How a flight renders.
+impl FlightArgs {
+    /// The default flight against `stream`'s server, writing to `out`.
+    pub fn new(stream: StreamArgs, out: impl Into<PathBuf>) -> FlightArgs {
+        FlightArgs {
+            stream,
+            flight: None,
+            out: out.into(),
+            fps: DEFAULT_FPS,
+            no_nearest_when_outside: false,
+            quiet: true,
+            no_render: false,
+            frame_every: 30,
+            render: RenderArgs::default(),
+        }
+    }
+}
+
+/// How frames are rendered: shared by `fly` and `view`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RenderArgs {
-    /// Page and stream only: no GPU, no frames.
-    #[arg(long)]
-    pub no_render: bool,
     /// Frame size, WIDTHxHEIGHT.
     #[arg(long, default_value = "960x540", value_parser = parse_size)]
     pub size: (u32, u32),
-    /// Write every Nth frame to OUT/frames as PNG (0: none). The last frame is always written.
-    #[arg(long, default_value_t = 30)]
-    pub frame_every: u64,
     /// Frame rate the triangle budget is predicted to hold.
     #[arg(long, default_value_t = DEFAULT_TARGET_FPS)]
     pub target_fps: f64,
@@ -106,9 +160,7 @@ pub struct RenderArgs {
 impl Default for RenderArgs {
     fn default() -> RenderArgs {
         RenderArgs {
-            no_render: false,
             size: (960, 540),
-            frame_every: 30,
             target_fps: DEFAULT_TARGET_FPS,
             fixed_budget: None,
             crack_filler: CrackFiller::default(),
@@ -120,14 +172,6 @@ impl Default for RenderArgs {
 }
 
 impl RenderArgs {
-    /// No rendering: paging and streaming only.
-    pub fn off() -> RenderArgs {
-        RenderArgs {
-            no_render: true,
-            ..RenderArgs::default()
-        }
-    }
-
     /// The scene's render configuration.
     pub fn config(&self) -> Result<RenderConfig, FlightError> {
         if !(0.0..=1.0).contains(&self.alpha) {
@@ -542,16 +586,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             args.fps
         )));
     }
-    if args.concurrency == 0 {
-        return Err(FlightError::BadOption(
-            "--concurrency must be at least 1".into(),
-        ));
-    }
-    let render_config = (!args.render.no_render)
+    let render_config = (!args.no_render)
         .then(|| args.render.config())
         .transpose()?;
-    let budget = MemoryBudget::new(args.memory, args.limit_percent)?;
-    let client = TileClient::new(&args.server)?;
+    let budget = args.stream.budget()?;
+    let client = TileClient::new(&args.stream.server)?;
     let manifest = Arc::new(client.manifest().await?);
     let path = match &args.flight {
         Some(file) => CameraPath::load(file, &manifest)?,
@@ -566,7 +605,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     let render = match render_config {
         Some(config) => {
             let gpu = Gpu::headless()?;
-            if args.render.frame_every > 0 {
+            if args.frame_every > 0 {
                 std::fs::create_dir_all(&frames_dir).map_err(write_err(&frames_dir))?;
             }
             let (w, h) = args.render.size;
@@ -576,14 +615,10 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         None => None,
     };
 
-    let config = FetcherConfig {
-        concurrency: args.concurrency,
-        ..FetcherConfig::default()
-    };
     let mut fetcher = Fetcher::new(
         client,
         Arc::clone(&manifest),
-        config,
+        args.stream.fetcher_config(),
         tokio::runtime::Handle::current(),
     );
     let pager = PagerConfig {
@@ -662,8 +697,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                 .then_some(args.render.target_fps),
         });
         if let (Some(t), Some((gpu, _, _))) = (target, &render)
-            && args.render.frame_every > 0
-            && (frame % args.render.frame_every == 0 || frame + 1 == frames)
+            && args.frame_every > 0
+            && (frame % args.frame_every == 0 || frame + 1 == frames)
         {
             let file = frames_dir.join(format!("frame-{frame:06}.png"));
             let image = t.read(gpu)?;

@@ -24,7 +24,7 @@ use crate::lod::strips::MaskSet;
 use crate::memory::TileBytes;
 use crate::page::{self, Decision, PagerConfig, PagerView};
 use crate::render::plan::{self, Candidate, FramePlan, Layout, LodSettings};
-use crate::render::textures::{TextureCandidate, share_texture_budget};
+use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
 use crate::render::{Camera, CrackFiller, Gpu, RenderStats, TerrainRenderer};
 use std::sync::Arc;
 use std::time::Instant;
@@ -59,6 +59,9 @@ struct ResidentTile {
     textures: Vec<bytes::Bytes>,
     /// Levels of `textures` on the GPU (0 before the first upload).
     uploaded_levels: usize,
+    /// The first texture level that did not decode: it and finer ones are not asked for
+    /// again (their hash was verified, so fetching again would give the same bytes).
+    undecodable_from: Option<usize>,
     bytes: TileBytes,
     downloaded: u64,
     /// Whether it was ever part of the complete square.
@@ -93,7 +96,6 @@ pub const NEEDED_THRESHOLD_PX: f64 = 1.0;
 /// The rendering half of a scene.
 #[derive(Debug)]
 struct Rendering {
-    gpu: Gpu,
     renderer: TerrainRenderer,
     masks: Arc<MaskSet>,
     controller: FrameRateController,
@@ -102,6 +104,8 @@ struct Rendering {
     texture_target: Vec<u32>,
     /// Importance per tile in the last planned frame (0 when not visible).
     importance: Vec<f64>,
+    /// Per tile, the extra bytes of each texture level ([`extra_costs`]), from the manifest.
+    texture_costs: Vec<Vec<u64>>,
 }
 
 /// Resident tiles, paging, and optionally rendering. See the module documentation.
@@ -137,12 +141,16 @@ impl Scene {
             let masks = Arc::new(MaskSet::new(manifest.tile_size));
             Rendering {
                 renderer: TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks)),
-                gpu,
                 masks,
                 controller: FrameRateController::new(config.budget),
                 config,
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
+                texture_costs: manifest
+                    .tiles
+                    .iter()
+                    .map(|t| extra_costs(&manifest, t))
+                    .collect(),
             }
         });
         let rendering_on = rendering.is_some();
@@ -162,24 +170,6 @@ impl Scene {
             rendering,
             manifest,
         }
-    }
-
-    pub fn manifest(&self) -> &Manifest {
-        &self.manifest
-    }
-
-    pub fn layout(&self) -> &Layout {
-        &self.layout
-    }
-
-    /// The adapter, when rendering.
-    pub fn gpu(&self) -> Option<&Gpu> {
-        self.rendering.as_ref().map(|r| &r.gpu)
-    }
-
-    /// The global triangle budget the next frame is planned with.
-    pub fn triangle_budget(&self) -> Option<u32> {
-        self.rendering.as_ref().map(|r| r.controller.budget())
     }
 
     fn index(&self, id: TileId) -> usize {
@@ -293,6 +283,8 @@ impl Scene {
                     downloaded: heights_bytes + coarsest_texture.len() as u64,
                     textures: vec![coarsest_texture],
                     uploaded_levels,
+                    undecodable_from: (uploaded_levels == 0 && self.rendering.is_some())
+                        .then_some(0),
                     bytes,
                     used: false,
                 });
@@ -343,28 +335,16 @@ impl Scene {
             .map(|(_, b)| b)
             .sum();
         let budget = self.pager.memory_limit.saturating_sub(base + coming);
-        let texture = &self.manifest.texture;
         let mut indices = Vec::new();
         let mut candidates = Vec::new();
         for (i, tile) in self.tiles.iter().enumerate() {
             if tile.is_none() {
                 continue;
             }
-            let record = &self.manifest.tiles[i];
-            let mut cost = 0u64;
-            let extra_cost = (0..record.texture.len())
-                .map(|level| {
-                    if level > 0 {
-                        let side = u64::from(texture.level_size(level as u32));
-                        cost += record.texture[level].bytes + side * side * 4;
-                    }
-                    cost
-                })
-                .collect();
             indices.push(i);
             candidates.push(TextureCandidate {
                 importance: r.importance[i],
-                extra_cost,
+                extra_cost: &r.texture_costs[i],
             });
         }
         let targets = share_texture_budget(&candidates, budget);
@@ -413,28 +393,51 @@ impl Scene {
                     tile.bytes.textures -= dropped.len() as u64;
                 }
                 changed = true;
-            } else if tile.textures.len() < target as usize + 1 {
+            } else if tile.textures.len() < target as usize + 1
+                && tile
+                    .undecodable_from
+                    .is_none_or(|l| tile.textures.len() < l)
+            {
                 let next = tile.textures.len() as u32;
                 let priority = (frame << 20) | (1 << 19) | (candidates.len() as u64 - 1);
                 fetcher.request(id, Want::TextureLevel(next), priority);
             }
-            if (changed || tile.uploaded_levels != tile.textures.len())
-                && uploads < r.config.uploads_per_frame
-            {
-                let images: Option<Vec<image::RgbaImage>> = tile
-                    .textures
-                    .iter()
-                    .enumerate()
-                    .map(|(level, b)| decode_texture(b, id, level as u32))
-                    .collect();
-                if let Some(images) = images {
-                    let level = images.len() as u32 - 1;
-                    r.renderer.upload_texture(id, level, &images);
-                    tile.bytes.gpu = r.renderer.tile_bytes(id);
-                    tile.uploaded_levels = tile.textures.len();
-                    uploads += 1;
-                }
+            if changed {
+                // The kept levels are on the GPU already: copy them there.
+                r.renderer
+                    .coarsen_texture(id, tile.textures.len().min(tile.uploaded_levels) as u32);
+                tile.uploaded_levels = tile.uploaded_levels.min(tile.textures.len());
             }
+            let decodable = tile
+                .textures
+                .len()
+                .min(tile.undecodable_from.unwrap_or(usize::MAX));
+            while tile.uploaded_levels < decodable && uploads < r.config.uploads_per_frame {
+                // Only the new level is decoded; the coarser ones are copied on the GPU. If
+                // that cannot be done (no level uploaded yet), every level is uploaded.
+                let level = tile.uploaded_levels;
+                let Some(image) = decode_texture(&tile.textures[level], id, level as u32) else {
+                    for dropped in tile.textures.drain(level..) {
+                        tile.bytes.textures -= dropped.len() as u64;
+                    }
+                    tile.undecodable_from = Some(level);
+                    break;
+                };
+                if !r.renderer.refine_texture(id, level as u32, &image) {
+                    let images: Option<Vec<image::RgbaImage>> = tile.textures[..=level]
+                        .iter()
+                        .enumerate()
+                        .map(|(l, b)| decode_texture(b, id, l as u32))
+                        .collect();
+                    let Some(images) = images else {
+                        break;
+                    };
+                    r.renderer.upload_texture(id, level as u32, &images);
+                }
+                tile.uploaded_levels = level + 1;
+                uploads += 1;
+            }
+            tile.bytes.gpu = r.renderer.tile_bytes(id);
         }
         budget
     }
@@ -539,18 +542,6 @@ impl Scene {
         let x = ((tx - tx.floor()) * cells).round() as usize;
         let y = ((ty - ty.floor()) * cells).round() as usize;
         Some(tile.heights.metres(x, y))
-    }
-
-    /// Sum of the finest texture level index held over resident tiles, and the tile count:
-    /// how far the progressive textures got.
-    pub fn texture_levels(&self) -> (u64, u64) {
-        let held: u64 = self
-            .tiles
-            .iter()
-            .flatten()
-            .map(|t| t.textures.len() as u64 - 1)
-            .sum();
-        (held, self.resident_tiles())
     }
 }
 

@@ -14,9 +14,9 @@
 //! looks around, the mouse wheel changes the speed, Escape quits.
 
 use crate::fetch::{FetchError, TileClient};
-use crate::fetcher::{Fetcher, FetcherConfig};
-use crate::flight::{FlightError, RenderArgs};
-use crate::memory::{MemoryBudget, MemoryError, MemorySize};
+use crate::fetcher::Fetcher;
+use crate::flight::{FlightError, RenderArgs, StreamArgs};
+use crate::memory::MemoryError;
 use crate::page::PagerConfig;
 use crate::render::{Camera, Gpu, GpuError};
 use crate::scene::{DrawReport, RenderConfig, Scene};
@@ -69,20 +69,8 @@ pub const CONTROLS: &str = "controls:
 /// `terrain-client view`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ViewArgs {
-    /// Base URL of the tile server, e.g. http://127.0.0.1:8080.
-    #[arg(long, env = "TERRAIN_SERVER")]
-    pub server: String,
-    /// Memory budget for tiles (heights, textures, GPU buffers), e.g. 256MiB. Default: the
-    /// machine's available memory.
-    #[arg(long)]
-    pub memory: Option<MemorySize>,
-    /// Share of the budget the pager fills, in percent (the rest is the margin for the belt
-    /// being fetched).
-    #[arg(long, default_value_t = crate::memory::DEFAULT_LIMIT_PERCENT)]
-    pub limit_percent: f64,
-    /// HTTP requests at once.
-    #[arg(long, default_value_t = 8)]
-    pub concurrency: usize,
+    #[command(flatten)]
+    pub stream: StreamArgs,
     /// Where the camera starts, X,Y,Z metres (x east and y south from the north-west
     /// corner, z up), e.g. --start=1000,2000,800. Default: above the terrain's centre, 5% of
     /// its larger extent above its highest point, looking north.
@@ -97,11 +85,11 @@ pub struct ViewArgs {
     #[arg(long)]
     pub print_stats: bool,
     /// Rendering, as for `fly`: --size is the window's initial size and --pitch-deg the
-    /// initial pitch; --frame-every does not apply and --no-render is refused.
+    /// initial pitch.
     #[command(
         flatten,
         next_help_heading = "Rendering (as for `fly`; --size: initial window size, --pitch-deg: \
-                             initial pitch; --no-render and --frame-every do not apply)"
+                             initial pitch)"
     )]
     pub render: RenderArgs,
 }
@@ -381,18 +369,6 @@ pub fn title(dataset: &str, s: &ViewStats) -> String {
 /// Opens the window and flies until it is closed or Escape is pressed. Runs the event loop
 /// on the calling thread, which must be the main thread and not inside a tokio runtime.
 pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
-    if args.render.no_render {
-        return Err(ViewError::BadOption(
-            "--no-render: the viewer always renders; use `terrain-client fly --no-render` to \
-             page and stream without a GPU"
-                .into(),
-        ));
-    }
-    if args.concurrency == 0 {
-        return Err(ViewError::BadOption(
-            "--concurrency must be at least 1".into(),
-        ));
-    }
     if let Some(speed) = args.speed
         && !(speed.is_finite() && speed > 0.0)
     {
@@ -401,7 +377,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         )));
     }
     let render_config = args.render.config()?;
-    let budget = MemoryBudget::new(args.memory, args.limit_percent)?;
+    let budget = args.stream.budget()?;
     // Before any network traffic: without a display there is nothing to show it on.
     let display_set = |name: &str| std::env::var_os(name).is_some_and(|v| !v.is_empty());
     if !display_set("DISPLAY") {
@@ -428,15 +404,12 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         .thread_name("terrain-fetch")
         .build()
         .map_err(ViewError::Runtime)?;
-    let client = TileClient::new(&args.server)?;
+    let client = TileClient::new(&args.stream.server)?;
     let manifest = Arc::new(runtime.block_on(client.manifest())?);
     let fetcher = Fetcher::new(
         client,
         Arc::clone(&manifest),
-        FetcherConfig {
-            concurrency: args.concurrency,
-            ..FetcherConfig::default()
-        },
+        args.stream.fetcher_config(),
         runtime.handle().clone(),
     );
     let pager = PagerConfig {
@@ -456,7 +429,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         manifest.tiles.len(),
         manifest.extent_m[0],
         manifest.extent_m[1],
-        args.server,
+        args.stream.server,
         budget.limit_bytes() as f64 / 1048576.0,
         start[0],
         start[1],

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use terrain_client::flight::{CSV_HEADER, FlightArgs, RenderArgs, fly};
+use terrain_client::flight::{CSV_HEADER, FlightArgs, StreamArgs, fly};
 use terrain_client::memory::MemorySize;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};
@@ -17,19 +17,18 @@ fn runtime() -> tokio::runtime::Runtime {
         .expect("tokio runtime")
 }
 
-fn args(server: &TestServer, out: &Path, memory: Option<u64>) -> FlightArgs {
+/// A paging-only flight (no GPU) over the default path.
+fn paging_flight(server: &str, out: &Path, memory: Option<u64>) -> FlightArgs {
+    let mut stream = StreamArgs::new(server, memory.map(MemorySize));
+    stream.concurrency = 4;
     FlightArgs {
-        server: server.base_url().to_string(),
-        flight: None,
-        memory: memory.map(MemorySize),
-        limit_percent: 90.0,
-        out: out.to_path_buf(),
-        fps: 30.0,
-        concurrency: 4,
-        no_nearest_when_outside: false,
-        quiet: true,
-        render: RenderArgs::off(),
+        no_render: true,
+        ..FlightArgs::new(stream, out)
     }
+}
+
+fn args(server: &TestServer, out: &Path, memory: Option<u64>) -> FlightArgs {
+    paging_flight(server.base_url(), out, memory)
 }
 
 /// `flight.csv` as rows of named columns.
@@ -180,7 +179,7 @@ fn a_flight_against_a_wrong_url_says_why() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (server, _) = jacksboro_server(tmp.path());
     let mut wrong = args(&server, &tmp.path().join("flight"), Some(64 << 20));
-    wrong.server = format!("{}/no/such/prefix", server.base_url());
+    wrong.stream.server = format!("{}/no/such/prefix", server.base_url());
     let error = runtime()
         .block_on(fly(&wrong))
         .expect_err("no manifest there");
@@ -199,18 +198,11 @@ fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     // Room for ten of the twelve tiles: the square can reach two belts (nine tiles) but not
     // the whole grid, so the lap keeps fetching and evicting all along.
     let one_tile = tile_bytes(&report.manifest, TileId::new(0, 0));
-    let args = FlightArgs {
-        server: server.base_url(),
-        flight: None,
-        memory: Some(MemorySize(one_tile * 10 * 10 / 9)),
-        limit_percent: 90.0,
-        out: tmp.path().join("flight"),
-        fps: 30.0,
-        concurrency: 4,
-        no_nearest_when_outside: false,
-        quiet: true,
-        render: RenderArgs::off(),
-    };
+    let args = paging_flight(
+        &server.base_url(),
+        &tmp.path().join("flight"),
+        Some(one_tile * 10 * 10 / 9),
+    );
     let flight = std::thread::spawn(move || runtime().block_on(fly(&args)));
     // Down from 0.5 s to 3.5 s of the 12 s lap: the pager fetches several times in between
     // (each time the viewpoint enters a new tile), so requests meet the outage.
@@ -267,7 +259,7 @@ fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame(
     .expect("builds");
     let server = TestServer::start(&report.out);
     let mut flight = args(&server, &tmp.path().join("flight"), Some(32 << 20));
-    flight.concurrency = 8;
+    flight.stream.concurrency = 8;
     let summary = runtime().block_on(fly(&flight)).expect("flight");
     let rows = read_csv(&summary.csv);
     let limit = (32u64 << 20) * 9 / 10;

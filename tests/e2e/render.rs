@@ -4,7 +4,7 @@
 
 use std::path::Path;
 use terrain_client::fetch::TileClient;
-use terrain_client::flight::{FlightArgs, RenderArgs, fly};
+use terrain_client::flight::{FlightArgs, RenderArgs, StreamArgs, fly};
 use terrain_client::lod::strips::MaskSet;
 use terrain_client::memory::MemorySize;
 use terrain_client::render::plan::{Candidate, plan_frame};
@@ -320,22 +320,17 @@ fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts()
     // Room for every tile at its coarsest texture and a little more: finer texture levels
     // must fit in what is left.
     let memory = expected * 12 / 10 * 100 / 90;
+    let mut stream = StreamArgs::new(server.base_url(), Some(MemorySize(memory)));
+    stream.concurrency = 4;
     let args = FlightArgs {
-        server: server.base_url().to_string(),
-        flight: None,
-        memory: Some(MemorySize(memory)),
-        limit_percent: 90.0,
-        out: tmp.path().join("flight"),
         fps: 10.0,
-        concurrency: 4,
-        no_nearest_when_outside: false,
-        quiet: true,
+        frame_every: 40,
         render: RenderArgs {
             size: (160, 120),
-            frame_every: 40,
             fixed_budget: Some(20_000),
             ..RenderArgs::default()
         },
+        ..FlightArgs::new(stream, tmp.path().join("flight"))
     };
     let summary = runtime().block_on(fly(&args)).expect("flight");
     let text = std::fs::read_to_string(&summary.csv).expect("csv");
@@ -408,4 +403,72 @@ fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts()
     assert!(terrain > 160 * 120 / 3, "{terrain} terrain pixels");
     assert_eq!(summary.charts.len(), 2);
     assert!(summary.charts[1].ends_with("render.png") && summary.charts[1].exists());
+}
+
+#[test]
+fn textures_refined_and_coarsened_on_the_gpu_render_as_if_uploaded_whole() {
+    let test = "render::textures_refined_and_coarsened_on_the_gpu_render_as_if_uploaded_whole";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let camera = cameras()[2].1;
+    let draws: Vec<Draw> = terrain
+        .tiles
+        .iter()
+        .map(|(id, _, _)| Draw { id: *id, level: 4 })
+        .collect();
+    let render_with = |levels_of: &dyn Fn(&mut TerrainRenderer, TileId, &[image::RgbaImage])| {
+        let mut renderer = TerrainRenderer::new(
+            &gpu,
+            terrain_client::render::offscreen::OFFSCREEN_FORMAT,
+            layout(&terrain.manifest),
+            std::sync::Arc::clone(&masks),
+        );
+        for (id, heights, levels) in &terrain.tiles {
+            let record = terrain.manifest.tile(*id).expect("in grid");
+            renderer.upload_tile(*id, heights, f64::from(record.min_m));
+            levels_of(&mut renderer, *id, levels);
+        }
+        draw(
+            &gpu,
+            &mut renderer,
+            &camera,
+            &draws,
+            CrackFiller::PlanarShadow,
+        )
+    };
+    // Every level at once, against the coarsest then each finer level added on the GPU.
+    let whole = render_with(&|r, id, levels| {
+        r.upload_texture(id, levels.len() as u32 - 1, levels);
+    });
+    let refined = render_with(&|r, id, levels| {
+        r.upload_texture(id, 0, &levels[..1]);
+        for (level, image) in levels.iter().enumerate().skip(1) {
+            assert!(
+                r.refine_texture(id, level as u32, image),
+                "{id} level {level}"
+            );
+            assert_eq!(r.texture_level(id), Some(level as u32));
+        }
+        // A level that does not follow the finest held is refused.
+        assert!(!r.refine_texture(id, levels.len() as u32 + 1, &levels[0]));
+    });
+    assert_eq!(golden::differing_pixels(&whole, &refined), 0);
+    // The two coarsest levels uploaded, against all of them cut down to two on the GPU.
+    let two = render_with(&|r, id, levels| {
+        r.upload_texture(id, 1, &levels[..2]);
+    });
+    let coarsened = render_with(&|r, id, levels| {
+        r.upload_texture(id, levels.len() as u32 - 1, levels);
+        r.coarsen_texture(id, 2);
+        assert_eq!(r.texture_level(id), Some(1));
+    });
+    assert_eq!(golden::differing_pixels(&two, &coarsened), 0);
+    assert!(
+        golden::differing_pixels(&whole, &two) > 0,
+        "the levels do show"
+    );
 }

@@ -314,15 +314,6 @@ impl TerrainRenderer {
         }
     }
 
-    pub fn layout(&self) -> &Layout {
-        &self.layout
-    }
-
-    /// Whether `id` is on the GPU.
-    pub fn has_tile(&self, id: TileId) -> bool {
-        self.tiles.contains_key(&id)
-    }
-
     /// Finest texture level `id` holds on the GPU.
     pub fn texture_level(&self, id: TileId) -> Option<u32> {
         self.tiles.get(&id).and_then(|t| t.texture_level)
@@ -402,14 +393,50 @@ impl TerrainRenderer {
         bytes
     }
 
+    /// Adds `image`, manifest level `level`, as the new top mip of `id`'s texture, which
+    /// must hold exactly the levels below it: those are copied on the GPU, not decoded and
+    /// uploaded again. Returns false, changing nothing, when that does not hold (no texture
+    /// yet, a gap, a size that is not twice the current top, or over the device's limit);
+    /// the caller then uploads every level with [`TerrainRenderer::upload_texture`].
+    pub fn refine_texture(&mut self, id: TileId, level: u32, image: &image::RgbaImage) -> bool {
+        let Some(tile) = self.tiles.get(&id) else {
+            return false;
+        };
+        let (side, mips) = (image.width(), tile.texture.mip_level_count());
+        if tile.texture_level.map(|l| l + 1) != Some(level)
+            || image.height() != side
+            || tile.texture.width() * 2 != side
+            || side > self.max_texture_side
+        {
+            return false;
+        }
+        let copies: Vec<(u32, u32)> = (0..mips).map(|m| (m, m + 1)).collect();
+        self.replace_texture(id, level, side, mips + 1, &copies, Some(image));
+        true
+    }
+
+    /// Keeps only `id`'s coarsest `levels` texture levels (at least one), copying them on
+    /// the GPU. Nothing happens when it holds no more than that.
+    pub fn coarsen_texture(&mut self, id: TileId, levels: u32) {
+        let Some(tile) = self.tiles.get(&id) else {
+            return;
+        };
+        let (mips, Some(finest)) = (tile.texture.mip_level_count(), tile.texture_level) else {
+            return;
+        };
+        let keep = levels.max(1);
+        if keep >= mips {
+            return;
+        }
+        let dropped = mips - keep;
+        let side = (tile.texture.width() >> dropped).max(1);
+        let copies: Vec<(u32, u32)> = (0..keep).map(|m| (m + dropped, m)).collect();
+        self.replace_texture(id, finest - dropped, side, keep, &copies, None);
+    }
+
     /// Frees `id`'s GPU resources.
     pub fn remove_tile(&mut self, id: TileId) {
         self.tiles.remove(&id);
-    }
-
-    /// Tiles on the GPU.
-    pub fn tile_count(&self) -> usize {
-        self.tiles.len()
     }
 
     /// Draws `draws` seen from `camera` into `target` (cleared to [`SKY`] first), fills
@@ -663,42 +690,113 @@ impl TerrainRenderer {
     /// A texture with `levels` (coarsest first) as its mips, finest as mip 0.
     fn texture(&self, levels: &[image::RgbaImage]) -> wgpu::Texture {
         let finest = &levels[levels.len() - 1];
-        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+        let texture = self.blank_texture(finest.width(), finest.height(), levels.len() as u32);
+        for (mip, image) in levels.iter().rev().enumerate() {
+            self.write_mip(&texture, mip as u32, image);
+        }
+        texture
+    }
+
+    /// A tile texture of `mips` levels whose top mip is `width` x `height`, contents undefined.
+    fn blank_texture(&self, width: u32, height: u32, mips: u32) -> wgpu::Texture {
+        self.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("tile texture"),
             size: wgpu::Extent3d {
-                width: finest.width(),
-                height: finest.height(),
+                width,
+                height,
                 depth_or_array_layers: 1,
             },
-            mip_level_count: levels.len() as u32,
+            mip_level_count: mips,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: wgpu::TextureFormat::Rgba8UnormSrgb,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            // COPY_SRC: a finer or coarser replacement copies the levels it keeps from it.
+            usage: wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_DST
+                | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
-        });
-        for (mip, image) in levels.iter().rev().enumerate() {
-            self.queue.write_texture(
+        })
+    }
+
+    fn write_mip(&self, texture: &wgpu::Texture, mip: u32, image: &image::RgbaImage) {
+        self.queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: mip,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            image.as_raw(),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(4 * image.width()),
+                rows_per_image: Some(image.height()),
+            },
+            wgpu::Extent3d {
+                width: image.width(),
+                height: image.height(),
+                depth_or_array_layers: 1,
+            },
+        );
+    }
+
+    /// Replaces `id`'s texture by one of `mips` levels whose top mip is `side` texels,
+    /// filled by copying `old_mip -> new_mip` pairs from the current texture on the GPU and
+    /// writing `top` (when given) as mip 0. `level` is the new finest manifest level.
+    fn replace_texture(
+        &mut self,
+        id: TileId,
+        level: u32,
+        side: u32,
+        mips: u32,
+        copies: &[(u32, u32)],
+        top: Option<&image::RgbaImage>,
+    ) {
+        let texture = self.blank_texture(side, side, mips);
+        let Some(tile) = self.tiles.get(&id) else {
+            return;
+        };
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("texture levels"),
+            });
+        for &(old_mip, new_mip) in copies {
+            let mip_side = (side >> new_mip).max(1);
+            encoder.copy_texture_to_texture(
                 wgpu::TexelCopyTextureInfo {
-                    texture: &texture,
-                    mip_level: mip as u32,
+                    texture: &tile.texture,
+                    mip_level: old_mip,
                     origin: wgpu::Origin3d::ZERO,
                     aspect: wgpu::TextureAspect::All,
                 },
-                image.as_raw(),
-                wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(4 * image.width()),
-                    rows_per_image: Some(image.height()),
+                wgpu::TexelCopyTextureInfo {
+                    texture: &texture,
+                    mip_level: new_mip,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
                 },
                 wgpu::Extent3d {
-                    width: image.width(),
-                    height: image.height(),
+                    width: mip_side,
+                    height: mip_side,
                     depth_or_array_layers: 1,
                 },
             );
         }
-        texture
+        if let Some(image) = top {
+            self.write_mip(&texture, 0, image);
+        }
+        self.queue.submit([encoder.finish()]);
+        let bind_group = self.tile_bind_group(&tile.samples, &texture);
+        let bytes = (0..mips)
+            .map(|m| u64::from((side >> m).max(1)).pow(2) * 4)
+            .sum();
+        if let Some(tile) = self.tiles.get_mut(&id) {
+            tile.texture = texture;
+            tile.bind_group = bind_group;
+            tile.texture_level = Some(level);
+            tile.texture_bytes = bytes;
+        }
     }
 
     fn tile_bind_group(&self, samples: &wgpu::Buffer, texture: &wgpu::Texture) -> wgpu::BindGroup {

@@ -12,16 +12,16 @@
 
 /// One tile competing for the texture budget.
 #[derive(Debug, Clone, PartialEq)]
-pub struct TextureCandidate {
+pub struct TextureCandidate<'a> {
     /// Its visual importance (visible tiles); 0 for tiles out of view, which are served last.
     pub importance: f64,
     /// Extra bytes of holding each level, index = level: 0 for the coarsest (paid by the
     /// pager's accounting), then non-decreasing.
-    pub extra_cost: Vec<u64>,
+    pub extra_cost: &'a [u64],
 }
 
 /// The finest level each candidate may hold, in the candidates' order.
-pub fn share_texture_budget(candidates: &[TextureCandidate], budget: u64) -> Vec<u32> {
+pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) -> Vec<u32> {
     let mut order: Vec<usize> = (0..candidates.len()).collect();
     order.sort_by(|&a, &b| {
         candidates[b]
@@ -56,22 +56,32 @@ pub fn share_texture_budget(candidates: &[TextureCandidate], budget: u64) -> Vec
     levels
 }
 
-/// Bytes of an RGBA8 texture whose finest mip is `side` texels square, with every mip down
-/// to `mips` levels.
-pub fn rgba_mip_bytes(side: u32, mips: u32) -> u64 {
-    (0..mips)
-        .map(|m| u64::from((side >> m).max(1)).pow(2) * 4)
-        .sum()
+/// Extra bytes of holding each texture level of `tile` (index = level) beyond the
+/// coarsest: the encoded levels kept on the CPU plus their RGBA mips on the GPU.
+pub fn extra_costs(
+    manifest: &terrain_shared::Manifest,
+    tile: &terrain_shared::TileRecord,
+) -> Vec<u64> {
+    let mut cost = 0u64;
+    (0..tile.texture.len())
+        .map(|level| {
+            if level > 0 {
+                let side = u64::from(manifest.texture.level_size(level as u32));
+                cost += tile.texture[level].bytes + side * side * 4;
+            }
+            cost
+        })
+        .collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn candidate(importance: f64) -> TextureCandidate {
+    fn candidate(importance: f64) -> TextureCandidate<'static> {
         TextureCandidate {
             importance,
-            extra_cost: vec![0, 100, 300, 1000],
+            extra_cost: &[0, 100, 300, 1000],
         }
     }
 
@@ -99,11 +109,5 @@ mod tests {
         let tiles = [candidate(0.0), candidate(1.0), candidate(0.0)];
         assert_eq!(share_texture_budget(&tiles, 1000 + 600), vec![2, 3, 2]);
         assert_eq!(share_texture_budget(&tiles, 1000), vec![0, 3, 0]);
-    }
-
-    #[test]
-    fn mip_chains_are_counted_down_to_one_texel() {
-        assert_eq!(rgba_mip_bytes(8, 4), (64 + 16 + 4 + 1) * 4);
-        assert_eq!(rgba_mip_bytes(1, 3), 12);
     }
 }
