@@ -53,9 +53,9 @@ pub struct TileUniform {
     pub origin: [f32; 4],
     /// Metres between samples east and south, samples per side, skirt bottom (metres).
     pub spacing: [f32; 4],
-    /// Shadow plane height (metres), largest projection factor.
-    pub shadow: [f32; 4],
-    pub pad: [f32; 4],
+    /// The planar shadow's corners (north-west, south-west, north-east, south-east), render
+    /// space, projected onto the shadow plane; `w` unused.
+    pub shadow: [[f32; 4]; 4],
 }
 
 /// One sample of a tile in its storage buffer, bind group 2.

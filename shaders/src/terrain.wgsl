@@ -24,10 +24,10 @@ struct Tile {
     // x, y: metres between samples east and south; z: samples per side; w: skirt bottom,
     // metres above the datum.
     spacing: vec4<f32>,
-    // x: height of the shadow plane, metres above the datum; y: the largest factor a
-    // corner's projection may stretch by (it grows without bound at grazing angles).
-    shadow: vec4<f32>,
-    pad: vec4<f32>,
+    // The planar shadow's corners (north-west, south-west, north-east, south-east) in
+    // render space, already projected from the viewpoint onto the plane below the tile
+    // (on the CPU: four points a tile, see the renderer's `shadow_corner`).
+    shadow: array<vec4<f32>, 4>,
 };
 
 struct Sample {
@@ -96,32 +96,17 @@ fn vs_surface(@builtin(vertex_index) vertex: u32) -> Varyings {
     return out;
 }
 
-// The planar shadow (strip-mask paper, section 5.4): the tile's four corners projected from
-// the viewpoint onto a horizontal plane below the tile. Corners 0..3 are the north-west,
-// south-west, north-east and south-east corners, a two-triangle strip.
-fn shadow_corner(corner_index: u32) -> Varyings {
+// The planar shadow (strip-mask paper, section 5.4): a quad under the tile, its corners
+// projected from the viewpoint onto a horizontal plane below the tile, textured like the
+// tile. Corners 0..3 are the north-west, south-west, north-east and south-east corners, a
+// two-triangle strip; their positions come projected in the tile's uniforms.
+fn shadow_corner(corner: u32) -> Varyings {
     let n = u32(tile.spacing.z);
-    let column = (corner_index / 2u) * (n - 1u);
-    let row = (corner_index % 2u) * (n - 1u);
-    let sample = samples[row * n + column];
-    var out = place(column, row, sample.height);
-    let corner = position_of(column, row, sample.height);
-    // The camera is at the origin: the ray through the corner meets the plane at
-    // corner * t, t = plane / corner.y (both below the camera). Near grazing angles, or with
-    // the corner above the camera, t is capped: the shadow then misses (the method's known
-    // failure), but stays finite.
-    let plane = tile.shadow.x - frame.camera.y;
-    var t = 1.0;
-    if plane < 0.0 {
-        t = -plane / max(-corner.y, -plane / tile.shadow.y);
-    }
-    var position = corner * t;
-    if plane >= 0.0 {
-        // The camera is below the plane: nothing to project from; lay the quad on the plane.
-        position.y = plane;
-    }
-    out.clip = frame.view_proj * vec4<f32>(position, 1.0);
-    out.normal = unpack4x8snorm(sample.normal).xyz;
+    let column = (corner / 2u) * (n - 1u);
+    let row = (corner % 2u) * (n - 1u);
+    var out = place(column, row, 0.0);
+    out.clip = frame.view_proj * vec4<f32>(tile.shadow[corner].xyz, 1.0);
+    out.normal = unpack4x8snorm(samples[row * n + column].normal).xyz;
     return out;
 }
 

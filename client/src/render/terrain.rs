@@ -22,7 +22,7 @@ use terrain_shared::{Heights, TileId};
 pub const SKY: [f64; 3] = [0.55, 0.71, 0.88];
 /// Depth format of the renderer's depth buffer (reversed: cleared to 0, nearer is greater).
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
-/// Largest stretch of a planar shadow's corner projection (see the shader).
+/// Largest stretch of a planar shadow's corner projection ([`shadow_corner`]).
 pub const SHADOW_MAX_STRETCH: f32 = 64.0;
 /// Share of the light that is ambient.
 pub const AMBIENT: f32 = 0.45;
@@ -73,8 +73,25 @@ struct GpuTile {
     /// Finest texture level uploaded (manifest numbering: 0 is the coarsest).
     texture_level: Option<u32>,
     min_m: f64,
+    /// Heights of the corners: north-west, south-west, north-east, south-east.
+    corners_m: [f64; 4],
     sample_bytes: u64,
     texture_bytes: u64,
+}
+
+/// Where the planar shadow puts a tile corner at `corner` (render space, relative to the
+/// camera at the origin): on the ray from the camera through it, where the ray meets the
+/// horizontal plane at height `plane` (also camera-relative), below the tile. Near grazing
+/// angles, or with the corner above the camera, the stretch is capped at
+/// [`SHADOW_MAX_STRETCH`]: the shadow then misses (the method's known failure), but stays
+/// finite. With the camera below the plane there is nothing to project from, and the corner
+/// is laid on the plane.
+pub fn shadow_corner(corner: glam::DVec3, plane: f64) -> glam::DVec3 {
+    if plane >= 0.0 {
+        return glam::DVec3::new(corner.x, plane, corner.z);
+    }
+    let t = -plane / (-corner.y).max(-plane / f64::from(SHADOW_MAX_STRETCH));
+    corner * t
 }
 
 #[derive(Debug)]
@@ -353,6 +370,14 @@ impl TerrainRenderer {
                 bind_group,
                 texture_level: None,
                 min_m,
+                corners_m: {
+                    let (n, last) = (
+                        self.layout.tile_size as usize,
+                        self.layout.tile_size as usize - 1,
+                    );
+                    [(0, 0), (0, last), (last, 0), (last, last)]
+                        .map(|(column, row)| f64::from(samples[row * n + column].height))
+                },
                 texture_bytes: 4,
             },
         );
@@ -498,6 +523,21 @@ impl TerrainRenderer {
             let cells = f64::from(n - 1);
             // Filler depth below the tile: a tenth of its side, at least 1 m.
             let drop = (0.1 * extent[0].min(extent[1])).max(1.0);
+            let [x0, y0] = self.layout.tile_origin_m(d.id);
+            let plane = tile.min_m - drop - camera.position[2];
+            let mut shadow = [[0.0f32; 4]; 4];
+            for (k, corner) in shadow.iter_mut().enumerate() {
+                let (east, south) = ((k / 2) as f64 * extent[0], (k % 2) as f64 * extent[1]);
+                let p = shadow_corner(
+                    glam::DVec3::new(
+                        x0 + east - camera.position[0],
+                        tile.corners_m[k] - camera.position[2],
+                        y0 + south - camera.position[1],
+                    ),
+                    plane,
+                );
+                *corner = [p.x as f32, p.y as f32, p.z as f32, 1.0];
+            }
             let u = TileUniform {
                 origin: [
                     (f64::from(d.id.x) * cells - anchor[0]) as f32,
@@ -511,8 +551,7 @@ impl TerrainRenderer {
                     n as f32,
                     (tile.min_m - drop) as f32,
                 ],
-                shadow: [(tile.min_m - drop) as f32, SHADOW_MAX_STRETCH, 0.0, 0.0],
-                pad: [0.0; 4],
+                shadow,
             };
             let at = slot * self.uniform_stride as usize;
             uniforms[at..at + size_of::<TileUniform>()].copy_from_slice(bytemuck::bytes_of(&u));
@@ -847,4 +886,27 @@ fn uniform_buffer(
         }],
     });
     (buffer, group)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn a_shadow_corner_lies_on_the_ray_through_the_corner_and_on_the_plane() {
+        let corner = DVec3::new(300.0, -500.0, -800.0);
+        let p = shadow_corner(corner, -600.0);
+        assert!((p.y + 600.0).abs() < 1e-9, "on the plane: {p:?}");
+        assert!(
+            p.normalize().dot(corner.normalize()) > 1.0 - 1e-12,
+            "on the ray"
+        );
+        assert!(p.length() > corner.length(), "beyond the corner");
+        // Grazing: the stretch is capped, the point stays finite and on the ray.
+        let grazing = shadow_corner(DVec3::new(1000.0, -0.001, 0.0), -100.0);
+        assert!((grazing.length() / 1000.0 - f64::from(SHADOW_MAX_STRETCH)).abs() < 1e-6);
+        // Camera below the plane: laid on the plane under the corner.
+        assert_eq!(shadow_corner(corner, 10.0), DVec3::new(300.0, 10.0, -800.0));
+    }
 }
