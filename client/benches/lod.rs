@@ -20,6 +20,9 @@ use std::hint::black_box;
 use std::time::Instant;
 use terrain_client::lod::budget::{Allocation, share_into};
 use terrain_client::lod::importance::{DEFAULT_ALPHA, HeightMeasure, TileView, importance_into};
+use terrain_client::lod::needed::{
+    coarsest_level_within, distance_to_box, pixels_at_one_metre, suffix_minima,
+};
 use terrain_client::lod::strips::MaskSet;
 
 const SIDE: u32 = 64;
@@ -49,6 +52,21 @@ fn main() {
         .map(|_| (random.unit() * 1500.0, random.unit() * 40.0))
         .collect();
     let masks = MaskSet::new(TILE_SIZE);
+    // Per-level maximum errors: up to twice the roughness at the coarsest level.
+    // Their suffix minima are computed once per tile, as the scene does from the manifest.
+    let errors: Vec<Vec<f32>> = heights
+        .iter()
+        .map(|&(_, roughness)| {
+            suffix_minima(
+                &(0..masks.level_count())
+                    .map(|l| {
+                        (2.0 * roughness * f64::from(l) / f64::from(masks.level_count())) as f32
+                    })
+                    .collect::<Vec<f32>>(),
+            )
+        })
+        .collect();
+    let mut caps: Vec<u32> = Vec::with_capacity(tiles);
     for level in 0..masks.level_count() {
         black_box(masks.strip(level)); // built once, outside the timed frames
     }
@@ -58,6 +76,8 @@ fn main() {
     let (mut importances, mut order, mut allocations) =
         (Vec::new(), Vec::new(), Vec::<Allocation>::new());
     let (mut lod_ns, mut floor_ns) = (Vec::with_capacity(FRAMES), Vec::with_capacity(FRAMES));
+    let (mut cap_ns, mut plain_ns) = (Vec::with_capacity(FRAMES), Vec::with_capacity(FRAMES));
+    let mut plain = Vec::<Allocation>::new();
     let (mut drawn_sum, mut finest_sum) = (0u64, 0u64);
     let middle = f64::from(SIDE) * TILE_M / 2.0;
     let radius = middle / 2.0;
@@ -94,8 +114,29 @@ fn main() {
             HeightMeasure::BoundingBox,
             &mut importances,
         );
+        let caps_started = Instant::now();
+        let scale = pixels_at_one_metre(0.96, 1080.0);
+        caps.clear();
+        caps.extend(
+            centres
+                .iter()
+                .zip(&heights)
+                .zip(&errors)
+                .map(|((c, &(top, _)), errs)| {
+                    let half = TILE_M / 2.0;
+                    let d = distance_to_box(
+                        eye,
+                        [c[0] - half, c[1] - half, 0.0],
+                        [c[0] + half, c[1] + half, top],
+                    );
+                    let level = coarsest_level_within(errs, scale / d, 1.0);
+                    masks.triangle_count(level)
+                }),
+        );
+        cap_ns.push(caps_started.elapsed().as_nanos() as u64);
         share_into(
             &importances,
+            &caps,
             &mut order,
             GLOBAL_BUDGET,
             &masks,
@@ -103,6 +144,25 @@ fn main() {
         );
         black_box(&allocations);
         lod_ns.push(start.elapsed().as_nanos() as u64);
+
+        // The paper's plain sharing, without caps, for comparison.
+        let plain_started = Instant::now();
+        importance_into(
+            black_box(&views),
+            DEFAULT_ALPHA,
+            HeightMeasure::BoundingBox,
+            &mut importances,
+        );
+        share_into(
+            &importances,
+            &[],
+            &mut order,
+            GLOBAL_BUDGET,
+            &masks,
+            &mut plain,
+        );
+        black_box(&plain);
+        plain_ns.push(plain_started.elapsed().as_nanos() as u64);
 
         drawn_sum += allocations
             .iter()
@@ -127,7 +187,12 @@ fn main() {
     );
     println!("| per frame | mean us | median us | p99 us | max us |");
     println!("|---|---|---|---|---|");
-    println!("{}", lod.row("importance + share + select"));
+    println!("{}", lod.row("importance + error caps + share + select"));
+    println!("{}", Stats::of(&mut cap_ns).row("of which the error caps"));
+    println!(
+        "{}",
+        Stats::of(&mut plain_ns).row("importance + share + select, no caps")
+    );
     println!("{}", floor.row("baseline: distances only"));
     println!(
         "lod / baseline: {:.1}x mean, {:.1}x median; target < {TARGET_US} us per frame: {}",

@@ -87,6 +87,8 @@ fn main() {
                 min_m: f64::from(lo) / 10.0,
                 max_m: f64::from(hi) / 10.0,
                 roughness_m: f64::from(hi - lo) / 100.0,
+                // Synthetic tiles have no measured mask errors: no error cap applies.
+                error_minima_m: &[],
             });
         }
     }
@@ -128,7 +130,6 @@ fn table(
     filler: CrackFiller,
 ) {
     let target = Offscreen::new(gpu, width, height);
-    let aspect = f64::from(width) / f64::from(height);
     println!(
         "\n{FRAMES} frames per row after 3 warm-up frames, {width}x{height}, crack filler {}; times in ms\n",
         filler.name()
@@ -141,12 +142,15 @@ fn table(
     for budget in [0u32, 25_000, 50_000, 100_000, 200_000, 400_000, 800_000] {
         let plan = plan_frame(
             camera,
-            aspect,
+            [width, height],
             layout,
             candidates,
             budget,
             masks,
-            &LodSettings::default(),
+            &LodSettings {
+                cap_at_needed: false,
+                ..LodSettings::default()
+            },
         );
         let draws = if budget == 0 {
             Vec::new()

@@ -282,3 +282,175 @@ fn download_rate_mbit(records: &[FrameRecord]) -> Vec<(f64, f64)> {
         })
         .collect()
 }
+
+/// A line of an [`XyPanel`]: points joined in x order, with markers.
+#[derive(Debug, Clone)]
+pub struct XySeries {
+    pub name: String,
+    pub colour: RGBColor,
+    pub points: Vec<(f64, f64)>,
+    pub dashed: bool,
+}
+
+/// A panel of named series over a shared x axis (linear or logarithmic).
+#[derive(Debug, Clone)]
+pub struct XyPanel {
+    pub title: String,
+    pub x_desc: String,
+    pub y_desc: String,
+    pub log_x: bool,
+    pub series: Vec<XySeries>,
+}
+
+/// `1500` as `1.5k`, `2000000` as `2M`, others with one decimal (two below 1), trailing
+/// zeros left out.
+fn short_number(x: f64) -> String {
+    let trim = |v: f64| {
+        let s = if v.abs() < 1.0 {
+            format!("{v:.2}")
+        } else {
+            format!("{v:.1}")
+        };
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
+        }
+    };
+    if x.abs() >= 1e6 {
+        format!("{}M", trim(x / 1e6))
+    } else if x.abs() >= 1e3 {
+        format!("{}k", trim(x / 1e3))
+    } else {
+        trim(x)
+    }
+}
+
+/// The `k`-th of a few colours that stay apart on white.
+pub fn palette(k: usize) -> RGBColor {
+    const COLOURS: [RGBColor; 8] = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+        RGBColor(80, 80, 80),
+        RGBColor(23, 190, 207),
+        RGBColor(188, 189, 34),
+    ];
+    COLOURS[k % COLOURS.len()]
+}
+
+/// Draws `panels` one above the other into `path`: each series as a line through its
+/// points (sorted by x) with a dot at each.
+pub fn xy_chart(panels: &[XyPanel], path: &Path) -> Result<(), ChartError> {
+    register_font();
+    let err = |e: String| ChartError {
+        path: path.display().to_string(),
+        message: e,
+    };
+    let root = BitMapBackend::new(path, (WIDTH, (PANEL_HEIGHT + 90) * panels.len() as u32))
+        .into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
+    let areas = root.split_evenly((panels.len(), 1));
+    for (panel, area) in panels.iter().zip(&areas) {
+        let points = || panel.series.iter().flat_map(|s| s.points.iter().copied());
+        let finite = |v: f64| v.is_finite();
+        let x_lo = points()
+            .map(|p| p.0)
+            .filter(|&x| finite(x) && (!panel.log_x || x > 0.0))
+            .fold(f64::INFINITY, f64::min);
+        let x_hi = points()
+            .map(|p| p.0)
+            .filter(|&x| finite(x))
+            .fold(f64::NEG_INFINITY, f64::max);
+        let y_hi = points()
+            .map(|p| p.1)
+            .filter(|&y| finite(y))
+            .fold(0.0f64, f64::max)
+            .max(1e-9)
+            * 1.1;
+        let (x_lo, x_hi) = if x_lo.is_finite() && x_hi > x_lo {
+            (x_lo, x_hi)
+        } else if x_lo.is_finite() {
+            (x_lo * 0.5, x_lo * 2.0 + 1.0)
+        } else {
+            (1.0, 10.0)
+        };
+        let mut builder = ChartBuilder::on(area);
+        builder
+            .caption(&panel.title, ("sans-serif", 18))
+            .margin(10)
+            .x_label_area_size(36)
+            .y_label_area_size(70);
+        macro_rules! body {
+            ($chart:expr) => {{
+                let mut chart = $chart;
+                chart
+                    .configure_mesh()
+                    .x_desc(panel.x_desc.as_str())
+                    .y_desc(panel.y_desc.as_str())
+                    .x_label_formatter(&|x: &f64| short_number(*x))
+                    .y_label_formatter(&|y: &f64| short_number(*y))
+                    .label_style(("sans-serif", 13))
+                    .draw()
+                    .map_err(|e| err(e.to_string()))?;
+                for s in &panel.series {
+                    let mut pts: Vec<(f64, f64)> = s
+                        .points
+                        .iter()
+                        .copied()
+                        .filter(|p| finite(p.0) && finite(p.1) && (!panel.log_x || p.0 > 0.0))
+                        .collect();
+                    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    let colour = s.colour;
+                    let style = colour.stroke_width(2);
+                    if s.dashed {
+                        chart
+                            .draw_series(DashedLineSeries::new(pts.iter().copied(), 8, 5, style))
+                            .map_err(|e| err(e.to_string()))?
+                            .label(s.name.as_str())
+                            .legend(move |(x, y)| {
+                                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(1))
+                            });
+                    } else {
+                        chart
+                            .draw_series(LineSeries::new(pts.iter().copied(), style))
+                            .map_err(|e| err(e.to_string()))?
+                            .label(s.name.as_str())
+                            .legend(move |(x, y)| {
+                                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
+                            });
+                    }
+                    chart
+                        .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+                        .map_err(|e| err(e.to_string()))?;
+                }
+                chart
+                    .configure_series_labels()
+                    .background_style(WHITE.mix(0.85))
+                    .border_style(BLACK)
+                    .label_font(("sans-serif", 13))
+                    .position(SeriesLabelPosition::UpperRight)
+                    .draw()
+                    .map_err(|e| err(e.to_string()))?;
+            }};
+        }
+        if panel.log_x {
+            body!(
+                builder
+                    .build_cartesian_2d((x_lo * 0.8..x_hi * 1.25).log_scale(), 0.0..y_hi)
+                    .map_err(|e| err(e.to_string()))?
+            );
+        } else {
+            let pad = (x_hi - x_lo) * 0.05;
+            body!(
+                builder
+                    .build_cartesian_2d((x_lo - pad).max(0.0)..x_hi + pad, 0.0..y_hi)
+                    .map_err(|e| err(e.to_string()))?
+            );
+        }
+    }
+    root.present().map_err(|e| err(e.to_string()))?;
+    Ok(())
+}

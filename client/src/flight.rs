@@ -18,8 +18,10 @@ use crate::fetcher::{Fetcher, FetcherConfig};
 use crate::lod::budget::{BudgetMode, DEFAULT_TARGET_FPS};
 use crate::lod::importance::{DEFAULT_ALPHA, HeightMeasure};
 use crate::memory::{MemoryBudget, MemoryError, MemorySize};
+use crate::method::MethodKind;
 use crate::page::PagerConfig;
 use crate::path::{CameraPath, PathError};
+use crate::render::plan::DEFAULT_MAX_ERROR_PX;
 use crate::render::{Camera, CrackFiller, Gpu, GpuError, LodSettings, Offscreen};
 use crate::scene::{RenderConfig, Scene};
 use std::fmt;
@@ -134,6 +136,9 @@ impl FlightArgs {
 /// How frames are rendered: shared by `fly` and `view`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RenderArgs {
+    /// Level-of-detail method.
+    #[arg(long, value_enum, default_value_t)]
+    pub method: MethodKind,
     /// Frame size, WIDTHxHEIGHT.
     #[arg(long, default_value = "960x540", value_parser = parse_size)]
     pub size: (u32, u32),
@@ -155,11 +160,20 @@ pub struct RenderArgs {
     /// Camera pitch, degrees above the horizon (negative looks down).
     #[arg(long, default_value_t = crate::render::camera::DEFAULT_PITCH_DEG, allow_negative_numbers = true)]
     pub pitch_deg: f64,
+    /// Screen-space error threshold, pixels: no tile is drawn finer than the coarsest mask
+    /// whose projected error is within it, and `triangles_needed` counts those masks.
+    #[arg(long, default_value_t = DEFAULT_MAX_ERROR_PX)]
+    pub max_error_px: f64,
+    /// Let tiles take finer masks than the error threshold needs when the budget allows
+    /// (the paper's plain budget sharing).
+    #[arg(long)]
+    pub no_error_cap: bool,
 }
 
 impl Default for RenderArgs {
     fn default() -> RenderArgs {
         RenderArgs {
+            method: MethodKind::default(),
             size: (960, 540),
             target_fps: DEFAULT_TARGET_FPS,
             fixed_budget: None,
@@ -167,6 +181,8 @@ impl Default for RenderArgs {
             alpha: DEFAULT_ALPHA,
             height_measure: HeightMeasure::default(),
             pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
+            max_error_px: DEFAULT_MAX_ERROR_PX,
+            no_error_cap: false,
         }
     }
 }
@@ -184,6 +200,12 @@ impl RenderArgs {
             return Err(FlightError::BadOption(format!(
                 "--target-fps {} must be positive",
                 self.target_fps
+            )));
+        }
+        if !(self.max_error_px.is_finite() && self.max_error_px > 0.0) {
+            return Err(FlightError::BadOption(format!(
+                "--max-error-px {} must be positive",
+                self.max_error_px
             )));
         }
         let budget = match self.fixed_budget {
@@ -204,9 +226,12 @@ impl RenderArgs {
             },
         };
         Ok(RenderConfig {
+            method: self.method,
             lod: LodSettings {
                 alpha: self.alpha,
                 height: self.height_measure,
+                max_error_px: self.max_error_px,
+                cap_at_needed: !self.no_error_cap,
             },
             filler: self.crack_filler,
             budget,
@@ -567,7 +592,7 @@ impl fmt::Display for FlightSummary {
 
 /// The camera's heading along the path: towards where the path is in a second, or the last
 /// heading when the path holds still.
-fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
+pub fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
     let a = path.position_at(time_s);
     let b = path.position_at(time_s + 1.0);
     let (dx, dy) = (b[0] - a[0], b[1] - a[1]);

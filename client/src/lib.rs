@@ -34,6 +34,7 @@ pub mod fetcher;
 pub mod flight;
 pub mod lod;
 pub mod memory;
+pub mod method;
 pub mod overview;
 pub mod page;
 pub mod path;

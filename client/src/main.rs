@@ -26,6 +26,23 @@ enum Command {
     /// Open a window and fly over the streamed terrain with mouse and keyboard (needs an
     /// X11 display): the same paging, streaming and rendering as `fly`.
     View(terrain_client::viewer::ViewArgs),
+    /// Measure accuracy against speed: `bench accuracy` sweeps budgets and crack fillers
+    /// over a flight against full-resolution reference frames; `bench stability` runs the
+    /// scenarios where methods are known to fail.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchCommand {
+    /// Error (screen-space pixels, cracks, PSNR) against triangles and frame time, for a
+    /// list of fixed budgets, methods and crack fillers, over cameras along a flight; writes
+    /// accuracy.csv, summary.md and charts.
+    Accuracy(terrain_client::eval::accuracy::AccuracyArgs),
+    /// Named scenarios (grazing views, above the horizon, under the surface, far outside,
+    /// memory below one belt, 100 triangles, jumps, special datasets) with every method and
+    /// filler; writes stability.md, stability.csv and pictures.
+    Stability(terrain_client::eval::stability::StabilityArgs),
 }
 
 fn main() -> ExitCode {
@@ -47,6 +64,22 @@ fn main() -> ExitCode {
             terrain_client::cli::run_fetch(&args)
                 .await
                 .map(|summary| println!("{summary}"))
+                .map_err(anyhow::Error::from)
+        }),
+        Command::Bench(BenchCommand::Accuracy(args)) => in_runtime(async move {
+            terrain_client::eval::accuracy::run(&args)
+                .await
+                .map(|report| print!("{report}"))
+                .map_err(anyhow::Error::from)
+        }),
+        Command::Bench(BenchCommand::Stability(args)) if args.list => {
+            print!("{}", terrain_client::eval::stability::list());
+            Ok(())
+        }
+        Command::Bench(BenchCommand::Stability(args)) => in_runtime(async move {
+            terrain_client::eval::stability::run(&args)
+                .await
+                .map(|report| print!("{report}"))
                 .map_err(anyhow::Error::from)
         }),
         Command::Fly(args) => in_runtime(async move {

@@ -22,8 +22,9 @@ use crate::flight::FlightError;
 use crate::lod::budget::{BudgetMode, FrameRateController};
 use crate::lod::strips::MaskSet;
 use crate::memory::TileBytes;
+use crate::method::{self, LodMethod, MethodInput, MethodKind};
 use crate::page::{self, Decision, PagerConfig, PagerView};
-use crate::render::plan::{self, Candidate, FramePlan, Layout, LodSettings};
+use crate::render::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
 use crate::render::{Camera, CrackFiller, Gpu, RenderStats, TerrainRenderer};
 use std::sync::Arc;
@@ -33,6 +34,7 @@ use terrain_shared::{Manifest, TileId};
 /// How a scene renders.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RenderConfig {
+    pub method: MethodKind,
     pub lod: LodSettings,
     pub filler: CrackFiller,
     pub budget: BudgetMode,
@@ -43,6 +45,7 @@ pub struct RenderConfig {
 impl Default for RenderConfig {
     fn default() -> RenderConfig {
         RenderConfig {
+            method: MethodKind::default(),
             lod: LodSettings::default(),
             filler: CrackFiller::default(),
             budget: BudgetMode::default(),
@@ -81,23 +84,23 @@ pub struct Update {
 pub struct DrawReport {
     pub plan: FramePlan,
     pub stats: RenderStats,
-    /// Time of culling, importance, budget sharing and mask selection.
+    /// Time of the method's decisions (culling, importance, budget sharing, masks).
     pub lod_ms: f64,
     /// Time from the start of the draw to the GPU's completion.
     pub draw_ms: f64,
     /// The fewest triangles that keep every drawn tile's projected error within
-    /// [`NEEDED_THRESHOLD_PX`] ([`crate::lod::needed`]).
+    /// [`LodSettings::max_error_px`] ([`crate::lod::needed`]).
     pub triangles_needed: u64,
+    /// The method that drew, e.g. `strip-masks/planar-shadow`.
+    pub method: String,
 }
-
-/// Screen-space error threshold, pixels, of [`DrawReport::triangles_needed`].
-pub const NEEDED_THRESHOLD_PX: f64 = 1.0;
 
 /// The rendering half of a scene.
 #[derive(Debug)]
 struct Rendering {
     renderer: TerrainRenderer,
     masks: Arc<MaskSet>,
+    method: Box<dyn LodMethod>,
     controller: FrameRateController,
     config: RenderConfig,
     /// Target texture level per tile (index as `tiles`), from the last texture budget.
@@ -119,6 +122,8 @@ pub struct Scene {
     base_bytes: Vec<u64>,
     expected_bytes: Vec<u64>,
     in_flight: Vec<bool>,
+    /// Per tile, the suffix minima of its per-mask errors ([`crate::lod::needed`]).
+    error_minima: Vec<Vec<f32>>,
     pub tiles_fetched: u64,
     pub evicted_unused_bytes: u64,
     rendering: Option<Rendering>,
@@ -141,6 +146,7 @@ impl Scene {
             let masks = Arc::new(MaskSet::new(manifest.tile_size));
             Rendering {
                 renderer: TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks)),
+                method: method::build(config.method, config.lod, config.filler, Arc::clone(&masks)),
                 masks,
                 controller: FrameRateController::new(config.budget),
                 config,
@@ -165,6 +171,11 @@ impl Scene {
             tiles: vec![None; count],
             base_bytes: vec![0; count],
             in_flight: vec![false; count],
+            error_minima: manifest
+                .tiles
+                .iter()
+                .map(|t| crate::lod::needed::suffix_minima(&t.mask_errors_m))
+                .collect(),
             tiles_fetched: 0,
             evicted_unused_bytes: 0,
             rendering,
@@ -192,6 +203,95 @@ impl Scene {
 
     pub fn memory_limit(&self) -> u64 {
         self.pager.memory_limit
+    }
+
+    /// Draws later frames with `config`'s method and settings; a different budget mode
+    /// starts the frame-rate controller again. Resident tiles stay. Nothing happens without rendering.
+    pub fn reconfigure(&mut self, config: RenderConfig) {
+        if let Some(r) = &mut self.rendering {
+            r.method = method::build(
+                config.method,
+                config.lod,
+                config.filler,
+                Arc::clone(&r.masks),
+            );
+            if config.budget != r.config.budget {
+                r.controller = FrameRateController::new(config.budget);
+            }
+            r.config = config;
+        }
+    }
+
+    /// The triangle budget of the next frame (`None` when not rendering).
+    pub fn budget(&self) -> Option<u32> {
+        self.rendering.as_ref().map(|r| r.controller.budget())
+    }
+
+    /// Keeps each frame's depth buffer for [`Scene::read_depth`] (slower; for measuring).
+    pub fn keep_depth(&mut self, keep: bool) {
+        if let Some(r) = &mut self.rendering {
+            r.renderer.keep_depth(keep);
+        }
+    }
+
+    /// The last frame's depth buffer (see [`TerrainRenderer::read_depth`]).
+    pub fn read_depth(&self) -> Option<Result<Vec<f32>, crate::render::GpuError>> {
+        self.rendering.as_ref().map(|r| r.renderer.read_depth())
+    }
+
+    /// Whether every tile is resident with every texture level it is meant to have and
+    /// nothing is in flight: what the accuracy measures wait for.
+    pub fn settled(&self) -> bool {
+        let textures_done = self.rendering.as_ref().is_none_or(|r| {
+            self.tiles
+                .iter()
+                .zip(&r.texture_target)
+                .all(|(t, &target)| {
+                    t.as_ref().is_none_or(|t| {
+                        let held = t
+                            .textures
+                            .len()
+                            .min(t.undecodable_from.unwrap_or(usize::MAX));
+                        t.uploaded_levels >= held
+                            && (t.textures.len() > target as usize || t.undecodable_from.is_some())
+                    })
+                })
+        });
+        self.in_flight.iter().all(|f| !f) && textures_done
+    }
+
+    /// Height of the true surface at world point `(x, y)` (metres), as full resolution
+    /// draws it: the resident samples, each cell split along the diagonal the strips use
+    /// (`terrain_shared::mask`). `None` off the terrain or over a tile not resident.
+    pub fn surface_height(&self, x: f64, y: f64) -> Option<f64> {
+        let cells = f64::from(self.layout.tile_size - 1);
+        let (sx, sy) = (x / self.layout.spacing_m[0], y / self.layout.spacing_m[1]);
+        if !(sx >= 0.0 && sy >= 0.0) {
+            return None;
+        }
+        let (columns, rows) = (self.manifest.grid.columns, self.manifest.grid.rows);
+        let tx = ((sx / cells).floor() as u32).min(columns.saturating_sub(1));
+        let ty = ((sy / cells).floor() as u32).min(rows.saturating_sub(1));
+        let (u, v) = (sx - f64::from(tx) * cells, sy - f64::from(ty) * cells);
+        if u > cells || v > cells {
+            return None;
+        }
+        let tile = self.tiles[self.index(TileId::new(tx, ty))].as_ref()?;
+        let last = self.layout.tile_size as usize - 1;
+        let (c0, r0) = (
+            (u.floor() as usize).min(last - 1),
+            (v.floor() as usize).min(last - 1),
+        );
+        let (fu, fv) = (u - c0 as f64, v - r0 as f64);
+        let h = |c: usize, r: usize| tile.heights.metres(c, r);
+        // Split along the diagonal from (c0, r1) to (c1, r0).
+        Some(if fu + fv <= 1.0 {
+            let h00 = h(c0, r0);
+            h00 + fu * (h(c0 + 1, r0) - h00) + fv * (h(c0, r0 + 1) - h00)
+        } else {
+            let h11 = h(c0 + 1, r0 + 1);
+            h11 + (1.0 - fu) * (h(c0, r0 + 1) - h11) + (1.0 - fv) * (h(c0 + 1, r0) - h11)
+        })
     }
 
     /// Deliveries, paging and the texture budget for a viewpoint at `position` (metres).
@@ -229,6 +329,7 @@ impl Scene {
             self.base_bytes[i] = 0;
             if let Some(r) = &mut self.rendering {
                 r.renderer.remove_tile(id);
+                r.method.tile_evicted(id);
             }
         }
         for (rank, &id) in decision.fetch.iter().enumerate() {
@@ -270,6 +371,7 @@ impl Scene {
                     let record = &self.manifest.tiles[i];
                     r.renderer
                         .upload_tile(id, &heights, f64::from(record.min_m));
+                    r.method.tile_resident(id, &heights);
                     if let Some(image) = decode_texture(&coarsest_texture, id, 0) {
                         r.renderer.upload_texture(id, 0, &[image]);
                         uploaded_levels = 1;
@@ -454,75 +556,39 @@ impl Scene {
         let r = self.rendering.as_mut()?;
         let started = Instant::now();
         let size = target.texture().size();
-        let aspect = f64::from(size.width) / f64::from(size.height.max(1));
         let candidates: Vec<Candidate> = self
             .tiles
             .iter()
-            .enumerate()
-            .filter(|(_, t)| t.is_some())
-            .map(|(i, _)| {
-                let record = &self.manifest.tiles[i];
-                Candidate {
-                    id: record.id(),
-                    min_m: f64::from(record.min_m),
-                    max_m: f64::from(record.max_m),
-                    roughness_m: f64::from(record.roughness_m),
-                }
-            })
+            .zip(&self.manifest.tiles)
+            .zip(&self.error_minima)
+            .filter(|((t, _), _)| t.is_some())
+            .map(|((_, record), minima)| Candidate::new(record, minima))
             .collect();
-        let plan = plan::plan_frame(
+        let input = MethodInput {
             camera,
-            aspect,
-            &self.layout,
-            &candidates,
-            r.controller.budget(),
-            &r.masks,
-            &r.config.lod,
-        );
+            viewport: [size.width, size.height],
+            layout: &self.layout,
+            tiles: &candidates,
+            budget: r.controller.budget(),
+        };
+        let out = r.method.draw(&input, &mut r.renderer, target);
+        let (plan, stats, lod_ms) = (out.plan, out.stats, out.lod_ms);
         r.importance.fill(0.0);
         let columns = self.manifest.grid.columns as usize;
         for (d, &imp) in plan.draws.iter().zip(&plan.importances) {
             r.importance[d.id.y as usize * columns + d.id.x as usize] = imp;
         }
-        let lod_ms = started.elapsed().as_secs_f64() * 1e3;
-        let extent = self.layout.tile_extent_m();
-        let triangles_needed = plan
-            .draws
-            .iter()
-            .map(|d| {
-                let record = &self.manifest.tiles[d.id.y as usize * columns + d.id.x as usize];
-                let [x0, y0] = self.layout.tile_origin_m(d.id);
-                let distance = crate::lod::needed::distance_to_box(
-                    camera.position,
-                    [x0, y0, f64::from(record.min_m)],
-                    [x0 + extent[0], y0 + extent[1], f64::from(record.max_m)],
-                );
-                let k = crate::lod::needed::pixels_per_metre(
-                    distance,
-                    camera.fov_y,
-                    f64::from(size.height),
-                );
-                let level = crate::lod::needed::coarsest_level_within(
-                    &record.mask_errors_m,
-                    k,
-                    NEEDED_THRESHOLD_PX,
-                );
-                u64::from(r.masks.triangle_count(level))
-            })
-            .sum();
-        let stats = r
-            .renderer
-            .render(target, camera, &plan.draws, r.config.filler);
         let draw_ms = started.elapsed().as_secs_f64() * 1e3;
         let frame_s = frame_started.elapsed().as_secs_f64();
         r.controller
             .next_budget(u32::try_from(stats.triangles).unwrap_or(u32::MAX), frame_s);
         Some(DrawReport {
+            triangles_needed: plan.triangles_needed,
+            method: r.method.name(),
             plan,
             stats,
             lod_ms,
             draw_ms,
-            triangles_needed,
         })
     }
 

@@ -1,5 +1,6 @@
 //! End-to-end tests: one binary, linked once.
 
+mod accuracy;
 mod build;
 mod fetcher;
 mod flight;

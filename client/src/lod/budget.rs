@@ -51,18 +51,24 @@ pub fn share(
     masks: &MaskSet,
 ) -> Vec<Allocation> {
     let mut out = Vec::with_capacity(importances.len());
-    share_into(importances, order, global_budget, masks, &mut out);
+    share_into(importances, &[], order, global_budget, masks, &mut out);
     out
 }
 
-/// [`share`] into a vector the caller reuses from frame to frame (cleared first).
+/// [`share`] into a vector the caller reuses from frame to frame (cleared first), with an
+/// optional cap per tile: `caps[t]` (when `caps` is not empty) is the most triangles tile
+/// `t` is offered, the triangles of the coarsest mask that already meets the error
+/// threshold ([`crate::lod::needed`]), so that no tile is modelled finer than it needs.
+/// What a capped tile is not offered stays in the pool for the tiles after it.
 pub fn share_into(
     importances: &[f64],
+    caps: &[u32],
     order: &mut Vec<usize>,
     global_budget: u32,
     masks: &MaskSet,
     out: &mut Vec<Allocation>,
 ) {
+    debug_assert!(caps.is_empty() || caps.len() == importances.len());
     out.clear();
     order.clear();
     order.extend(0..importances.len());
@@ -85,8 +91,12 @@ pub fn share_into(
         };
         let proportional = (pool.max(0) as f64 * weight).floor() as i64;
         let reserve_for_later = coarsest * later;
+        let cap = caps
+            .get(tile)
+            .map_or(i64::from(u32::MAX), |&c| i64::from(c));
         let offer = proportional
             .min(pool - reserve_for_later)
+            .min(cap)
             .clamp(0, i64::from(u32::MAX));
         let budget = offer as u32;
         let level = masks.select(budget);
@@ -279,6 +289,29 @@ mod tests {
             17,
             &[(0, 100, 72), (1, 76, 72), (2, 56, 32)],
         );
+    }
+
+    #[test]
+    fn a_capped_tile_takes_no_more_than_its_cap_and_passes_the_rest_on() {
+        // Tile 17 draws 512, 128, 72, 32, ... triangles. Tile 0 (importance 0.9) needs only
+        // its coarsest mask (cap 2, a flat tile): tile 1 gets everything else.
+        let masks = MaskSet::new(17);
+        let coarsest = masks.triangle_count(masks.coarsest_level());
+        let mut out = Vec::new();
+        share_into(
+            &[0.9, 0.1],
+            &[coarsest, u32::MAX],
+            &mut Vec::new(),
+            600,
+            &masks,
+            &mut out,
+        );
+        assert_eq!(out[0].tile, 0);
+        assert_eq!(out[0].level, masks.coarsest_level());
+        assert_eq!((out[1].tile, out[1].triangles), (1, 512));
+        // Without the cap tile 0 takes the fine mask.
+        let uncapped = share(&[0.9, 0.1], &mut Vec::new(), 600, &masks);
+        assert_eq!(uncapped[0].triangles, 512);
     }
 
     #[test]

@@ -13,20 +13,38 @@
 /// Pixels per metre of vertical error at `distance_m` for a viewport `height_px` high with a
 /// vertical field of view `fov_y` (radians). Infinite at distance 0.
 pub fn pixels_per_metre(distance_m: f64, fov_y: f64, height_px: f64) -> f64 {
-    height_px / (2.0 * (fov_y / 2.0).tan() * distance_m.max(0.0))
+    pixels_at_one_metre(fov_y, height_px) / distance_m.max(0.0)
 }
 
-/// The coarsest level whose error, at `pixels_per_metre`, is at most `threshold_px`:
-/// levels are tried from the coarsest down; level 0 (no error) always qualifies.
-pub fn coarsest_level_within(
-    mask_errors_m: &[f32],
-    pixels_per_metre: f64,
-    threshold_px: f64,
-) -> u32 {
-    (0..mask_errors_m.len())
-        .rev()
-        .find(|&l| f64::from(mask_errors_m[l]) * pixels_per_metre <= threshold_px)
-        .unwrap_or(0) as u32
+/// Pixels a metre spans at a distance of one metre: [`pixels_per_metre`] is this over the
+/// distance. Computed once per frame (it takes a tangent).
+pub fn pixels_at_one_metre(fov_y: f64, height_px: f64) -> f64 {
+    height_px / (2.0 * (fov_y / 2.0).tan())
+}
+
+/// The suffix minima of per-level errors: entry `l` is the least error of levels `l` and
+/// coarser. Non-decreasing, so [`coarsest_level_within`] can search it by halves; computed
+/// once per tile (the manifest's errors are not always monotone: a coarser mask can
+/// happen to fit the surface better).
+pub fn suffix_minima(mask_errors_m: &[f32]) -> Vec<f32> {
+    let mut out = mask_errors_m.to_vec();
+    for l in (0..out.len().saturating_sub(1)).rev() {
+        out[l] = out[l].min(out[l + 1]);
+    }
+    out
+}
+
+/// The coarsest level whose error, at `pixels_per_metre`, is at most `threshold_px`, given
+/// the tile's [`suffix_minima`]: the largest `l` with `minima[l] * k <= threshold` is the
+/// largest level whose own error is within it. Level 0 (no error) always qualifies.
+/// O(log levels).
+pub fn coarsest_level_within(minima: &[f32], pixels_per_metre: f64, threshold_px: f64) -> u32 {
+    // The largest error allowed, metres; far tiles (most of them) pass at the coarsest level.
+    let limit = threshold_px / pixels_per_metre;
+    match minima.last() {
+        Some(&e) if f64::from(e) <= limit => minima.len() as u32 - 1,
+        _ => (minima.partition_point(|&e| f64::from(e) <= limit)).saturating_sub(1) as u32,
+    }
 }
 
 /// Distance from `eye` to the nearest point of the box from `min` to `max` (0 inside).
@@ -76,6 +94,21 @@ mod tests {
             coarsest_level_within(&errors, pixels_per_metre(0.0, 0.96, 540.0), 1.0),
             0
         );
+    }
+
+    #[test]
+    fn the_search_over_suffix_minima_finds_what_a_scan_of_the_errors_finds() {
+        // Errors that are not monotone: level 3 fits better than level 2.
+        let errors = [0.0f32, 0.2, 0.9, 0.3, 1.5, 0.4, 2.0, 3.0];
+        let minima = suffix_minima(&errors);
+        assert_eq!(minima, vec![0.0, 0.2, 0.3, 0.3, 0.4, 0.4, 2.0, 3.0]);
+        for k in [0.1, 0.5, 1.0, 2.0, 2.6, 3.0, 4.0, 1e3] {
+            let scan = (0..errors.len())
+                .rev()
+                .find(|&l| f64::from(errors[l]) * k <= 1.0)
+                .unwrap_or(0) as u32;
+            assert_eq!(coarsest_level_within(&minima, k, 1.0), scan, "k = {k}");
+        }
     }
 
     #[test]

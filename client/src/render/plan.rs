@@ -4,18 +4,35 @@
 use super::camera::Camera;
 use crate::lod::budget::{self, Allocation};
 use crate::lod::importance::{self, HeightMeasure, TileView};
+use crate::lod::needed;
 use crate::lod::strips::MaskSet;
 use glam::DVec3;
 use terrain_shared::TileId;
 
 /// A tile that could be drawn: resident, with its GPU data.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Candidate {
+pub struct Candidate<'a> {
     pub id: TileId,
     /// Lowest and highest sample, metres (the manifest's).
     pub min_m: f64,
     pub max_m: f64,
     pub roughness_m: f64,
+    /// Suffix minima of the maximum vertical error of each mask level, metres
+    /// ([`needed::suffix_minima`] of the manifest's `mask_errors_m`).
+    pub error_minima_m: &'a [f32],
+}
+
+impl<'a> Candidate<'a> {
+    /// The candidate of `record`, as the manifest describes it, with its error minima.
+    pub fn new(record: &terrain_shared::TileRecord, error_minima_m: &'a [f32]) -> Candidate<'a> {
+        Candidate {
+            id: record.id(),
+            min_m: f64::from(record.min_m),
+            max_m: f64::from(record.max_m),
+            roughness_m: f64::from(record.roughness_m),
+            error_minima_m,
+        }
+    }
 }
 
 /// The terrain's geometry: enough to place any tile.
@@ -54,13 +71,25 @@ pub struct LodSettings {
     /// Weight of distance in the importance (the paper's alpha); height gets the rest.
     pub alpha: f64,
     pub height: HeightMeasure,
+    /// Screen-space error threshold, pixels, of the fewest triangles a frame needs
+    /// ([`crate::lod::needed`]) and of the cap below.
+    pub max_error_px: f64,
+    /// No tile is offered more triangles than the coarsest mask within `max_error_px`
+    /// needs: what it would not use goes to the other tiles (model no more than the scene
+    /// needs: a flat tile draws its coarsest mask).
+    pub cap_at_needed: bool,
 }
+
+/// Default of [`LodSettings::max_error_px`], pixels.
+pub const DEFAULT_MAX_ERROR_PX: f64 = 1.0;
 
 impl Default for LodSettings {
     fn default() -> LodSettings {
         LodSettings {
             alpha: importance::DEFAULT_ALPHA,
             height: HeightMeasure::default(),
+            max_error_px: DEFAULT_MAX_ERROR_PX,
+            cap_at_needed: true,
         }
     }
 }
@@ -76,6 +105,11 @@ pub struct FramePlan {
     pub budget: u32,
     /// Triangles the chosen masks draw (fillers and strip joins not counted).
     pub triangles: u64,
+    /// Per draw, the coarsest level whose projected error is within the threshold.
+    pub needed_levels: Vec<u32>,
+    /// Triangles of `needed_levels`: the fewest that keep every drawn tile's projected
+    /// error within [`LodSettings::max_error_px`].
+    pub triangles_needed: u64,
 }
 
 impl FramePlan {
@@ -89,31 +123,81 @@ impl FramePlan {
     }
 }
 
-/// Culls `tiles` against the camera's frustum (by bounding box), ranks the visible ones by
-/// importance and shares `budget` triangles among them.
-pub fn plan_frame(
+/// The tiles of `tiles` in `camera`'s view (by bounding box, on a viewport of `aspect`),
+/// as indices into `tiles`.
+pub fn visible_tiles(
     camera: &Camera,
     aspect: f64,
+    layout: &Layout,
+    tiles: &[Candidate],
+) -> Vec<usize> {
+    let frustum = camera.frustum(aspect);
+    let eye = DVec3::from(camera.position);
+    let extent = layout.tile_extent_m();
+    (0..tiles.len())
+        .filter(|&i| {
+            let tile = &tiles[i];
+            let [x0, y0] = layout.tile_origin_m(tile.id);
+            let lo = DVec3::new(x0, y0, tile.min_m) - eye;
+            let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
+            let (lo_r, hi_r) = (Camera::to_render(lo), Camera::to_render(hi));
+            frustum.intersects_box(lo_r.min(hi_r), lo_r.max(hi_r))
+        })
+        .collect()
+}
+
+/// The coarsest mask level of `tile` whose vertical error, projected from the nearest point
+/// of its bounding box, is within `threshold_px`; `pixel_scale` is
+/// [`needed::pixels_at_one_metre`] of the camera and viewport.
+pub fn needed_level(
+    eye: [f64; 3],
+    pixel_scale: f64,
+    layout: &Layout,
+    tile: &Candidate,
+    threshold_px: f64,
+) -> u32 {
+    let extent = layout.tile_extent_m();
+    let [x0, y0] = layout.tile_origin_m(tile.id);
+    let distance = needed::distance_to_box(
+        eye,
+        [x0, y0, tile.min_m],
+        [x0 + extent[0], y0 + extent[1], tile.max_m],
+    );
+    needed::coarsest_level_within(tile.error_minima_m, pixel_scale / distance, threshold_px)
+}
+
+/// Culls `tiles` against the camera's frustum (by bounding box), ranks the visible ones by
+/// importance and shares `budget` triangles among them, on a viewport of `viewport` pixels
+/// (width, height).
+pub fn plan_frame(
+    camera: &Camera,
+    viewport: [u32; 2],
     layout: &Layout,
     tiles: &[Candidate],
     budget: u32,
     masks: &MaskSet,
     settings: &LodSettings,
 ) -> FramePlan {
-    let frustum = camera.frustum(aspect);
+    let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
     let eye = DVec3::from(camera.position);
     let extent = layout.tile_extent_m();
     let mut visible = Vec::new();
     let mut views = Vec::new();
-    for tile in tiles {
+    let mut needed_levels = Vec::new();
+    let pixel_scale = needed::pixels_at_one_metre(camera.fov_y, f64::from(viewport[1]));
+    for i in visible_tiles(camera, aspect, layout, tiles) {
+        let tile = &tiles[i];
         let [x0, y0] = layout.tile_origin_m(tile.id);
         let lo = DVec3::new(x0, y0, tile.min_m) - eye;
         let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
-        let (lo_r, hi_r) = (Camera::to_render(lo), Camera::to_render(hi));
-        if !frustum.intersects_box(lo_r.min(hi_r), lo_r.max(hi_r)) {
-            continue;
-        }
         visible.push(tile.id);
+        needed_levels.push(needed_level(
+            camera.position,
+            pixel_scale,
+            layout,
+            tile,
+            settings.max_error_px,
+        ));
         views.push(TileView {
             distance_m: ((lo + hi) * 0.5).length(),
             bbox_height_m: tile.max_m - tile.min_m,
@@ -121,7 +205,23 @@ pub fn plan_frame(
         });
     }
     let importances = importance::importance(&views, settings.alpha, settings.height);
-    let allocations: Vec<Allocation> = budget::share(&importances, &mut Vec::new(), budget, masks);
+    let caps: Vec<u32> = if settings.cap_at_needed {
+        needed_levels
+            .iter()
+            .map(|&l| masks.triangle_count(l))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut allocations: Vec<Allocation> = Vec::with_capacity(visible.len());
+    budget::share_into(
+        &importances,
+        &caps,
+        &mut Vec::new(),
+        budget,
+        masks,
+        &mut allocations,
+    );
     let mut plan = FramePlan {
         budget,
         ..FramePlan::default()
@@ -133,6 +233,9 @@ pub fn plan_frame(
         });
         plan.importances.push(importances[a.tile]);
         plan.triangles += u64::from(a.triangles);
+        let needed = needed_levels[a.tile];
+        plan.needed_levels.push(needed);
+        plan.triangles_needed += u64::from(masks.triangle_count(needed));
     }
     plan
 }
@@ -141,7 +244,12 @@ pub fn plan_frame(
 mod tests {
     use super::*;
 
-    fn grid(columns: u32, rows: u32) -> Vec<Candidate> {
+    /// Per-level errors growing with the level, as on rough terrain.
+    static ROUGH: [f32; 16] = [
+        0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 6.5, 7.0, 7.5,
+    ];
+
+    fn grid(columns: u32, rows: u32) -> Vec<Candidate<'static>> {
         let mut out = Vec::new();
         for y in 0..rows {
             for x in 0..columns {
@@ -150,6 +258,7 @@ mod tests {
                     min_m: 0.0,
                     max_m: 100.0,
                     roughness_m: 1.0,
+                    error_minima_m: &ROUGH,
                 });
             }
         }
@@ -167,7 +276,7 @@ mod tests {
         let masks = MaskSet::new(17);
         let plan = plan_frame(
             &camera,
-            1.5,
+            [300, 200],
             &layout,
             &grid(8, 8),
             3000,
@@ -191,7 +300,7 @@ mod tests {
         let camera_west = Camera::new([-1.0, 640.0, 300.0], std::f64::consts::PI, -0.3);
         let none = plan_frame(
             &camera_west,
-            1.5,
+            [300, 200],
             &layout,
             &grid(8, 8),
             3000,
@@ -202,5 +311,69 @@ mod tests {
             none.draws.is_empty(),
             "looking away from the terrain draws nothing"
         );
+    }
+
+    #[test]
+    fn flat_tiles_get_the_coarsest_mask_and_their_triangles_go_to_rough_ones() {
+        static FLAT: [f32; 16] = [0.0; 16];
+        let layout = Layout {
+            tile_size: 17,
+            spacing_m: [10.0, 10.0],
+        };
+        let masks = MaskSet::new(17);
+        let camera = Camera::new([-1.0, 640.0, 300.0], 0.0, -0.3);
+        // Every other tile is flat sea.
+        let mut tiles = grid(8, 8);
+        for t in tiles
+            .iter_mut()
+            .filter(|t| (t.id.x + t.id.y).is_multiple_of(2))
+        {
+            t.error_minima_m = &FLAT;
+            t.min_m = 0.0;
+            t.max_m = 0.0;
+        }
+        let capped = plan_frame(
+            &camera,
+            [300, 200],
+            &layout,
+            &tiles,
+            20_000,
+            &masks,
+            &LodSettings::default(),
+        );
+        let flat = |id: TileId| (id.x + id.y).is_multiple_of(2);
+        assert!(capped.draws.iter().any(|d| flat(d.id)));
+        for (d, needed) in capped.draws.iter().zip(&capped.needed_levels) {
+            if flat(d.id) {
+                assert_eq!(d.level, masks.coarsest_level(), "{d:?}");
+                assert_eq!(*needed, masks.coarsest_level());
+            }
+            // Masks of equal triangle counts are interchangeable: the finer is taken.
+            assert!(
+                masks.triangle_count(d.level) <= masks.triangle_count(*needed),
+                "never more triangles than needed: {d:?}"
+            );
+        }
+        assert!(capped.triangles <= capped.triangles_needed.max(20_000));
+        let uncapped = plan_frame(
+            &camera,
+            [300, 200],
+            &layout,
+            &tiles,
+            20_000,
+            &masks,
+            &LodSettings {
+                cap_at_needed: false,
+                ..LodSettings::default()
+            },
+        );
+        assert!(
+            uncapped
+                .draws
+                .iter()
+                .any(|d| flat(d.id) && d.level < masks.coarsest_level()),
+            "without the cap near flat tiles take fine masks"
+        );
+        assert_eq!(uncapped.triangles_needed, capped.triangles_needed);
     }
 }

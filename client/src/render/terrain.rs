@@ -126,6 +126,8 @@ pub struct TerrainRenderer {
     skirts: HashMap<u32, (wgpu::Buffer, u32)>,
     tiles: HashMap<TileId, GpuTile>,
     depth: Option<(wgpu::Texture, wgpu::TextureView)>,
+    /// Whether the depth buffer is kept after a frame, for [`TerrainRenderer::read_depth`].
+    keep_depth: bool,
     timestamps: Option<Timestamps>,
     max_texture_side: u32,
 }
@@ -325,6 +327,7 @@ impl TerrainRenderer {
             skirts: HashMap::new(),
             tiles: HashMap::new(),
             depth: None,
+            keep_depth: false,
             timestamps,
             max_texture_side: device.limits().max_texture_dimension_2d,
             device,
@@ -459,6 +462,27 @@ impl TerrainRenderer {
         self.replace_texture(id, finest - dropped, side, keep, &copies, None);
     }
 
+    /// Keeps the depth buffer of every later frame for [`TerrainRenderer::read_depth`]
+    /// (stored and copyable, which costs some speed; off by default).
+    pub fn keep_depth(&mut self, keep: bool) {
+        if keep != self.keep_depth {
+            self.keep_depth = keep;
+            self.depth = None;
+        }
+    }
+
+    /// The last frame's depth buffer, row-major from the top left: reversed depth, 0 where
+    /// nothing was drawn (the background). Needs [`TerrainRenderer::keep_depth`].
+    pub fn read_depth(&self) -> Result<Vec<f32>, super::GpuError> {
+        let (Some((texture, _)), true) = (&self.depth, self.keep_depth) else {
+            return Err(super::GpuError::Readback(
+                "no depth kept: call keep_depth(true) before rendering".into(),
+            ));
+        };
+        let bytes = super::offscreen::read_texture(&self.device, &self.queue, texture, 4)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+
     /// Frees `id`'s GPU resources.
     pub fn remove_tile(&mut self, id: TileId) {
         self.tiles.remove(&id);
@@ -588,7 +612,11 @@ impl TerrainRenderer {
                     view: depth,
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Clear(0.0),
-                        store: wgpu::StoreOp::Discard,
+                        store: if self.keep_depth {
+                            wgpu::StoreOp::Store
+                        } else {
+                            wgpu::StoreOp::Discard
+                        },
                     }),
                     stencil_ops: None,
                 }),
@@ -675,7 +703,11 @@ impl TerrainRenderer {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            usage: if self.keep_depth {
+                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC
+            } else {
+                wgpu::TextureUsages::RENDER_ATTACHMENT
+            },
             view_formats: &[],
         });
         let view = texture.create_view(&Default::default());

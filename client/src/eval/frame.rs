@@ -1,0 +1,223 @@
+//! A rendered frame as the metrics see it, and its measures against a reference.
+//!
+//! The renderer keeps the frame's depth buffer (reversed depth, 0 for the background); each
+//! pixel's depth, through the inverse of the camera's projection, gives the world point it
+//! shows ([`positions_from_depth`]). A frame drawn with a crack filler is compared with
+//! the same frame drawn without one: the pixels whose depth differs show the filler.
+
+use super::metrics::{self, ErrorStats, Pixel};
+use crate::render::Camera;
+use glam::{DVec3, DVec4};
+
+/// The world points of a `width` x `height` frame seen by `camera`, from its depth buffer
+/// (row-major from the top left, reversed depth, 0 where nothing was drawn), sampled at
+/// pixel centres.
+pub fn positions_from_depth(depth: &[f32], width: u32, height: u32, camera: &Camera) -> Vec<Pixel> {
+    let aspect = f64::from(width) / f64::from(height.max(1));
+    let inverse = camera.view_proj(aspect).inverse();
+    let eye = DVec3::from(camera.position);
+    depth
+        .iter()
+        .enumerate()
+        .map(|(i, &d)| {
+            if d <= 0.0 {
+                return None;
+            }
+            let (x, y) = ((i as u32 % width) as f64, (i as u32 / width) as f64);
+            let ndc = DVec4::new(
+                (x + 0.5) / f64::from(width) * 2.0 - 1.0,
+                1.0 - (y + 0.5) / f64::from(height) * 2.0,
+                f64::from(d),
+                1.0,
+            );
+            let p = inverse * ndc;
+            let relative = p.truncate() / p.w;
+            // Render space (east, up, south) back to world (east, south, up).
+            Some((eye + Camera::to_render(relative)).to_array())
+        })
+        .collect()
+}
+
+/// One frame's pixels as measured: colour, depth and the world points.
+#[derive(Debug, Clone)]
+pub struct Capture {
+    pub color: image::RgbaImage,
+    pub depth: Vec<f32>,
+    pub points: Vec<Pixel>,
+}
+
+impl Capture {
+    /// A capture of `color` and `depth` seen by `camera`.
+    pub fn new(color: image::RgbaImage, depth: Vec<f32>, camera: &Camera) -> Capture {
+        let points = positions_from_depth(&depth, color.width(), color.height(), camera);
+        Capture {
+            color,
+            depth,
+            points,
+        }
+    }
+
+    /// Pixels showing terrain (anything but the background).
+    pub fn terrain_pixels(&self) -> u64 {
+        self.points.iter().filter(|p| p.is_some()).count() as u64
+    }
+}
+
+/// A frame's measures against its reference.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameMeasures {
+    /// Screen-space geometric error of every pixel showing the surface or a filler.
+    pub error: ErrorStats,
+    /// Pixels where the reference shows terrain and the frame the background or a filler:
+    /// the cracks of the frame's mesh, filled or not.
+    pub crack_pixels: u64,
+    /// Of those, the pixels left showing the background.
+    pub hole_pixels: u64,
+    /// Pixels showing a crack filler.
+    pub filler_pixels: u64,
+    /// Pixels where the reference shows terrain.
+    pub reference_terrain_pixels: u64,
+    /// Colour PSNR against the reference, dB (infinite when identical).
+    pub psnr_db: f64,
+}
+
+/// Measures `frame` against `reference` (same camera and size). `unfilled_depth` is the
+/// depth of the same frame drawn without its crack filler (`None` when it has none): where
+/// the two depths differ, the filler shows. `true_height` gives the true surface's height.
+pub fn measure(
+    frame: &Capture,
+    unfilled_depth: Option<&[f32]>,
+    reference: &Capture,
+    camera: &Camera,
+    true_height: impl Fn(f64, f64) -> Option<f64>,
+    threshold_px: f64,
+) -> FrameMeasures {
+    let (width, height) = frame.color.dimensions();
+    let error = metrics::screen_space_error(
+        &frame.points,
+        width,
+        height,
+        camera,
+        true_height,
+        threshold_px,
+    );
+    let filler: Vec<bool> = match unfilled_depth {
+        Some(unfilled) => frame
+            .depth
+            .iter()
+            .zip(unfilled)
+            .map(|(a, b)| a != b)
+            .collect(),
+        None => vec![false; frame.depth.len()],
+    };
+    let hole_pixels = metrics::crack_pixels(&frame.points, &reference.points);
+    let covered = frame
+        .points
+        .iter()
+        .zip(&reference.points)
+        .zip(&filler)
+        .filter(|((f, r), filled)| **filled && f.is_some() && r.is_some())
+        .count() as u64;
+    FrameMeasures {
+        error,
+        crack_pixels: hole_pixels + covered,
+        hole_pixels,
+        filler_pixels: filler.iter().filter(|&&f| f).count() as u64,
+        reference_terrain_pixels: reference.terrain_pixels(),
+        psnr_db: metrics::psnr(&frame.color, &reference.color),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_is_turned_back_into_the_point_it_came_from() {
+        let camera = Camera::new([100.0, 200.0, 50.0], 0.7, -0.3);
+        let (w, h) = (40u32, 30u32);
+        let aspect = f64::from(w) / f64::from(h);
+        let m = camera.view_proj(aspect);
+        // Project known points, write their depth at their pixel, read them back.
+        let mut depth = vec![0.0f32; (w * h) as usize];
+        let mut expected = Vec::new();
+        for k in 0..20 {
+            let world = DVec3::new(
+                300.0 + 13.0 * f64::from(k),
+                400.0 + 7.0 * f64::from(k),
+                f64::from(k),
+            );
+            let clip = m * Camera::to_render(world - DVec3::from(camera.position)).extend(1.0);
+            let ndc = clip.truncate() / clip.w;
+            let px = ((ndc.x + 1.0) * 0.5 * f64::from(w)).floor();
+            let py = ((1.0 - ndc.y) * 0.5 * f64::from(h)).floor();
+            if !(0.0..f64::from(w)).contains(&px) || !(0.0..f64::from(h)).contains(&py) {
+                continue;
+            }
+            let i = (py as u32 * w + px as u32) as usize;
+            if depth[i] != 0.0 {
+                continue; // one point a pixel
+            }
+            depth[i] = ndc.z as f32;
+            expected.push((i, world, ndc.z));
+        }
+        assert!(expected.len() > 5);
+        let points = positions_from_depth(&depth, w, h, &camera);
+        for (i, world, _) in &expected {
+            let p = DVec3::from(points[*i].expect("drawn"));
+            // Same depth, pixel centre instead of the exact point: on the same view ray
+            // within half a pixel, at the same distance along the view axis.
+            let along = |q: DVec3| (q - DVec3::from(camera.position)).dot(camera.direction());
+            assert!(
+                (along(p) - along(*world)).abs() < 1e-3 * along(*world),
+                "{p} vs {world}"
+            );
+        }
+        assert_eq!(
+            points.iter().filter(|p| p.is_some()).count(),
+            expected.len()
+        );
+    }
+
+    fn capture(points: Vec<Pixel>, depth: Vec<f32>, grey: u8) -> Capture {
+        Capture {
+            color: image::RgbaImage::from_pixel(4, 1, image::Rgba([grey, grey, grey, 255])),
+            depth,
+            points,
+        }
+    }
+
+    #[test]
+    fn holes_and_filled_cracks_are_told_apart() {
+        let camera = Camera::new([0.0, 0.0, 100.0], 0.0, -0.4);
+        let ground = Some([300.0, 0.0, 0.0]);
+        let reference = capture(vec![ground; 4], vec![0.5; 4], 100);
+        // Pixel 1 is a hole; pixel 2 shows the filler (its depth differs from the unfilled
+        // frame's, where it was a hole too); pixels 0 and 3 are surface.
+        let frame = capture(
+            vec![ground, None, Some([300.0, 0.0, -40.0]), ground],
+            vec![0.5, 0.0, 0.4, 0.5],
+            100,
+        );
+        let unfilled = [0.5, 0.0, 0.0, 0.5];
+        // A 4 x 1 frame spans few pixels: a threshold of a twentieth of one.
+        let m = measure(
+            &frame,
+            Some(&unfilled),
+            &reference,
+            &camera,
+            |_, _| Some(0.0),
+            0.05,
+        );
+        assert_eq!((m.crack_pixels, m.hole_pixels, m.filler_pixels), (2, 1, 1));
+        assert_eq!(m.reference_terrain_pixels, 4);
+        // The filler pixel lies 40 m under the surface: the only one with an error.
+        assert_eq!(m.error.terrain_pixels, 3);
+        assert_eq!(m.error.above_threshold, 1);
+        // Against itself: nothing.
+        let same = measure(&reference, None, &reference, &camera, |_, _| Some(0.0), 1.0);
+        assert_eq!((same.crack_pixels, same.filler_pixels), (0, 0));
+        assert_eq!(same.error.max_px, 0.0);
+        assert!(same.psnr_db.is_infinite());
+    }
+}

@@ -1,0 +1,252 @@
+//! A measuring session: a scene streamed from a server and rendered offscreen, whose
+//! frames can be drawn with any method and measured against the reference at the same
+//! camera. The accuracy sweep and the stability matrix both run on it.
+
+use super::frame::{Capture, FrameMeasures, measure};
+use crate::fetch::TileClient;
+use crate::fetcher::{Fetcher, FetcherConfig};
+use crate::flight::FlightError;
+use crate::lod::budget::BudgetMode;
+use crate::method::MethodKind;
+use crate::page::PagerConfig;
+use crate::render::textures::extra_costs;
+use crate::render::{Camera, CrackFiller, Gpu, Offscreen};
+use crate::scene::{DrawReport, RenderConfig, Scene, Update, expected_tile_bytes};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use terrain_shared::Manifest;
+
+/// A scene, its fetcher and an offscreen target. See the module documentation.
+#[derive(Debug)]
+pub struct Session {
+    pub manifest: Arc<Manifest>,
+    pub scene: Scene,
+    pub fetcher: Fetcher,
+    pub gpu: Gpu,
+    pub target: Offscreen,
+    pub config: RenderConfig,
+    frame: u64,
+}
+
+/// One frame drawn and measured against its reference.
+#[derive(Debug, Clone)]
+pub struct Measured {
+    pub measures: FrameMeasures,
+    pub report: DrawReport,
+    /// Median of the timed draws, milliseconds (plan, render and the GPU's completion).
+    pub frame_ms: f64,
+    /// Median GPU time of the render pass, where the adapter has timestamps.
+    pub gpu_ms: Option<f64>,
+    pub capture: Capture,
+}
+
+/// Bytes the whole database holds with every texture level, as the scene counts them.
+pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
+    manifest
+        .tiles
+        .iter()
+        .map(|t| {
+            expected_tile_bytes(manifest, t, true).total()
+                + extra_costs(manifest, t).last().copied().unwrap_or(0)
+        })
+        .sum()
+}
+
+impl Session {
+    /// Connects to `server` and sets up a scene holding at most `memory_limit` bytes of tiles
+    /// (`None`: the whole database, with a margin), drawn by `config` into `size` frames.
+    /// Must run inside a multi-threaded tokio runtime.
+    pub async fn open(
+        server: &str,
+        memory_limit: Option<u64>,
+        config: RenderConfig,
+        size: (u32, u32),
+    ) -> Result<Session, FlightError> {
+        let client = TileClient::new(server)?;
+        let manifest = Arc::new(client.manifest().await?);
+        let gpu = Gpu::headless()?;
+        let target = Offscreen::new(&gpu, size.0, size.1);
+        let limit =
+            memory_limit.unwrap_or_else(|| whole_database_bytes(&manifest) / 10 * 11 + (1 << 20));
+        let pager = PagerConfig {
+            columns: manifest.grid.columns,
+            rows: manifest.grid.rows,
+            memory_limit: limit,
+            nearest_when_outside: true,
+        };
+        let mut scene = Scene::new(
+            Arc::clone(&manifest),
+            pager,
+            Some((
+                gpu.clone(),
+                crate::render::offscreen::OFFSCREEN_FORMAT,
+                config,
+            )),
+        );
+        scene.keep_depth(true);
+        let fetcher = Fetcher::new(
+            client,
+            Arc::clone(&manifest),
+            FetcherConfig::default(),
+            tokio::runtime::Handle::current(),
+        );
+        Ok(Session {
+            manifest,
+            scene,
+            fetcher,
+            gpu,
+            target,
+            config,
+            frame: 0,
+        })
+    }
+
+    /// The centre of the terrain at its highest point: where to stand to page in all of it.
+    pub fn centre(&self) -> [f64; 3] {
+        [
+            self.manifest.extent_m[0] / 2.0,
+            self.manifest.extent_m[1] / 2.0,
+            self.manifest.heights.max_m + 100.0,
+        ]
+    }
+
+    /// Paging, streaming and textures for a viewpoint at `position`, one frame's worth.
+    pub async fn update(&mut self, position: [f64; 3]) -> Result<Update, FlightError> {
+        tokio::task::yield_now().await;
+        let update = self.scene.update(&mut self.fetcher, self.frame, position)?;
+        self.frame += 1;
+        Ok(update)
+    }
+
+    /// Updates at `position` until the scene has settled (nothing in flight, textures at
+    /// their targets) or `timeout` passes; a frame is drawn from `camera` each time so that
+    /// textures are shared by importance. Returns whether it settled.
+    pub async fn settle(
+        &mut self,
+        position: [f64; 3],
+        camera: &Camera,
+        timeout: Duration,
+    ) -> Result<bool, FlightError> {
+        let started = Instant::now();
+        loop {
+            self.update(position).await?;
+            self.scene.draw(&self.target.view, camera, Instant::now());
+            if self.scene.settled() {
+                return Ok(true);
+            }
+            if started.elapsed() > timeout {
+                return Ok(false);
+            }
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    }
+
+    /// Draws the frame seen from `camera` with the session's current configuration.
+    pub fn draw(&mut self, camera: &Camera) -> Option<DrawReport> {
+        self.scene.draw(&self.target.view, camera, Instant::now())
+    }
+
+    /// Draws with `config` and reads the frame back.
+    pub fn capture(
+        &mut self,
+        camera: &Camera,
+        config: RenderConfig,
+    ) -> Result<(Capture, DrawReport), FlightError> {
+        self.reconfigure(config);
+        let report = self.draw(camera).unwrap_or_default();
+        let color = self.target.read(&self.gpu)?;
+        let depth = self
+            .scene
+            .read_depth()
+            .unwrap_or_else(|| Err(crate::render::GpuError::Readback("no renderer".into())))?;
+        Ok((Capture::new(color, depth, camera), report))
+    }
+
+    /// The reference frame at `camera`: every visible resident tile at full resolution.
+    pub fn reference(&mut self, camera: &Camera) -> Result<(Capture, DrawReport), FlightError> {
+        let config = RenderConfig {
+            method: MethodKind::Reference,
+            budget: BudgetMode::Fixed(u32::MAX),
+            ..self.config
+        };
+        self.capture(camera, config)
+    }
+
+    /// Draws `camera`'s frame with `config` `repeats` times (timing each), reads the last one
+    /// back and measures it against `reference`. With a crack filler the frame is also drawn
+    /// without it, to tell filler pixels from surface pixels. A predicted (adaptive) budget
+    /// is frozen at its current value first, so that every draw of the frame plans the same
+    /// masks.
+    pub fn measure(
+        &mut self,
+        camera: &Camera,
+        config: RenderConfig,
+        reference: &Capture,
+        threshold_px: f64,
+        repeats: u32,
+    ) -> Result<Measured, FlightError> {
+        let config = match (config.budget, self.scene.budget()) {
+            (BudgetMode::Adaptive { .. }, Some(now)) => RenderConfig {
+                budget: BudgetMode::Fixed(now),
+                ..config
+            },
+            _ => config,
+        };
+        let unfilled = if config.method.uses_filler() && config.filler != CrackFiller::None {
+            let bare = RenderConfig {
+                filler: CrackFiller::None,
+                ..config
+            };
+            Some(self.capture(camera, bare)?.0.depth)
+        } else {
+            None
+        };
+        self.reconfigure(config);
+        let mut times = Vec::new();
+        let mut gpu_times = Vec::new();
+        for _ in 1..repeats.max(1) {
+            if let Some(r) = self.draw(camera) {
+                times.push(r.draw_ms);
+                gpu_times.extend(r.stats.gpu_ms);
+            }
+        }
+        let (capture, report) = self.capture(camera, config)?;
+        times.push(report.draw_ms);
+        gpu_times.extend(report.stats.gpu_ms);
+        let scene = &self.scene;
+        let measures = measure(
+            &capture,
+            unfilled.as_deref(),
+            reference,
+            camera,
+            |x, y| scene.surface_height(x, y),
+            threshold_px,
+        );
+        Ok(Measured {
+            measures,
+            report,
+            frame_ms: median(&mut times),
+            gpu_ms: (!gpu_times.is_empty()).then(|| median(&mut gpu_times)),
+            capture,
+        })
+    }
+
+    fn reconfigure(&mut self, config: RenderConfig) {
+        self.scene.reconfigure(config);
+    }
+
+    /// Stops every request in flight.
+    pub fn close(&mut self) {
+        let all: Vec<_> = self.manifest.tiles.iter().map(|t| t.id()).collect();
+        self.fetcher.cancel(&all);
+    }
+}
+
+/// Median of `values` (0 for none); sorts them.
+pub fn median(values: &mut [f64]) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}

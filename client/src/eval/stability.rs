@@ -1,0 +1,747 @@
+//! `terrain-client bench stability`: named scenarios where level-of-detail methods are
+//! known to fail, run with every method and crack filler.
+//!
+//! Each run streams its own scene from the server (paging, fetching, textures, the
+//! frame-rate controller: everything a flight does) along the scenario's cameras, then
+//! lets the last view settle and measures it against the reference at that camera (every
+//! resident tile at full resolution). A run that returns an error or panics is reported as
+//! failed, and the others go on. Writes `stability.md` (the table), `stability.csv`, and per
+//! scenario a picture: the reference, then each method's frame with its cracks in red and
+//! its filler in yellow.
+
+use super::frame::Capture;
+use super::session::{Session, median, whole_database_bytes};
+use crate::flight::{FlightError, parse_size};
+use crate::lod::budget::BudgetMode;
+use crate::memory::MemorySize;
+use crate::method::MethodKind;
+use crate::render::{Camera, CrackFiller};
+use crate::scene::{RenderConfig, expected_tile_bytes};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use terrain_shared::Manifest;
+
+/// Arguments of `terrain-client bench stability`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct StabilityArgs {
+    /// Base URL of the server for the scenarios of any terrain.
+    #[arg(long, env = "TERRAIN_SERVER")]
+    pub server: String,
+    /// Servers of named datasets for the scenarios that need them, NAME=URL (repeatable):
+    /// grand_canyon_hoppe, srtm_geotiff, himalaya_4097. Scenarios without theirs are listed
+    /// as not run.
+    #[arg(long = "data", value_parser = parse_named)]
+    pub data: Vec<(String, String)>,
+    /// Directory for stability.md, stability.csv and the pictures; created if missing.
+    #[arg(long, default_value = "out/stability")]
+    pub out: PathBuf,
+    /// Scenarios to run, comma-separated (default: all; see --list).
+    #[arg(long, value_delimiter = ',')]
+    pub scenarios: Vec<String>,
+    /// List the scenarios and exit.
+    #[arg(long)]
+    pub list: bool,
+    /// Methods, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "strip-masks")]
+    pub methods: Vec<MethodKind>,
+    /// Crack fillers of the methods that use one, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "none,skirts,planar-shadow"
+    )]
+    pub fillers: Vec<CrackFiller>,
+    /// Frames streamed and drawn per run before the measured one.
+    #[arg(long, default_value_t = 40)]
+    pub frames: u32,
+    /// Memory budget of the scenarios that do not set their own.
+    #[arg(long, default_value = "64MiB")]
+    pub memory: MemorySize,
+    /// Frame size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "480x270", value_parser = parse_size)]
+    pub size: (u32, u32),
+}
+
+impl StabilityArgs {
+    /// The defaults of the command line against `server`, writing to `out`.
+    pub fn new(server: impl Into<String>, out: impl Into<PathBuf>) -> StabilityArgs {
+        StabilityArgs {
+            server: server.into(),
+            data: Vec::new(),
+            out: out.into(),
+            scenarios: Vec::new(),
+            list: false,
+            methods: vec![MethodKind::StripMasks],
+            fillers: vec![
+                CrackFiller::None,
+                CrackFiller::Skirts,
+                CrackFiller::PlanarShadow,
+            ],
+            frames: 40,
+            memory: MemorySize(64 << 20),
+            size: (480, 270),
+        }
+    }
+}
+
+fn parse_named(text: &str) -> Result<(String, String), String> {
+    text.split_once('=')
+        .filter(|(n, u)| !n.is_empty() && !u.is_empty())
+        .map(|(n, u)| (n.to_string(), u.to_string()))
+        .ok_or_else(|| {
+            format!("{text:?}: expected NAME=URL, e.g. himalaya_4097=http://127.0.0.1:8081")
+        })
+}
+
+/// What a scenario does to the camera, the memory or the budget.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Kind {
+    /// Low over the terrain, looking this many degrees below the horizon.
+    Grazing(f64),
+    /// Looking 15 degrees above the horizon.
+    AboveHorizon,
+    /// 50 m below the lowest point under the camera.
+    BelowSurface,
+    /// Two terrain widths west of the terrain, looking at it.
+    FarOutside,
+    /// A memory budget of a third of one belt (three tiles' worth).
+    MemoryBelowOneBelt,
+    /// A fixed budget of 100 triangles.
+    Budget100,
+    /// Jumps between opposite corners every quarter of the frames.
+    Jump,
+    /// The default lap at a bird's eye (for datasets of their own).
+    Overview,
+    /// Looking down at the highest tile from a third of a tile south of it.
+    Relief,
+    /// Over the flat (zero-error) tile nearest the terrain's centre, from 1.5 tiles west.
+    FlatSea,
+}
+
+/// A named scenario.
+#[derive(Debug, Clone, Copy)]
+pub struct Scenario {
+    pub name: &'static str,
+    /// Dataset it needs (`--data NAME=URL`); `None` runs on `--server`.
+    pub dataset: Option<&'static str>,
+    pub what: &'static str,
+    pub kind: Kind,
+}
+
+/// Every scenario, in table order.
+pub const SCENARIOS: &[Scenario] = &[
+    Scenario {
+        name: "grazing-1deg",
+        dataset: None,
+        what: "low over the terrain, looking 1 degree down",
+        kind: Kind::Grazing(1.0),
+    },
+    Scenario {
+        name: "grazing-3deg",
+        dataset: None,
+        what: "low over the terrain, looking 3 degrees down",
+        kind: Kind::Grazing(3.0),
+    },
+    Scenario {
+        name: "grazing-5deg",
+        dataset: None,
+        what: "low over the terrain, looking 5 degrees down",
+        kind: Kind::Grazing(5.0),
+    },
+    Scenario {
+        name: "above-horizon",
+        dataset: None,
+        what: "looking 15 degrees above the horizon",
+        kind: Kind::AboveHorizon,
+    },
+    Scenario {
+        name: "below-surface",
+        dataset: None,
+        what: "camera 50 m under the terrain",
+        kind: Kind::BelowSurface,
+    },
+    Scenario {
+        name: "far-outside",
+        dataset: None,
+        what: "two terrain widths outside, looking at it",
+        kind: Kind::FarOutside,
+    },
+    Scenario {
+        name: "memory-below-one-belt",
+        dataset: None,
+        what: "memory for three tiles, less than one belt",
+        kind: Kind::MemoryBelowOneBelt,
+    },
+    Scenario {
+        name: "budget-100",
+        dataset: None,
+        what: "a fixed budget of 100 triangles",
+        kind: Kind::Budget100,
+    },
+    Scenario {
+        name: "jump",
+        dataset: None,
+        what: "jumps between opposite corners",
+        kind: Kind::Jump,
+    },
+    Scenario {
+        name: "terraced-8bit",
+        dataset: Some("grand_canyon_hoppe"),
+        what: "8-bit heights in 10 m terraces",
+        kind: Kind::Overview,
+    },
+    Scenario {
+        name: "voids",
+        dataset: Some("srtm_geotiff"),
+        what: "SRTM with filled voids",
+        kind: Kind::Overview,
+    },
+    Scenario {
+        name: "extreme-relief",
+        dataset: Some("himalaya_4097"),
+        what: "the highest tile (Everest) from a third of a tile away",
+        kind: Kind::Relief,
+    },
+    Scenario {
+        name: "flat-sea",
+        dataset: Some("himalaya_4097"),
+        what: "over the zero (sea) areas",
+        kind: Kind::FlatSea,
+    },
+];
+
+/// One run: a scenario with one method and filler.
+#[derive(Debug, Clone)]
+pub struct RunResult {
+    pub scenario: &'static str,
+    pub method: String,
+    pub frames: u32,
+    pub crack_pixels: u64,
+    pub hole_pixels: u64,
+    pub reference_terrain_pixels: u64,
+    pub max_error_px: f64,
+    pub above_threshold_pct: f64,
+    pub frame_ms_median: f64,
+    pub frame_ms_p95: f64,
+    pub frame_ms_max: f64,
+    pub peak_resident_bytes: u64,
+    pub memory_limit_bytes: u64,
+    /// Flat (zero-error) tiles drawn in the measured frame, and how many at the coarsest mask.
+    pub flat_tiles: (u32, u32),
+    /// Triangles used and needed in the measured frame.
+    pub triangles: (u64, u64),
+    /// Why it failed: an error or a panic.
+    pub failure: Option<String>,
+    pub picture: Option<image::RgbaImage>,
+    pub reference: Option<image::RgbaImage>,
+}
+
+impl RunResult {
+    pub fn within_memory(&self) -> bool {
+        self.peak_resident_bytes <= self.memory_limit_bytes
+    }
+}
+
+/// What the matrix found.
+#[derive(Debug, Clone, Default)]
+pub struct StabilityReport {
+    pub runs: Vec<RunResult>,
+    /// Scenarios not run, with why.
+    pub skipped: Vec<(String, String)>,
+    pub adapter: String,
+    pub files: Vec<PathBuf>,
+}
+
+/// Runs the matrix. Must run inside a multi-threaded tokio runtime.
+pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
+    for name in &args.scenarios {
+        if !SCENARIOS.iter().any(|s| s.name == name) {
+            return Err(FlightError::BadOption(format!(
+                "unknown scenario {name:?}; --list shows them"
+            )));
+        }
+    }
+    if args.frames == 0 || args.methods.is_empty() || args.fillers.is_empty() {
+        return Err(FlightError::BadOption(
+            "--frames, --methods and --fillers must not be empty".into(),
+        ));
+    }
+    let chosen: Vec<&Scenario> = SCENARIOS
+        .iter()
+        .filter(|s| args.scenarios.is_empty() || args.scenarios.iter().any(|n| n == s.name))
+        .collect();
+    let mut variants = Vec::new();
+    for &method in &args.methods {
+        if method.uses_filler() {
+            variants.extend(args.fillers.iter().map(|&f| (method, f)));
+        } else {
+            variants.push((method, CrackFiller::None));
+        }
+    }
+    let mut report = StabilityReport::default();
+    let bar = super::accuracy::progress("stability", (chosen.len() * variants.len()) as u64);
+    for scenario in chosen {
+        let server = match scenario.dataset {
+            None => args.server.clone(),
+            Some(name) => match args.data.iter().find(|(n, _)| n == name) {
+                Some((_, url)) => url.clone(),
+                None => {
+                    report.skipped.push((
+                        scenario.name.to_string(),
+                        format!("no --data {name}=URL given"),
+                    ));
+                    bar.inc(variants.len() as u64);
+                    continue;
+                }
+            },
+        };
+        for &(method, filler) in &variants {
+            bar.set_message(format!("{} {}", scenario.name, filler.name()));
+            let (one, server, args2) = (*scenario, server.clone(), args.clone());
+            // Its own task: a panic is caught and reported as the run's failure.
+            let joined =
+                tokio::spawn(async move { run_one(&one, &server, &args2, method, filler).await })
+                    .await;
+            let result = match joined {
+                Ok(Ok((r, adapter))) => {
+                    report.adapter = adapter;
+                    r
+                }
+                Ok(Err(e)) => failed(scenario, method, filler, format!("error: {e}")),
+                Err(e) if e.is_panic() => {
+                    let panic = e.into_panic();
+                    let message = panic
+                        .downcast_ref::<String>()
+                        .cloned()
+                        .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                        .unwrap_or_default();
+                    failed(scenario, method, filler, format!("panic: {message}"))
+                }
+                Err(e) => failed(scenario, method, filler, format!("cancelled: {e}")),
+            };
+            report.runs.push(result);
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    write(args, &mut report)?;
+    Ok(report)
+}
+
+fn variant_name(method: MethodKind, filler: CrackFiller) -> String {
+    if method.uses_filler() {
+        format!("{}/{}", method.name(), filler.name())
+    } else {
+        method.name().to_string()
+    }
+}
+
+fn failed(s: &Scenario, method: MethodKind, filler: CrackFiller, why: String) -> RunResult {
+    RunResult {
+        scenario: s.name,
+        method: variant_name(method, filler),
+        frames: 0,
+        crack_pixels: 0,
+        hole_pixels: 0,
+        reference_terrain_pixels: 0,
+        max_error_px: 0.0,
+        above_threshold_pct: 0.0,
+        frame_ms_median: 0.0,
+        frame_ms_p95: 0.0,
+        frame_ms_max: 0.0,
+        peak_resident_bytes: 0,
+        memory_limit_bytes: 0,
+        flat_tiles: (0, 0),
+        triangles: (0, 0),
+        failure: Some(why),
+        picture: None,
+        reference: None,
+    }
+}
+
+/// The cameras of `kind` over `manifest`, `frames` of them.
+pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
+    let [w, h] = manifest.extent_m;
+    let cells = f64::from(manifest.tile_size - 1);
+    let (tile_x, tile_y) = (cells * manifest.spacing_m[0], cells * manifest.spacing_m[1]);
+    let tile_m = tile_x.min(tile_y);
+    let centre_of = |t: &terrain_shared::TileRecord| {
+        [
+            (f64::from(t.x) + 0.5) * tile_x,
+            (f64::from(t.y) + 0.5) * tile_y,
+        ]
+    };
+    let under = |x: f64, y: f64| {
+        let tx = ((x / tile_x) as u32).min(manifest.grid.columns - 1);
+        let ty = ((y / tile_y) as u32).min(manifest.grid.rows - 1);
+        manifest.tile(terrain_shared::TileId::new(tx, ty))
+    };
+    let f = |i: u32| f64::from(i) / f64::from(frames.max(2) - 1);
+    let top = manifest.heights.max_m;
+    (0..frames)
+        .map(|i| match kind {
+            Kind::Grazing(deg) => {
+                // Eastwards over a tile, 30 m above the highest point beneath.
+                let (x, y) = (0.3 * w + f(i) * tile_m, 0.5 * h);
+                let z = under(x, y).map_or(top, |t| f64::from(t.max_m)) + 30.0;
+                Camera::new([x, y, z], 0.0, -deg.to_radians())
+            }
+            Kind::AboveHorizon => {
+                let (x, y) = (0.3 * w + f(i) * tile_m, 0.5 * h);
+                let z = under(x, y).map_or(top, |t| f64::from(t.max_m)) + 200.0;
+                Camera::new([x, y, z], 0.0, 15f64.to_radians())
+            }
+            Kind::BelowSurface => {
+                let (x, y) = (0.5 * w, 0.5 * h);
+                let z = under(x, y).map_or(0.0, |t| f64::from(t.min_m)) - 50.0;
+                Camera::new([x, y, z], f(i) * std::f64::consts::TAU, -10f64.to_radians())
+            }
+            Kind::FarOutside => Camera::looking_at(
+                [-2.0 * w.max(h), 0.5 * h, top + 0.2 * w.max(h)],
+                [0.5 * w, 0.5 * h, manifest.heights.min_m],
+            ),
+            Kind::Jump => {
+                let corner = (i * 4 / frames.max(1)).is_multiple_of(2);
+                let (x, y) = if corner {
+                    (0.1 * w, 0.1 * h)
+                } else {
+                    (0.9 * w, 0.9 * h)
+                };
+                Camera::looking_at(
+                    [x, y, top + 0.05 * w],
+                    [0.5 * w, 0.5 * h, manifest.heights.min_m],
+                )
+            }
+            Kind::MemoryBelowOneBelt | Kind::Budget100 | Kind::Overview => {
+                let (x, y) = (0.2 * w + 0.6 * f(i) * w, 0.2 * h + 0.6 * f(i) * h);
+                Camera::new(
+                    [x, y, top + 0.05 * w.max(h)],
+                    std::f64::consts::FRAC_PI_4,
+                    -25f64.to_radians(),
+                )
+            }
+            Kind::Relief => {
+                let peak = manifest
+                    .tiles
+                    .iter()
+                    .max_by(|a, b| a.max_m.total_cmp(&b.max_m))
+                    .map_or([0.5 * w, 0.5 * h], centre_of);
+                // A third of a tile south of the highest tile's centre, 500 m above the
+                // highest point, sweeping a fifth of a tile west to east.
+                let from = [
+                    peak[0] + (f(i) - 0.5) * 0.2 * tile_m,
+                    peak[1] + tile_m / 3.0,
+                ];
+                Camera::looking_at(
+                    [from[0], from[1], top + 500.0],
+                    [peak[0], peak[1], top - 3000.0],
+                )
+            }
+            Kind::FlatSea => {
+                let flat = manifest
+                    .tiles
+                    .iter()
+                    .filter(|t| t.mask_errors_m.iter().all(|&e| e == 0.0))
+                    .min_by_key(|t| {
+                        let (cx, cy) = (manifest.grid.columns / 2, manifest.grid.rows / 2);
+                        t.x.abs_diff(cx) + t.y.abs_diff(cy)
+                    })
+                    .map_or([0.5 * w, 0.5 * h], centre_of);
+                Camera::looking_at(
+                    [
+                        flat[0] - 1.5 * tile_m,
+                        flat[1] + f(i) * tile_m,
+                        0.4 * tile_m,
+                    ],
+                    [flat[0], flat[1], 0.0],
+                )
+            }
+        })
+        .collect()
+}
+
+async fn run_one(
+    scenario: &Scenario,
+    server: &str,
+    args: &StabilityArgs,
+    method: MethodKind,
+    filler: CrackFiller,
+) -> Result<(RunResult, String), FlightError> {
+    let config = RenderConfig {
+        method,
+        filler,
+        budget: if scenario.kind == Kind::Budget100 {
+            BudgetMode::Fixed(100)
+        } else {
+            BudgetMode::default()
+        },
+        ..RenderConfig::default()
+    };
+    let client = crate::fetch::TileClient::new(server)?;
+    let manifest = client.manifest().await?;
+    let limit = if scenario.kind == Kind::MemoryBelowOneBelt {
+        let one = manifest
+            .tiles
+            .iter()
+            .map(|t| expected_tile_bytes(&manifest, t, true).total())
+            .max()
+            .unwrap_or(0);
+        3 * one
+    } else {
+        args.memory.0.min(whole_database_bytes(&manifest) * 2)
+    };
+    let mut session = Session::open(server, Some(limit), config, args.size).await?;
+    let cams = cameras(scenario.kind, &session.manifest, args.frames);
+    let mut times = Vec::new();
+    let mut peak = 0;
+    for camera in &cams {
+        let started = Instant::now();
+        session.update(camera.position).await?;
+        session.scene.draw(&session.target.view, camera, started);
+        times.push(started.elapsed().as_secs_f64() * 1e3);
+        peak = peak.max(session.scene.resident_bytes());
+    }
+    let last = *cams.last().expect("at least one frame");
+    session
+        .settle(last.position, &last, Duration::from_secs(20))
+        .await?;
+    peak = peak.max(session.scene.resident_bytes());
+    // The measured frame keeps the budget the controller had reached (the reference's
+    // drawing must not reset it).
+    let frozen = RenderConfig {
+        budget: BudgetMode::Fixed(session.scene.budget().unwrap_or(u32::MAX)),
+        ..config
+    };
+    let (reference, _) = session.reference(&last)?;
+    let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
+    peak = peak.max(session.scene.resident_bytes());
+    let plan = &measured.report.plan;
+    let masks_coarsest = terrain_shared::mask::level_count(session.manifest.tile_size) - 1;
+    let mut flat = (0, 0);
+    for d in &plan.draws {
+        if let Some(t) = session.manifest.tile(d.id)
+            && t.mask_errors_m.iter().all(|&e| e == 0.0)
+        {
+            flat.0 += 1;
+            flat.1 += u32::from(d.level == masks_coarsest);
+        }
+    }
+    session.close();
+    let mut sorted = times.clone();
+    let p95 = {
+        sorted.sort_by(f64::total_cmp);
+        sorted[(sorted.len() * 95 / 100).min(sorted.len() - 1)]
+    };
+    let m = &measured.measures;
+    Ok((
+        RunResult {
+            scenario: scenario.name,
+            method: variant_name(method, filler),
+            frames: cams.len() as u32 + 1,
+            crack_pixels: m.crack_pixels,
+            hole_pixels: m.hole_pixels,
+            reference_terrain_pixels: m.reference_terrain_pixels,
+            max_error_px: m.error.max_px,
+            above_threshold_pct: 100.0 * m.error.share_above(),
+            frame_ms_median: median(&mut times),
+            frame_ms_p95: p95,
+            frame_ms_max: sorted.last().copied().unwrap_or(0.0),
+            peak_resident_bytes: peak,
+            memory_limit_bytes: limit,
+            flat_tiles: flat,
+            triangles: (
+                measured.report.stats.triangles,
+                measured.report.triangles_needed,
+            ),
+            failure: None,
+            picture: Some(marked(&measured.capture, &reference)),
+            reference: Some(reference.color.clone()),
+        },
+        session.gpu.description(),
+    ))
+}
+
+/// `frame` with its holes (background where the reference has terrain) painted red.
+fn marked(frame: &Capture, reference: &Capture) -> image::RgbaImage {
+    let mut image = frame.color.clone();
+    for (i, (f, r)) in frame.points.iter().zip(&reference.points).enumerate() {
+        if f.is_none() && r.is_some() {
+            let (x, y) = (i as u32 % image.width(), i as u32 / image.width());
+            image.put_pixel(x, y, image::Rgba([255, 0, 0, 255]));
+        }
+    }
+    image
+}
+
+fn mib(b: u64) -> f64 {
+    b as f64 / 1048576.0
+}
+
+/// The table as Markdown, images linked from `images/`.
+pub fn markdown(report: &StabilityReport) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "| scenario | method | crack px (% of terrain) | holes px | max error (px) | > 1 px (%) | frame ms median / p95 / max | peak memory / limit (MiB) | flat tiles at coarsest | triangles used / needed | result |"
+    );
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+    for r in &report.runs {
+        if let Some(why) = &r.failure {
+            let _ = writeln!(
+                s,
+                "| {} | {} | | | | | | | | | **failed**: {} |",
+                r.scenario,
+                r.method,
+                why.replace('|', "/")
+            );
+            continue;
+        }
+        let pct = 100.0 * r.crack_pixels as f64 / (r.reference_terrain_pixels as f64).max(1.0);
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} ({:.2}%) | {} | {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} {} | {} | {} / {} | ok |",
+            r.scenario,
+            r.method,
+            r.crack_pixels,
+            pct,
+            r.hole_pixels,
+            r.max_error_px,
+            r.above_threshold_pct,
+            r.frame_ms_median,
+            r.frame_ms_p95,
+            r.frame_ms_max,
+            mib(r.peak_resident_bytes),
+            mib(r.memory_limit_bytes),
+            if r.within_memory() {
+                "(within)"
+            } else {
+                "(**over**)"
+            },
+            if r.flat_tiles.0 == 0 {
+                "-".to_string()
+            } else {
+                format!("{} of {}", r.flat_tiles.1, r.flat_tiles.0)
+            },
+            r.triangles.0,
+            r.triangles.1,
+        );
+    }
+    for (name, why) in &report.skipped {
+        let _ = writeln!(s, "| {name} | all | | | | | | | | | not run: {why} |");
+    }
+    s
+}
+
+fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), FlightError> {
+    let out = &args.out;
+    let images = out.join("images");
+    let write_err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| FlightError::Write { path, source }
+    };
+    std::fs::create_dir_all(&images).map_err(write_err(&images))?;
+    let mut md = markdown(report);
+    md.push_str(
+        "\nPictures: the reference (left), then each method's measured frame, holes in red.\n\n",
+    );
+    let mut scenarios: Vec<&str> = report.runs.iter().map(|r| r.scenario).collect();
+    scenarios.dedup();
+    for name in scenarios {
+        let runs: Vec<&RunResult> = report.runs.iter().filter(|r| r.scenario == name).collect();
+        let Some(reference) = runs.iter().find_map(|r| r.reference.as_ref()) else {
+            continue;
+        };
+        let mut tiles = vec![reference.clone()];
+        tiles.extend(runs.iter().filter_map(|r| r.picture.clone()));
+        let (w, h) = reference.dimensions();
+        let mut strip = image::RgbaImage::from_pixel(
+            w * tiles.len() as u32 + 4 * (tiles.len() as u32 - 1),
+            h,
+            image::Rgba([255, 255, 255, 255]),
+        );
+        for (k, t) in tiles.iter().enumerate() {
+            image::imageops::overlay(&mut strip, t, i64::from(k as u32 * (w + 4)), 0);
+        }
+        let file = images.join(format!("{name}.png"));
+        strip.save(&file).map_err(|e| FlightError::Image {
+            path: file.clone(),
+            message: e.to_string(),
+        })?;
+        let labels: Vec<String> = std::iter::once("reference".to_string())
+            .chain(
+                runs.iter()
+                    .filter(|r| r.picture.is_some())
+                    .map(|r| r.method.clone()),
+            )
+            .collect();
+        let _ = writeln!(
+            md,
+            "**{name}** ({}): ![{name}](images/{name}.png)\n",
+            labels.join(", ")
+        );
+        report.files.push(file);
+    }
+    let md_path = out.join("stability.md");
+    std::fs::write(&md_path, &md).map_err(write_err(&md_path))?;
+    let mut csv = String::from(
+        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,memory_limit_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed\n",
+    );
+    for r in &report.runs {
+        let _ = writeln!(
+            csv,
+            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{}",
+            r.scenario,
+            r.method,
+            r.failure.as_deref().unwrap_or("").replace([',', '\n'], ";"),
+            r.crack_pixels,
+            r.hole_pixels,
+            r.reference_terrain_pixels,
+            r.max_error_px,
+            r.above_threshold_pct,
+            r.frame_ms_median,
+            r.frame_ms_p95,
+            r.frame_ms_max,
+            r.peak_resident_bytes,
+            r.memory_limit_bytes,
+            r.flat_tiles.0,
+            r.flat_tiles.1,
+            r.triangles.0,
+            r.triangles.1
+        );
+    }
+    let csv_path = out.join("stability.csv");
+    std::fs::write(&csv_path, csv).map_err(write_err(&csv_path))?;
+    report.files.insert(0, csv_path);
+    report.files.insert(0, md_path);
+    Ok(())
+}
+
+impl std::fmt::Display for StabilityReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "stability matrix, adapter {}\n", self.adapter)?;
+        write!(f, "{}", markdown(self))?;
+        write!(f, "\nwrote")?;
+        for file in &self.files {
+            write!(f, " {}", file.display())?;
+        }
+        writeln!(f)
+    }
+}
+
+/// Names and descriptions of the scenarios, one a line.
+pub fn list() -> String {
+    SCENARIOS
+        .iter()
+        .map(|s| {
+            format!(
+                "{:<22} {}{}\n",
+                s.name,
+                s.what,
+                s.dataset
+                    .map_or(String::new(), |d| format!(" (needs --data {d}=URL)"))
+            )
+        })
+        .collect()
+}

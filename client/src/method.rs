@@ -1,0 +1,177 @@
+//! The seam between the scene and a level-of-detail method.
+//!
+//! Each frame the scene hands the method what it knows (the camera, the viewport, the
+//! resident tiles as the manifest describes them, the frame's triangle budget) and the
+//! renderer holding those tiles on the GPU; the method decides what to draw, draws it into
+//! the target and says what it drew ([`MethodOutput`]). The scene does not know how.
+//!
+//! - **Per-tile methods** (strip masks here; GeoMipMaps) choose an index set per visible
+//!   tile and draw it with [`TerrainRenderer::render`], whose vertex shader turns sample
+//!   indices into positions.
+//! - **Screen-grid methods** (a projected grid draws one screen-sized mesh) keep their own
+//!   GPU state, fed by [`LodMethod::tile_resident`] and [`LodMethod::tile_evicted`] as tiles
+//!   come and go, and draw it into the same target; their [`FramePlan`] has no per-tile
+//!   draws.
+//!
+//! The **reference** of the accuracy measures ([`crate::eval`]) is a method too: every
+//! visible resident tile at the finest mask, no budget, no filler ([`MethodKind::Reference`]).
+
+use crate::lod::strips::MaskSet;
+use crate::render::plan::{self, Candidate, FramePlan, Layout, LodSettings};
+use crate::render::{Camera, CrackFiller, RenderStats, TerrainRenderer};
+use std::sync::Arc;
+use std::time::Instant;
+use terrain_shared::{Heights, TileId};
+
+/// What a method is told about the frame.
+#[derive(Debug, Clone, Copy)]
+pub struct MethodInput<'a> {
+    pub camera: &'a Camera,
+    /// Width and height of the target, pixels.
+    pub viewport: [u32; 2],
+    pub layout: &'a Layout,
+    /// The resident tiles.
+    pub tiles: &'a [Candidate<'a>],
+    /// The frame's triangle budget: the frame-rate controller's, or a fixed one.
+    pub budget: u32,
+}
+
+/// What a method drew.
+#[derive(Debug, Clone, Default)]
+pub struct MethodOutput {
+    pub plan: FramePlan,
+    pub stats: RenderStats,
+    /// CPU time of the method's decisions (culling, error and budget), milliseconds.
+    pub lod_ms: f64,
+}
+
+/// A level-of-detail method (see the module documentation).
+pub trait LodMethod: std::fmt::Debug + Send {
+    /// Its name in tables and charts, e.g. `strip-masks/planar-shadow`.
+    fn name(&self) -> String;
+
+    /// Decides and draws one frame into `target` (cleared first).
+    fn draw(
+        &mut self,
+        input: &MethodInput<'_>,
+        renderer: &mut TerrainRenderer,
+        target: &wgpu::TextureView,
+    ) -> MethodOutput;
+
+    /// A tile became resident (for methods keeping their own copy of the terrain).
+    fn tile_resident(&mut self, _id: TileId, _heights: &Heights) {}
+
+    /// A tile was evicted.
+    fn tile_evicted(&mut self, _id: TileId) {}
+}
+
+/// The methods a flight or a benchmark can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum MethodKind {
+    /// Strip masks: a global triangle budget shared by importance, one precomputed strip
+    /// per mask level, cracks filled by the crack filler.
+    #[default]
+    StripMasks,
+    /// Every visible tile at full resolution: no budget, no filler. What the accuracy
+    /// measures compare against.
+    Reference,
+}
+
+impl MethodKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            MethodKind::StripMasks => "strip-masks",
+            MethodKind::Reference => "reference",
+        }
+    }
+
+    /// Whether the method fills cracks with a [`CrackFiller`] (the others are crack-free
+    /// by construction, or have no tiles).
+    pub fn uses_filler(self) -> bool {
+        matches!(self, MethodKind::StripMasks)
+    }
+}
+
+/// Builds the method `kind` with the given settings, sharing `masks` with the renderer.
+pub fn build(
+    kind: MethodKind,
+    lod: LodSettings,
+    filler: CrackFiller,
+    masks: Arc<MaskSet>,
+) -> Box<dyn LodMethod> {
+    match kind {
+        MethodKind::StripMasks => Box::new(StripMasks {
+            lod,
+            filler,
+            masks,
+            reference: false,
+        }),
+        MethodKind::Reference => Box::new(StripMasks {
+            lod: LodSettings {
+                cap_at_needed: false,
+                ..lod
+            },
+            filler: CrackFiller::None,
+            masks,
+            reference: true,
+        }),
+    }
+}
+
+/// Strip masks (the strip-mask paper): per frame, culling, importance, the budget shared
+/// greedily, one mask per tile, cracks filled by `filler`. As the reference it ignores the
+/// budget and draws every tile at level 0.
+#[derive(Debug)]
+struct StripMasks {
+    lod: LodSettings,
+    filler: CrackFiller,
+    masks: Arc<MaskSet>,
+    reference: bool,
+}
+
+impl LodMethod for StripMasks {
+    fn name(&self) -> String {
+        if self.reference {
+            MethodKind::Reference.name().to_string()
+        } else {
+            format!("{}/{}", MethodKind::StripMasks.name(), self.filler.name())
+        }
+    }
+
+    fn draw(
+        &mut self,
+        input: &MethodInput<'_>,
+        renderer: &mut TerrainRenderer,
+        target: &wgpu::TextureView,
+    ) -> MethodOutput {
+        let started = Instant::now();
+        let budget = if self.reference {
+            u32::MAX
+        } else {
+            input.budget
+        };
+        let mut plan = plan::plan_frame(
+            input.camera,
+            input.viewport,
+            input.layout,
+            input.tiles,
+            budget,
+            &self.masks,
+            &self.lod,
+        );
+        if self.reference {
+            // Full resolution whatever the importances made of the budget.
+            for d in &mut plan.draws {
+                d.level = 0;
+            }
+            plan.triangles = plan.draws.len() as u64 * u64::from(self.masks.triangle_count(0));
+        }
+        let lod_ms = started.elapsed().as_secs_f64() * 1e3;
+        let stats = renderer.render(target, input.camera, &plan.draws, self.filler);
+        MethodOutput {
+            plan,
+            stats,
+            lod_ms,
+        }
+    }
+}

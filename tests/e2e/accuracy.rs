@@ -1,0 +1,368 @@
+//! Accuracy measures on rendered frames: the metrics through the real renderer (depth
+//! read back, world points, the true surface), the accuracy sweep and the stability matrix
+//! against real servers.
+
+use std::path::Path;
+use std::sync::Arc;
+use terrain_client::eval::accuracy::{self, AccuracyArgs};
+use terrain_client::eval::frame::Capture;
+use terrain_client::eval::metrics::{crack_pixels, screen_space_error};
+use terrain_client::eval::stability::{self, StabilityArgs};
+use terrain_client::lod::strips::MaskSet;
+use terrain_client::render::plan::{Draw, Layout};
+use terrain_client::render::{Camera, CrackFiller, Offscreen, TerrainRenderer};
+use terrain_server::build::{BuildOptions, build};
+use terrain_shared::{Heights, TileId};
+use terrain_tests::data::{build_jacksboro, kit_file};
+use terrain_tests::golden;
+use terrain_tests::server::TestServer;
+
+const N: u32 = 17;
+const SPACING: f64 = 10.0;
+const W: u32 = 320;
+const H: u32 = 240;
+
+/// A flat tile at `height_m`.
+fn flat(height_m: f64) -> Heights {
+    Heights {
+        width: N as u16,
+        height: N as u16,
+        quantum_m: 0.1,
+        offset_m: height_m,
+        codes: vec![0; (N * N) as usize],
+    }
+}
+
+/// 2x2 flat tiles at `height_m`, drawn at full resolution from `camera` with `missing`
+/// left out; the frame as captured.
+fn draw_flat(
+    gpu: &terrain_client::render::Gpu,
+    height_m: f64,
+    camera: &Camera,
+    missing: Option<TileId>,
+) -> Capture {
+    let layout = Layout {
+        tile_size: N,
+        spacing_m: [SPACING, SPACING],
+    };
+    let mut renderer = TerrainRenderer::new(
+        gpu,
+        terrain_client::render::offscreen::OFFSCREEN_FORMAT,
+        layout,
+        Arc::new(MaskSet::new(N)),
+    );
+    renderer.keep_depth(true);
+    let mut draws = Vec::new();
+    for y in 0..2 {
+        for x in 0..2 {
+            let id = TileId::new(x, y);
+            renderer.upload_tile(id, &flat(height_m), height_m);
+            if Some(id) != missing {
+                draws.push(Draw { id, level: 0 });
+            }
+        }
+    }
+    let target = Offscreen::new(gpu, W, H);
+    renderer.render(&target.view, camera, &draws, CrackFiller::None);
+    let color = target.read(gpu).expect("colour");
+    let depth = renderer.read_depth().expect("depth");
+    Capture::new(color, depth, camera)
+}
+
+#[test]
+fn a_rendered_surface_read_back_from_depth_lies_on_the_true_surface() {
+    let Some(gpu) = golden::gpu("accuracy::a_rendered_surface_read_back_from_depth") else {
+        return;
+    };
+    let camera = Camera::looking_at([-50.0, 160.0, 120.0], [160.0, 160.0, 0.0]);
+    let frame = draw_flat(&gpu, 0.0, &camera, None);
+    assert!(frame.terrain_pixels() > u64::from(W * H) / 4);
+    for p in frame.points.iter().flatten() {
+        assert!(p[2].abs() < 0.01, "a point of the flat ground at {p:?}");
+    }
+    let stats = screen_space_error(&frame.points, W, H, &camera, |_, _| Some(0.0), 1.0);
+    assert_eq!(stats.above_threshold, 0);
+    assert!(stats.max_px < 0.01, "{stats:?}");
+    assert_eq!(crack_pixels(&frame.points, &frame.points), 0);
+}
+
+#[test]
+fn a_known_vertical_offset_gives_the_expected_pixel_error_on_a_rendered_frame() {
+    let Some(gpu) = golden::gpu("accuracy::a_known_vertical_offset") else {
+        return;
+    };
+    // Looking down at 30 degrees from 200 m over ground drawn 5 m too high.
+    let (height, offset, down) = (200.0f64, 5.0f64, 30f64.to_radians());
+    let camera = Camera::new([-150.0, 160.0, height], 0.0, -down);
+    let frame = draw_flat(&gpu, offset, &camera, None);
+    // The pixel on the optical axis (the centre of the even-sized frame, within half a
+    // pixel): the ray meets the drawn plane at distance d along the axis, and the true
+    // point lies `offset` straight below it. In camera space that point is `offset sin`
+    // farther along the axis and `offset cos` lower, so it spans
+    // f * offset cos / (d + offset sin) pixels, f = (H / 2) / tan(fov / 2).
+    let centre = (H / 2 * W + W / 2) as usize;
+    let point = frame.points[centre].expect("the axis meets the ground");
+    let mut one = vec![None; (W * H) as usize];
+    one[centre] = Some(point);
+    let stats = screen_space_error(&one, W, H, &camera, |_, _| Some(0.0), 1.0);
+    let d = (height - offset) / down.sin();
+    let f = f64::from(H) / 2.0 / (camera.fov_y / 2.0).tan();
+    let expected = f * offset * down.cos() / (d + offset * down.sin());
+    assert!(
+        (stats.max_px - expected).abs() < 0.02 * expected,
+        "{} px measured, {expected} px expected",
+        stats.max_px
+    );
+    // Over the whole frame every pixel is off, by more near the camera than far away.
+    let all = screen_space_error(&frame.points, W, H, &camera, |_, _| Some(0.0), 1.0);
+    assert_eq!(all.above_threshold, all.terrain_pixels);
+    assert!(all.max_px > expected && all.mean_px > 1.0, "{all:?}");
+}
+
+#[test]
+fn a_missing_tile_is_counted_as_a_hole_of_its_size() {
+    let Some(gpu) = golden::gpu("accuracy::a_missing_tile_is_counted") else {
+        return;
+    };
+    // Straight down from 400 m over the 320 x 320 m ground: each tile spans about 1/4 of it.
+    let camera = Camera::new([160.0, 160.0, 400.0], 0.0, -std::f64::consts::FRAC_PI_2);
+    let reference = draw_flat(&gpu, 0.0, &camera, None);
+    let missing = TileId::new(1, 0);
+    let frame = draw_flat(&gpu, 0.0, &camera, Some(missing));
+    // Reference pixels showing the missing tile: points inside its square (160 m wide).
+    let inside = |p: &[f64; 3]| (160.0..320.0).contains(&p[0]) && (0.0..160.0).contains(&p[1]);
+    let expected = reference
+        .points
+        .iter()
+        .flatten()
+        .filter(|p| inside(p))
+        .count() as i64;
+    let counted = crack_pixels(&frame.points, &reference.points) as i64;
+    // The pixels along its two inner edges may fall on either side.
+    let edge_pixels = 2 * i64::from(H);
+    assert!(expected > 5000, "{expected}");
+    assert!(
+        (counted - expected).abs() <= edge_pixels,
+        "{counted} counted, {expected} expected"
+    );
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+/// Checks the sweep: its files, and error falling as the budget grows for every filler.
+fn check_sweep(report: &accuracy::AccuracyReport, budgets: &[u32]) {
+    for file in &report.files {
+        assert!(
+            std::fs::metadata(file).is_ok_and(|m| m.len() > 0),
+            "{}",
+            file.display()
+        );
+    }
+    let names: Vec<String> = report
+        .summaries
+        .iter()
+        .map(|s| s.config.series())
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    assert_eq!(names.len(), 3, "{names:?}");
+    for name in names {
+        let errors: Vec<f64> = report
+            .summaries
+            .iter()
+            .filter(|s| s.config.series() == name)
+            .map(|s| s.mean_error_px)
+            .collect();
+        assert_eq!(errors.len(), budgets.len());
+        for pair in errors.windows(2) {
+            assert!(
+                pair[1] < pair[0],
+                "{name}: mean error must fall as the budget grows: {errors:?}"
+            );
+        }
+        for s in report
+            .summaries
+            .iter()
+            .filter(|s| s.config.series() == name)
+        {
+            assert!(
+                s.triangles <= f64::from(s.config.budget).max(s.triangles_needed),
+                "{s:?}"
+            );
+            assert!(
+                s.used_over_needed > 0.0 && s.used_over_needed <= 1.0 + 1e-9,
+                "{s:?}"
+            );
+        }
+    }
+    eprintln!("{report}");
+}
+
+#[test]
+fn the_accuracy_sweep_over_jacksboro_writes_its_charts_and_error_falls_with_the_budget() {
+    let Some(_) = golden::gpu("accuracy::the_accuracy_sweep_over_jacksboro") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    let budgets = vec![1000, 10_000, 100_000];
+    let args = AccuracyArgs {
+        budgets: budgets.clone(),
+        cameras: 3,
+        repeats: 1,
+        ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
+    };
+    let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+    check_sweep(&report, &budgets);
+}
+
+#[test]
+fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_the_budget() {
+    let Some(png) = kit_file(
+        "accuracy sweep over puget",
+        "puget_sound_1k/ps_height_1k.png",
+    ) else {
+        return;
+    };
+    let Some(_) = golden::gpu("accuracy::the_accuracy_sweep_over_puget_sound") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_db(&png, tmp.path());
+    let server = TestServer::start(&db);
+    let args = AccuracyArgs {
+        cameras: 4,
+        repeats: 1,
+        ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
+    };
+    let budgets = args.budgets.clone();
+    let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+    check_sweep(&report, &budgets);
+}
+
+fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
+    build(
+        &BuildOptions::new(input, dir.join("db")),
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .expect("builds")
+    .out
+}
+
+/// Checks every run of the matrix: no failure, memory within the limit.
+fn check_matrix(report: &stability::StabilityReport) {
+    eprintln!("{report}");
+    assert!(!report.runs.is_empty());
+    for r in &report.runs {
+        assert!(
+            r.failure.is_none(),
+            "{} {}: {:?}",
+            r.scenario,
+            r.method,
+            r.failure
+        );
+        assert!(
+            r.within_memory(),
+            "{} {}: {} bytes of {}",
+            r.scenario,
+            r.method,
+            r.peak_resident_bytes,
+            r.memory_limit_bytes
+        );
+    }
+    for file in &report.files {
+        assert!(
+            std::fs::metadata(file).is_ok_and(|m| m.len() > 0),
+            "{}",
+            file.display()
+        );
+    }
+}
+
+#[test]
+fn every_scenario_of_the_stability_matrix_runs_over_jacksboro_within_memory() {
+    let Some(_) = golden::gpu("accuracy::every_scenario_of_the_stability_matrix") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    let args = StabilityArgs {
+        frames: 10,
+        ..StabilityArgs::new(server.base_url(), tmp.path().join("stability"))
+    };
+    let report = runtime().block_on(stability::run(&args)).expect("matrix");
+    check_matrix(&report);
+    let generic = stability::SCENARIOS
+        .iter()
+        .filter(|s| s.dataset.is_none())
+        .count();
+    assert_eq!(report.runs.len(), generic * 3);
+    assert_eq!(
+        report.skipped.len(),
+        stability::SCENARIOS.len() - generic,
+        "the dataset scenarios say they did not run"
+    );
+    let md = std::fs::read_to_string(tmp.path().join("stability/stability.md")).expect("table");
+    assert!(md.contains("grazing-1deg") && md.contains("not run"));
+}
+
+#[test]
+fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
+    let kit = [
+        (
+            "grand_canyon_hoppe",
+            "grand_canyon_hoppe/gcanyon_elev_crop.bw.png",
+        ),
+        ("srtm_geotiff", "srtm_geotiff/mt_rainier_90m.tif"),
+        ("himalaya_4097", "himalaya_4097/g10g_himalaya_4097.png"),
+    ];
+    let mut inputs = Vec::new();
+    for (name, file) in kit {
+        let Some(path) = kit_file("stability dataset scenarios", file) else {
+            return;
+        };
+        inputs.push((name, path));
+    }
+    let Some(_) = golden::gpu("accuracy::the_dataset_scenarios_run") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mut servers = Vec::new();
+    for (name, path) in &inputs {
+        let db = build_db(path, &tmp.path().join(name));
+        servers.push((name.to_string(), TestServer::start(&db)));
+    }
+    let args = StabilityArgs {
+        frames: 6,
+        data: servers
+            .iter()
+            .map(|(n, s)| (n.clone(), s.base_url().to_string()))
+            .collect(),
+        scenarios: stability::SCENARIOS
+            .iter()
+            .filter(|s| s.dataset.is_some())
+            .map(|s| s.name.to_string())
+            .collect(),
+        ..StabilityArgs::new(servers[0].1.base_url(), tmp.path().join("stability"))
+    };
+    let report = runtime().block_on(stability::run(&args)).expect("matrix");
+    check_matrix(&report);
+    assert!(report.skipped.is_empty(), "{:?}", report.skipped);
+    for r in report.runs.iter().filter(|r| r.scenario == "flat-sea") {
+        assert!(r.flat_tiles.0 > 0, "{}: flat tiles in view", r.method);
+        assert_eq!(
+            r.flat_tiles.1, r.flat_tiles.0,
+            "{}: every flat tile draws the coarsest mask",
+            r.method
+        );
+    }
+}
