@@ -366,3 +366,38 @@ fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
         );
     }
 }
+
+#[test]
+fn the_bench_commands_refuse_bad_options_and_unreachable_servers_with_a_reason() {
+    let run = |args: &[&str]| {
+        let args: Vec<&std::ffi::OsStr> = args.iter().map(std::ffi::OsStr::new).collect();
+        terrain_tests::data::run_binary("terrain-client", &args)
+    };
+    let (ok, _, err) = run(&[
+        "bench",
+        "accuracy",
+        "--server",
+        "http://127.0.0.1:9",
+        "--budgets",
+        "0,100",
+    ]);
+    assert!(!ok && err.contains("--budgets"), "{err}");
+    let (ok, _, err) = run(&["bench", "accuracy", "--server", "http://127.0.0.1:9"]);
+    assert!(!ok && err.contains("127.0.0.1:9"), "{err}");
+    let (ok, _, err) = run(&[
+        "bench",
+        "stability",
+        "--server",
+        "http://127.0.0.1:9",
+        "--scenarios",
+        "nope",
+    ]);
+    assert!(!ok && err.contains("unknown scenario \"nope\""), "{err}");
+    let (ok, _, err) = run(&["bench", "stability", "--data", "himalaya", "--list"]);
+    assert!(!ok && err.contains("NAME=URL"), "{err}");
+    let (ok, out, _) = run(&["bench", "stability", "--list"]);
+    assert!(
+        ok && out.lines().count() == stability::SCENARIOS.len(),
+        "{out}"
+    );
+}

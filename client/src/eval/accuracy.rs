@@ -12,6 +12,7 @@
 //! configuration), and the charts: error against triangles, error
 //! against frame time, crack pixels against budget, triangles used against needed.
 
+use super::Variants;
 use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
 use crate::flight::{FlightError, heading, parse_size};
@@ -41,17 +42,8 @@ pub struct AccuracyArgs {
         default_value = "1000,3000,10000,30000,100000,300000,1000000"
     )]
     pub budgets: Vec<u32>,
-    /// Crack fillers of the methods that use one, comma-separated.
-    #[arg(
-        long,
-        value_enum,
-        value_delimiter = ',',
-        default_value = "none,skirts,planar-shadow"
-    )]
-    pub fillers: Vec<CrackFiller>,
-    /// Methods, comma-separated.
-    #[arg(long, value_enum, value_delimiter = ',', default_value = "strip-masks")]
-    pub methods: Vec<MethodKind>,
+    #[command(flatten)]
+    pub variants: Variants,
     /// Cameras taken evenly along the flight.
     #[arg(long, default_value_t = 8)]
     pub cameras: u32,
@@ -86,12 +78,7 @@ impl AccuracyArgs {
             server: server.into(),
             out: out.into(),
             budgets: vec![1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
-            fillers: vec![
-                CrackFiller::None,
-                CrackFiller::Skirts,
-                CrackFiller::PlanarShadow,
-            ],
-            methods: vec![MethodKind::StripMasks],
+            variants: Variants::default(),
             cameras: 8,
             flight: None,
             size: (640, 360),
@@ -115,11 +102,7 @@ pub struct Config {
 impl Config {
     /// `method/filler` (or `method` for methods without filler).
     pub fn series(&self) -> String {
-        if self.method.uses_filler() {
-            format!("{}/{}", self.method.name(), self.filler.name())
-        } else {
-            self.method.name().to_string()
-        }
+        Variants::name(self.method, self.filler)
     }
 }
 
@@ -264,7 +247,7 @@ fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
     if args.budgets.is_empty() || args.budgets.contains(&0) {
         return bad("--budgets must list positive triangle counts".into());
     }
-    if args.methods.is_empty() || args.fillers.is_empty() {
+    if args.variants.methods.is_empty() || args.variants.fillers.is_empty() {
         return bad("--methods and --fillers must not be empty".into());
     }
     if args.cameras == 0 {
@@ -282,20 +265,13 @@ fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
 /// Every configuration of `args`: per method, per filler when it uses one, per budget.
 pub fn configs(args: &AccuracyArgs) -> Vec<Config> {
     let mut out = Vec::new();
-    for &method in &args.methods {
-        let fillers: Vec<CrackFiller> = if method.uses_filler() {
-            args.fillers.clone()
-        } else {
-            vec![CrackFiller::None]
-        };
-        for filler in fillers {
-            for &budget in &args.budgets {
-                out.push(Config {
-                    method,
-                    filler,
-                    budget,
-                });
-            }
+    for (method, filler) in args.variants.list() {
+        for &budget in &args.budgets {
+            out.push(Config {
+                method,
+                filler,
+                budget,
+            });
         }
     }
     out

@@ -7,3 +7,60 @@ pub mod frame;
 pub mod metrics;
 pub mod session;
 pub mod stability;
+
+use crate::method::MethodKind;
+use crate::render::CrackFiller;
+
+/// The methods and crack fillers a benchmark runs: shared by `bench accuracy` and
+/// `bench stability`.
+#[derive(Debug, Clone, PartialEq, clap::Args)]
+pub struct Variants {
+    /// Methods, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "strip-masks")]
+    pub methods: Vec<MethodKind>,
+    /// Crack fillers of the methods that use one, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "none,skirts,planar-shadow"
+    )]
+    pub fillers: Vec<CrackFiller>,
+}
+
+impl Default for Variants {
+    fn default() -> Variants {
+        Variants {
+            methods: vec![MethodKind::StripMasks],
+            fillers: vec![
+                CrackFiller::None,
+                CrackFiller::Skirts,
+                CrackFiller::PlanarShadow,
+            ],
+        }
+    }
+}
+
+impl Variants {
+    /// Every method with each filler when it uses one (else once, with none), in order.
+    pub fn list(&self) -> Vec<(MethodKind, CrackFiller)> {
+        let mut out = Vec::new();
+        for &method in &self.methods {
+            if method.uses_filler() {
+                out.extend(self.fillers.iter().map(|&f| (method, f)));
+            } else {
+                out.push((method, CrackFiller::None));
+            }
+        }
+        out
+    }
+
+    /// `method/filler`, or the method alone when it uses no filler.
+    pub fn name(method: MethodKind, filler: CrackFiller) -> String {
+        if method.uses_filler() {
+            format!("{}/{}", method.name(), filler.name())
+        } else {
+            method.name().to_string()
+        }
+    }
+}

@@ -9,6 +9,7 @@
 //! scenario a picture: the reference, then each method's frame with its cracks in red and
 //! its filler in yellow.
 
+use super::Variants;
 use super::frame::Capture;
 use super::session::{Session, median, whole_database_bytes};
 use crate::flight::{FlightError, parse_size};
@@ -26,8 +27,8 @@ use terrain_shared::Manifest;
 #[derive(Debug, Clone, clap::Args)]
 pub struct StabilityArgs {
     /// Base URL of the server for the scenarios of any terrain.
-    #[arg(long, env = "TERRAIN_SERVER")]
-    pub server: String,
+    #[arg(long, env = "TERRAIN_SERVER", required_unless_present = "list")]
+    pub server: Option<String>,
     /// Servers of named datasets for the scenarios that need them, NAME=URL (repeatable):
     /// grand_canyon_hoppe, srtm_geotiff, himalaya_4097. Scenarios without theirs are listed
     /// as not run.
@@ -42,17 +43,8 @@ pub struct StabilityArgs {
     /// List the scenarios and exit.
     #[arg(long)]
     pub list: bool,
-    /// Methods, comma-separated.
-    #[arg(long, value_enum, value_delimiter = ',', default_value = "strip-masks")]
-    pub methods: Vec<MethodKind>,
-    /// Crack fillers of the methods that use one, comma-separated.
-    #[arg(
-        long,
-        value_enum,
-        value_delimiter = ',',
-        default_value = "none,skirts,planar-shadow"
-    )]
-    pub fillers: Vec<CrackFiller>,
+    #[command(flatten)]
+    pub variants: Variants,
     /// Frames streamed and drawn per run before the measured one.
     #[arg(long, default_value_t = 40)]
     pub frames: u32,
@@ -68,17 +60,12 @@ impl StabilityArgs {
     /// The defaults of the command line against `server`, writing to `out`.
     pub fn new(server: impl Into<String>, out: impl Into<PathBuf>) -> StabilityArgs {
         StabilityArgs {
-            server: server.into(),
+            server: Some(server.into()),
             data: Vec::new(),
             out: out.into(),
             scenarios: Vec::new(),
             list: false,
-            methods: vec![MethodKind::StripMasks],
-            fillers: vec![
-                CrackFiller::None,
-                CrackFiller::Skirts,
-                CrackFiller::PlanarShadow,
-            ],
+            variants: Variants::default(),
             frames: 40,
             memory: MemorySize(64 << 20),
             size: (480, 270),
@@ -263,7 +250,7 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
             )));
         }
     }
-    if args.frames == 0 || args.methods.is_empty() || args.fillers.is_empty() {
+    if args.frames == 0 || args.variants.methods.is_empty() || args.variants.fillers.is_empty() {
         return Err(FlightError::BadOption(
             "--frames, --methods and --fillers must not be empty".into(),
         ));
@@ -272,19 +259,14 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
         .iter()
         .filter(|s| args.scenarios.is_empty() || args.scenarios.iter().any(|n| n == s.name))
         .collect();
-    let mut variants = Vec::new();
-    for &method in &args.methods {
-        if method.uses_filler() {
-            variants.extend(args.fillers.iter().map(|&f| (method, f)));
-        } else {
-            variants.push((method, CrackFiller::None));
-        }
-    }
+    let variants = args.variants.list();
     let mut report = StabilityReport::default();
     let bar = super::accuracy::progress("stability", (chosen.len() * variants.len()) as u64);
     for scenario in chosen {
         let server = match scenario.dataset {
-            None => args.server.clone(),
+            None => args.server.clone().ok_or_else(|| {
+                FlightError::BadOption("--server is needed to run the scenarios".into())
+            })?,
             Some(name) => match args.data.iter().find(|(n, _)| n == name) {
                 Some((_, url)) => url.clone(),
                 None => {
@@ -330,18 +312,10 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
     Ok(report)
 }
 
-fn variant_name(method: MethodKind, filler: CrackFiller) -> String {
-    if method.uses_filler() {
-        format!("{}/{}", method.name(), filler.name())
-    } else {
-        method.name().to_string()
-    }
-}
-
 fn failed(s: &Scenario, method: MethodKind, filler: CrackFiller, why: String) -> RunResult {
     RunResult {
         scenario: s.name,
-        method: variant_name(method, filler),
+        method: Variants::name(method, filler),
         frames: 0,
         crack_pixels: 0,
         hole_pixels: 0,
@@ -538,7 +512,7 @@ async fn run_one(
     Ok((
         RunResult {
             scenario: scenario.name,
-            method: variant_name(method, filler),
+            method: Variants::name(method, filler),
             frames: cams.len() as u32 + 1,
             crack_pixels: m.crack_pixels,
             hole_pixels: m.hole_pixels,
