@@ -55,11 +55,14 @@ if [ -n "${TERRAIN_DATA_DIR:-}" ]; then
   serve himalaya_4097 "$kit/himalaya_4097/g10g_himalaya_4097.png"
   data+=(--data "himalaya_4097=$url")
   "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget" \
+    --methods strip-masks,geomipmap \
     | tee "$work/accuracy-puget.txt"
 fi
 "$bin/terrain-client" bench accuracy --server "$jacksboro" --out "$docs/accuracy-jacksboro" \
+  --methods strip-masks,geomipmap \
   | tee "$work/accuracy-jacksboro.txt"
 "$bin/terrain-client" bench stability --server "$primary" "${data[@]}" --out "$docs/stability" \
+  --methods strip-masks,geomipmap \
   | tee "$work/stability.txt"
 
 section() { # DATASET DIR
@@ -93,9 +96,16 @@ per-frame rows are in \`docs/evaluation/*/accuracy.csv\` and \`stability/stabili
   split along the strips' diagonals), both projected. Reported as mean, max and the share
   of terrain pixels above 1 px. Pixels showing a crack filler count too: a filler is drawn
   below the surface, so a visible one is a geometric error.
-- **Crack pixels**: where the reference shows terrain and the frame shows the background or
-  a filler (the frame is drawn a second time without its filler; pixels whose depth
-  differs show the filler). **Holes** are those left showing the background.
+- **Crack pixels**: where the reference shows terrain and the frame shows a filler (the
+  frame is drawn a second time without its filler; pixels whose depth differs show the
+  filler) or the background with terrain above and below it in the same column. **Holes**
+  are those left showing the background. **Silhouette** pixels show the sky where the
+  reference has terrain above the frame's own skyline: a coarser surface lower against the
+  sky, an error of the level of detail rather than a crack.
+- **Methods**: strip masks (a global budget shared by importance, the paper's crack
+  fillers) and GeoMipMaps (per tile the coarsest level, every 2^k-th sample, whose
+  projected error is within 1 px; borders stitched by adding the finer neighbour's
+  vertices, so no filler is needed; it takes no budget, so its rows repeat across budgets).
 - **PSNR** of the colours against the reference.
 - **Triangles needed**: per tile, the coarsest mask whose maximum vertical error (the
   builder's per-mask errors), projected from the nearest point of the tile's box, is within

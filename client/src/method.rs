@@ -75,6 +75,10 @@ pub enum MethodKind {
     /// Every visible tile at full resolution: no budget, no filler. What the accuracy
     /// measures compare against.
     Reference,
+    /// GeoMipMaps (Brodersen 2005): per tile the coarsest level (every 2^k-th sample)
+    /// whose projected error is within `--max-error-px`, borders stitched by adding the
+    /// finer neighbour's vertices: crack-free, no budget, no filler.
+    Geomipmap,
 }
 
 impl MethodKind {
@@ -82,6 +86,7 @@ impl MethodKind {
         match self {
             MethodKind::StripMasks => "strip-masks",
             MethodKind::Reference => "reference",
+            MethodKind::Geomipmap => "geomipmap",
         }
     }
 
@@ -105,6 +110,12 @@ pub fn build(
             filler,
             masks,
             reference: false,
+        }),
+        MethodKind::Geomipmap => Box::new(GeoMipMaps {
+            lod,
+            masks,
+            error_minima: std::collections::HashMap::new(),
+            counts: std::collections::HashMap::new(),
         }),
         MethodKind::Reference => Box::new(StripMasks {
             lod: LodSettings {
@@ -173,5 +184,111 @@ impl LodMethod for StripMasks {
             stats,
             lod_ms,
         }
+    }
+}
+
+/// GeoMipMaps (see [`crate::lod::geomipmap`]): the coarsest level within the error
+/// threshold per visible tile, each side stitched to its neighbour's level.
+#[derive(Debug)]
+struct GeoMipMaps {
+    lod: LodSettings,
+    /// Shares the tile size with the strip masks; the importances come from the same
+    /// planner (they rank textures).
+    masks: Arc<MaskSet>,
+    /// Per resident tile, the suffix minima of its levels' errors, computed from its
+    /// heights when it arrives.
+    error_minima: std::collections::HashMap<TileId, Vec<f32>>,
+    /// Triangles of each index set drawn so far.
+    counts: std::collections::HashMap<crate::lod::geomipmap::Stitch, u32>,
+}
+
+impl LodMethod for GeoMipMaps {
+    fn name(&self) -> String {
+        MethodKind::Geomipmap.name().to_string()
+    }
+
+    fn draw(
+        &mut self,
+        input: &MethodInput<'_>,
+        renderer: &mut TerrainRenderer,
+        target: &wgpu::TextureView,
+    ) -> MethodOutput {
+        use crate::lod::geomipmap::{Stitch, triangles};
+        use crate::lod::needed;
+        let started = Instant::now();
+        // Culling and importances as the strip masks have them (importances rank the
+        // textures); the budget plays no part.
+        let mut plan = plan::plan_frame(
+            input.camera,
+            input.viewport,
+            input.layout,
+            input.tiles,
+            u32::MAX,
+            &self.masks,
+            &LodSettings {
+                cap_at_needed: false,
+                ..self.lod
+            },
+        );
+        let scale = needed::pixels_at_one_metre(input.camera.fov_y, f64::from(input.viewport[1]));
+        let extent = input.layout.tile_extent_m();
+        let boxes: std::collections::HashMap<TileId, (f64, f64)> = input
+            .tiles
+            .iter()
+            .map(|t| (t.id, (t.min_m, t.max_m)))
+            .collect();
+        let mut levels = std::collections::HashMap::new();
+        for d in &plan.draws {
+            let (lo, hi) = boxes[&d.id];
+            let [x0, y0] = input.layout.tile_origin_m(d.id);
+            let distance = needed::distance_to_box(
+                input.camera.position,
+                [x0, y0, lo],
+                [x0 + extent[0], y0 + extent[1], hi],
+            );
+            let level = self.error_minima.get(&d.id).map_or(0, |minima| {
+                needed::coarsest_level_within(minima, scale / distance, self.lod.max_error_px)
+            });
+            levels.insert(d.id, level);
+        }
+        let n = input.layout.tile_size;
+        let mut drawn = 0u64;
+        for d in &mut plan.draws {
+            let level = levels[&d.id];
+            let near = |dx: i64, dy: i64| {
+                let (x, y) = (i64::from(d.id.x) + dx, i64::from(d.id.y) + dy);
+                (x >= 0 && y >= 0)
+                    .then(|| levels.get(&TileId::new(x as u32, y as u32)).copied())
+                    .flatten()
+            };
+            let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
+            d.level = level;
+            d.stitch = Some(stitch);
+            drawn += u64::from(
+                *self
+                    .counts
+                    .entry(stitch)
+                    .or_insert_with(|| triangles(n, stitch).len() as u32),
+            );
+        }
+        plan.triangles = drawn;
+        let lod_ms = started.elapsed().as_secs_f64() * 1e3;
+        let stats = renderer.render(target, input.camera, &plan.draws, CrackFiller::None);
+        MethodOutput {
+            plan,
+            stats,
+            lod_ms,
+        }
+    }
+
+    fn tile_resident(&mut self, id: TileId, heights: &Heights) {
+        let samples = heights.to_metres_f32();
+        let errors = crate::lod::geomipmap::level_errors(&samples, u32::from(heights.width));
+        self.error_minima
+            .insert(id, crate::lod::needed::suffix_minima(&errors));
+    }
+
+    fn tile_evicted(&mut self, id: TileId) {
+        self.error_minima.remove(&id);
     }
 }

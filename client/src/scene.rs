@@ -215,6 +215,12 @@ impl Scene {
                 config.filler,
                 Arc::clone(&r.masks),
             );
+            // The new method learns the tiles already resident.
+            for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
+                if let Some(tile) = tile {
+                    r.method.tile_resident(record.id(), &tile.heights);
+                }
+            }
             if config.budget != r.config.budget {
                 r.controller = FrameRateController::new(config.budget);
             }

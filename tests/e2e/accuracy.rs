@@ -58,7 +58,11 @@ fn draw_flat(
             let id = TileId::new(x, y);
             renderer.upload_tile(id, &flat(height_m), height_m);
             if Some(id) != missing {
-                draws.push(Draw { id, level: 0 });
+                draws.push(Draw {
+                    id,
+                    level: 0,
+                    stitch: None,
+                });
             }
         }
     }
@@ -400,4 +404,79 @@ fn the_bench_commands_refuse_bad_options_and_unreachable_servers_with_a_reason()
         ok && out.lines().count() == stability::SCENARIOS.len(),
         "{out}"
     );
+}
+
+#[test]
+fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
+    use terrain_client::eval::session::Session;
+    use terrain_client::lod::budget::BudgetMode;
+    use terrain_client::method::MethodKind;
+    use terrain_client::scene::RenderConfig;
+    let Some(_) = golden::gpu("accuracy::geomipmaps_draw_jacksboro_without_a_crack") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    runtime().block_on(async {
+        let mut session =
+            Session::open(server.base_url(), None, RenderConfig::default(), (480, 270))
+                .await
+                .expect("session");
+        let path = terrain_client::path::CameraPath::default_for(&session.manifest);
+        let mut cameras = accuracy::cameras_along(&path, 4, -25.0);
+        cameras.push(Camera::looking_at(
+            [15000.0, 33000.0, 1500.0],
+            [15000.0, 12000.0, 500.0],
+        ));
+        cameras.push(Camera::looking_at(
+            [6000.0, 6000.0, 2600.0],
+            [12000.0, 11000.0, 600.0],
+        ));
+        let centre = session.centre();
+        assert!(
+            session
+                .settle(centre, &cameras[0], std::time::Duration::from_secs(120))
+                .await
+                .expect("loads")
+        );
+        let mut strip_cracks = 0;
+        let mut coarser = false;
+        for camera in &cameras {
+            let (reference, _) = session.reference(camera).expect("reference");
+            let geomip = RenderConfig {
+                method: MethodKind::Geomipmap,
+                ..RenderConfig::default()
+            };
+            let m = session
+                .measure(camera, geomip, &reference, 1.0, 1)
+                .expect("measure");
+            assert_eq!(m.measures.crack_pixels, 0, "{camera:?}: {:?}", m.measures);
+            assert!(
+                m.measures.error.max_px <= 1.0,
+                "{camera:?}: the chosen levels keep within 1 px: {:?}",
+                m.measures.error
+            );
+            coarser |= m.report.plan.draws.iter().any(|d| d.level > 0);
+            // The same frame in strip masks on a small budget does crack: the measure sees
+            // cracks where there are some.
+            let strips = RenderConfig {
+                method: MethodKind::StripMasks,
+                filler: CrackFiller::None,
+                budget: BudgetMode::Fixed(5000),
+                ..RenderConfig::default()
+            };
+            strip_cracks += session
+                .measure(camera, strips, &reference, 1.0, 1)
+                .expect("measure")
+                .measures
+                .crack_pixels;
+        }
+        assert!(
+            coarser,
+            "some tiles were drawn coarser than full resolution"
+        );
+        assert!(strip_cracks > 0);
+        session.close();
+    });
 }

@@ -235,7 +235,14 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
     for (name, camera) in cameras() {
         let all: Vec<TileId> = terrain.manifest.tiles.iter().map(|t| t.id()).collect();
         // The reference: every tile at the finest mask, no filler: no crack anywhere.
-        let finest: Vec<Draw> = all.iter().map(|&id| Draw { id, level: 0 }).collect();
+        let finest: Vec<Draw> = all
+            .iter()
+            .map(|&id| Draw {
+                id,
+                level: 0,
+                stitch: None,
+            })
+            .collect();
         let reference = draw(&gpu, &mut renderer, &camera, &finest, CrackFiller::None);
         // A checkerboard of the finest and a coarse mask: every shared edge is a crack.
         let mixed: Vec<Draw> = all
@@ -243,6 +250,7 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
             .map(|&id| Draw {
                 id,
                 level: if (id.x + id.y) % 2 == 0 { 0 } else { 31 },
+                stitch: None,
             })
             .collect();
         let mut counts = [0u64; 3];
@@ -426,7 +434,11 @@ fn textures_refined_and_coarsened_on_the_gpu_render_as_if_uploaded_whole() {
     let draws: Vec<Draw> = terrain
         .tiles
         .iter()
-        .map(|(id, _, _)| Draw { id: *id, level: 4 })
+        .map(|(id, _, _)| Draw {
+            id: *id,
+            level: 4,
+            stitch: None,
+        })
         .collect();
     let render_with = |levels_of: &dyn Fn(&mut TerrainRenderer, TileId, &[image::RgbaImage])| {
         let mut renderer = TerrainRenderer::new(

@@ -130,6 +130,7 @@ pub struct Summary {
     pub above_threshold_pct: f64,
     pub crack_pixels: f64,
     pub hole_pixels: f64,
+    pub silhouette_pixels: f64,
     /// Crack pixels in percent of the reference's terrain pixels.
     pub crack_pct: f64,
     pub psnr_db: f64,
@@ -334,6 +335,7 @@ pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
                 above_threshold_pct: 100.0 * mean(&|m| m.measures.error.share_above()),
                 crack_pixels: mean(&|m| m.measures.crack_pixels as f64),
                 hole_pixels: mean(&|m| m.measures.hole_pixels as f64),
+                silhouette_pixels: mean(&|m| m.measures.silhouette_pixels as f64),
                 crack_pct: 100.0
                     * mean(&|m| {
                         m.measures.crack_pixels as f64
@@ -353,13 +355,13 @@ pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
 }
 
 /// Columns of `accuracy.csv`.
-pub const CSV_HEADER: &str = "camera,method,filler,budget,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms";
+pub const CSV_HEADER: &str = "camera,method,filler,budget,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms";
 
 fn csv_row(r: &Row) -> String {
     let m = &r.measured;
     let e = &m.measures.error;
     format!(
-        "{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3}",
+        "{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3}",
         r.camera,
         r.config.method.name(),
         r.config.filler.name(),
@@ -375,6 +377,7 @@ fn csv_row(r: &Row) -> String {
         100.0 * e.share_above(),
         m.measures.crack_pixels,
         m.measures.hole_pixels,
+        m.measures.silhouette_pixels,
         m.measures.filler_pixels,
         m.measures.reference_terrain_pixels,
         m.measures.psnr_db,
@@ -390,17 +393,17 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | budget | triangles | needed | used/needed | mean error (px) | max error (px) | > {} px (%) | crack px | holes px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) |",
+        "| method | budget | triangles | needed | used/needed | mean error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) |",
         report.threshold_px
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for m in &report.summaries {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.3} | {:.1} | {:.2} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} |",
+            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.3} | {:.1} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} |",
             m.config.series(),
             m.config.budget,
             m.triangles,
@@ -411,6 +414,7 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.above_threshold_pct,
             m.crack_pixels,
             m.hole_pixels,
+            m.silhouette_pixels,
             m.crack_pct,
             m.psnr_db,
             m.frame_ms,

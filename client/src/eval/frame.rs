@@ -68,11 +68,15 @@ impl Capture {
 pub struct FrameMeasures {
     /// Screen-space geometric error of every pixel showing the surface or a filler.
     pub error: ErrorStats,
-    /// Pixels where the reference shows terrain and the frame the background or a filler:
-    /// the cracks of the frame's mesh, filled or not.
+    /// Pixels where the reference shows terrain and the frame a filler, or the background
+    /// with terrain above and below it ([`metrics::enclosed_holes`]): the cracks of the
+    /// frame's mesh, filled or not.
     pub crack_pixels: u64,
     /// Of those, the pixels left showing the background.
     pub hole_pixels: u64,
+    /// Pixels where the reference shows terrain and the frame the sky above its own
+    /// silhouette: a coarser surface lower against the sky, not a crack.
+    pub silhouette_pixels: u64,
     /// Pixels showing a crack filler.
     pub filler_pixels: u64,
     /// Pixels where the reference shows terrain.
@@ -110,7 +114,8 @@ pub fn measure(
             .collect(),
         None => vec![false; frame.depth.len()],
     };
-    let hole_pixels = metrics::crack_pixels(&frame.points, &reference.points);
+    let background = metrics::crack_pixels(&frame.points, &reference.points);
+    let hole_pixels = metrics::enclosed_holes(&frame.points, &reference.points, width);
     let covered = frame
         .points
         .iter()
@@ -122,6 +127,7 @@ pub fn measure(
         error,
         crack_pixels: hole_pixels + covered,
         hole_pixels,
+        silhouette_pixels: background - hole_pixels,
         filler_pixels: filler.iter().filter(|&&f| f).count() as u64,
         reference_terrain_pixels: reference.terrain_pixels(),
         psnr_db: metrics::psnr(&frame.color, &reference.color),
@@ -181,7 +187,7 @@ mod tests {
 
     fn capture(points: Vec<Pixel>, depth: Vec<f32>, grey: u8) -> Capture {
         Capture {
-            color: image::RgbaImage::from_pixel(4, 1, image::Rgba([grey, grey, grey, 255])),
+            color: image::RgbaImage::from_pixel(1, 4, image::Rgba([grey, grey, grey, 255])),
             depth,
             points,
         }
@@ -200,7 +206,7 @@ mod tests {
             100,
         );
         let unfilled = [0.5, 0.0, 0.0, 0.5];
-        // A 4 x 1 frame spans few pixels: a threshold of a twentieth of one.
+        // A 1 x 4 frame (one column) spans few pixels: a threshold of a twentieth of one.
         let m = measure(
             &frame,
             Some(&unfilled),

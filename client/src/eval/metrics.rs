@@ -117,6 +117,31 @@ pub fn crack_pixels(frame: &[Pixel], reference: &[Pixel]) -> u64 {
         .count() as u64
 }
 
+/// Pixels where `frame` shows the background, `reference` shows terrain, and `frame` shows
+/// terrain both above and below in the same column (`width` pixels a row): holes in the
+/// surface, the cracks proper. A background pixel where only a silhouette moved (a coarser
+/// mesh lower against the sky) has no terrain above it and is not counted.
+pub fn enclosed_holes(frame: &[Pixel], reference: &[Pixel], width: u32) -> u64 {
+    assert_eq!(frame.len(), reference.len(), "frames of the same size");
+    let width = width as usize;
+    let height = frame.len() / width.max(1);
+    let mut count = 0;
+    for x in 0..width {
+        let column = |y: usize| y * width + x;
+        let Some(top) = (0..height).find(|&y| frame[column(y)].is_some()) else {
+            continue;
+        };
+        let bottom = (0..height)
+            .rev()
+            .find(|&y| frame[column(y)].is_some())
+            .unwrap_or(top);
+        count += (top..bottom)
+            .filter(|&y| frame[column(y)].is_none() && reference[column(y)].is_some())
+            .count() as u64;
+    }
+    count
+}
+
 /// Peak signal-to-noise ratio of `frame`'s colours against `reference`'s, RGB, in dB;
 /// infinite for identical images.
 pub fn psnr(frame: &image::RgbaImage, reference: &image::RgbaImage) -> f64 {
@@ -210,6 +235,15 @@ mod tests {
             }
         }
         assert_eq!(crack_pixels(&frame, &reference), 7 * 11);
+        // Enclosed by terrain above and below: all of it is a crack.
+        assert_eq!(enclosed_holes(&frame, &reference, W), 7 * 11);
+        // The top rows lost against the sky (a lower silhouette) are not cracks.
+        let mut lowered = reference.clone();
+        for p in lowered.iter_mut().take((3 * W) as usize) {
+            *p = None;
+        }
+        assert_eq!(crack_pixels(&lowered, &reference), u64::from(3 * W));
+        assert_eq!(enclosed_holes(&lowered, &reference, W), 0);
         // Background in both is not a crack.
         assert_eq!(crack_pixels(&[None; 4], &[None; 4]), 0);
     }

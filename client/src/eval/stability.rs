@@ -6,8 +6,8 @@
 //! lets the last view settle and measures it against the reference at that camera (every
 //! resident tile at full resolution). A run that returns an error or panics is reported as
 //! failed, and the others go on. Writes `stability.md` (the table), `stability.csv`, and per
-//! scenario a picture: the reference, then each method's frame with its cracks in red and
-//! its filler in yellow.
+//! scenario a picture: the reference, then each method's frame with the pixels it lost to
+//! the background in red.
 
 use super::Variants;
 use super::frame::Capture;
@@ -492,14 +492,18 @@ async fn run_one(
     let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
     peak = peak.max(session.scene.resident_bytes());
     let plan = &measured.report.plan;
-    let masks_coarsest = terrain_shared::mask::level_count(session.manifest.tile_size) - 1;
+    let n = session.manifest.tile_size;
+    let coarsest = |d: &crate::render::Draw| match d.stitch {
+        Some(_) => crate::lod::geomipmap::level_count(n) - 1,
+        None => terrain_shared::mask::level_count(n) - 1,
+    };
     let mut flat = (0, 0);
     for d in &plan.draws {
         if let Some(t) = session.manifest.tile(d.id)
             && t.mask_errors_m.iter().all(|&e| e == 0.0)
         {
             flat.0 += 1;
-            flat.1 += u32::from(d.level == masks_coarsest);
+            flat.1 += u32::from(d.level == coarsest(d));
         }
     }
     session.close();
@@ -537,7 +541,8 @@ async fn run_one(
     ))
 }
 
-/// `frame` with its holes (background where the reference has terrain) painted red.
+/// `frame` with the pixels it lost to the background (where the reference has terrain:
+/// cracks, and silhouettes a coarser surface lowered) painted red.
 fn marked(frame: &Capture, reference: &Capture) -> image::RgbaImage {
     let mut image = frame.color.clone();
     for (i, (f, r)) in frame.points.iter().zip(&reference.points).enumerate() {
@@ -618,7 +623,7 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
     std::fs::create_dir_all(&images).map_err(write_err(&images))?;
     let mut md = markdown(report);
     md.push_str(
-        "\nPictures: the reference (left), then each method's measured frame, holes in red.\n\n",
+        "\nPictures: the reference (left), then each method's measured frame; in red, pixels showing the background where the reference shows terrain (cracks, and silhouettes lowered by a coarser surface).\n\n",
     );
     let mut scenarios: Vec<&str> = report.runs.iter().map(|r| r.scenario).collect();
     scenarios.dedup();

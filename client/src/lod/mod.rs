@@ -20,6 +20,7 @@
 //! time is passed in, so every rule is tested with plain data (benches/lod.rs times a frame).
 
 pub mod budget;
+pub mod geomipmap;
 pub mod importance;
 pub mod needed;
 pub mod strips;

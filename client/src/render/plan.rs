@@ -61,8 +61,10 @@ impl Layout {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Draw {
     pub id: TileId,
-    /// Strip-mask level.
+    /// Strip-mask level, or the GeoMipMap level when `stitch` is set.
     pub level: u32,
+    /// A GeoMipMap index set (level and stitched sides) instead of a strip mask.
+    pub stitch: Option<crate::lod::geomipmap::Stitch>,
 }
 
 /// How the frame shares its detail.
@@ -230,6 +232,7 @@ pub fn plan_frame(
         plan.draws.push(Draw {
             id: visible[a.tile],
             level: a.level,
+            stitch: None,
         });
         plan.importances.push(importances[a.tile]);
         plan.triangles += u64::from(a.triangles);

@@ -121,6 +121,8 @@ pub struct TerrainRenderer {
     surface_pipeline: wgpu::RenderPipeline,
     sampler: wgpu::Sampler,
     strips: HashMap<u32, (wgpu::Buffer, u32)>,
+    /// GeoMipMap index sets: buffer, index count, triangles.
+    stitched: HashMap<crate::lod::geomipmap::Stitch, (wgpu::Buffer, u32, u32)>,
     /// Indices of the shadow's four corners (`terrain_shaders::shadow_base`).
     quad: wgpu::Buffer,
     skirts: HashMap<u32, (wgpu::Buffer, u32)>,
@@ -324,6 +326,7 @@ impl TerrainRenderer {
             surface_pipeline,
             sampler,
             strips: HashMap::new(),
+            stitched: HashMap::new(),
             skirts: HashMap::new(),
             tiles: HashMap::new(),
             depth: None,
@@ -507,6 +510,10 @@ impl TerrainRenderer {
             .collect();
         self.ensure_uniform_capacity(drawn.len() as u64);
         for d in &drawn {
+            if let Some(stitch) = d.stitch {
+                self.ensure_stitched(stitch);
+                continue;
+            }
             self.ensure_strip(d.level);
             if filler == CrackFiller::Skirts {
                 self.ensure_skirt(d.level);
@@ -637,6 +644,15 @@ impl TerrainRenderer {
                 let offset = (slot as u64 * self.uniform_stride) as u32;
                 pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
                 pass.set_bind_group(2, &tile.bind_group, &[]);
+                if let Some(stitch) = d.stitch {
+                    // GeoMipMaps are crack-free by construction: no filler.
+                    let (buffer, len, triangles) = &self.stitched[&stitch];
+                    pass.set_index_buffer(buffer.slice(..), wgpu::IndexFormat::Uint32);
+                    pass.draw_indexed(0..*len, 0, 0..1);
+                    stats.triangles += u64::from(*triangles);
+                    stats.draw_calls += 1;
+                    continue;
+                }
                 let (buffer, len) = &self.strips[&d.level];
                 pass.set_index_buffer(buffer.slice(..), wgpu::IndexFormat::Uint32);
                 pass.draw_indexed(0..*len, 0, 0..1);
@@ -652,7 +668,7 @@ impl TerrainRenderer {
             }
             if filler == CrackFiller::PlanarShadow {
                 pass.set_index_buffer(self.quad.slice(..), wgpu::IndexFormat::Uint32);
-                for (slot, d) in drawn.iter().enumerate() {
+                for (slot, d) in drawn.iter().enumerate().filter(|(_, d)| d.stitch.is_none()) {
                     let tile = &self.tiles[&d.id];
                     let offset = (slot as u64 * self.uniform_stride) as u32;
                     pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
@@ -735,6 +751,17 @@ impl TerrainRenderer {
             let indices = self.masks.strip(level);
             let buffer = self.index_buffer(indices);
             self.strips.insert(level, (buffer, indices.len() as u32));
+        }
+    }
+
+    fn ensure_stitched(&mut self, stitch: crate::lod::geomipmap::Stitch) {
+        if !self.stitched.contains_key(&stitch) {
+            let n = self.layout.tile_size;
+            let indices = crate::lod::geomipmap::strip(n, stitch);
+            let triangles = crate::lod::geomipmap::triangles(n, stitch).len() as u32;
+            let buffer = self.index_buffer(&indices);
+            self.stitched
+                .insert(stitch, (buffer, indices.len() as u32, triangles));
         }
     }
 
