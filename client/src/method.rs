@@ -145,7 +145,7 @@ impl LodMethod for StripMasks {
         if self.reference {
             MethodKind::Reference.name().to_string()
         } else {
-            format!("{}/{}", MethodKind::StripMasks.name(), self.filler.name())
+            crate::eval::Variants::name(MethodKind::StripMasks, self.filler)
         }
     }
 
