@@ -11,7 +11,8 @@
 //! Each frame's global budget is 4 M triangles (about 1000 per tile, an eighth of a full
 //! tile on average). Each frame times [`importance_into`] + [`share_into`] (which selects
 //! every mask) and, as the baseline, one pass computing the tiles' distances to the
-//! viewpoint: the least any importance must do. The target is under 0.5 ms a frame.
+//! viewpoint: the least any importance must do. The same run times GeoMipMaps' selection
+//! for the same tiles (each tile's level within 1 px, then its four stitches). The target is under 0.5 ms a frame.
 
 mod common;
 use common::{Random, Stats, cpu_model};
@@ -19,6 +20,7 @@ use common::{Random, Stats, cpu_model};
 use std::hint::black_box;
 use std::time::Instant;
 use terrain_client::lod::budget::{Allocation, share_into};
+use terrain_client::lod::geomipmap::Stitch;
 use terrain_client::lod::importance::{DEFAULT_ALPHA, HeightMeasure, TileView, importance_into};
 use terrain_client::lod::needed::{
     coarsest_level_within, distance_to_box, pixels_at_one_metre, suffix_minima,
@@ -67,6 +69,20 @@ fn main() {
         })
         .collect();
     let mut caps: Vec<u32> = Vec::with_capacity(tiles);
+    // GeoMipMaps: 8 levels (every 2^k-th sample), errors growing with the step.
+    let geomip_levels = terrain_client::lod::geomipmap::level_count(TILE_SIZE);
+    let geomip_errors: Vec<Vec<f32>> = heights
+        .iter()
+        .map(|&(_, roughness)| {
+            suffix_minima(
+                &(0..geomip_levels)
+                    .map(|k| (2.0 * roughness * f64::from((1u32 << k) - 1) / 127.0) as f32)
+                    .collect::<Vec<f32>>(),
+            )
+        })
+        .collect();
+    let (mut geomip_levels_now, mut stitches) = (vec![0u32; tiles], Vec::with_capacity(tiles));
+    let mut geomip_ns = Vec::with_capacity(FRAMES);
     for level in 0..masks.level_count() {
         black_box(masks.strip(level)); // built once, outside the timed frames
     }
@@ -175,6 +191,48 @@ fn main() {
             .map_or(0, u64::from);
     }
 
+    // GeoMipMaps' selection over the same path, in a loop of its own so that neither
+    // measurement disturbs the other's caches.
+    for frame in 0..FRAMES {
+        let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
+        let eye = [
+            middle + radius * angle.cos(),
+            middle + radius * angle.sin(),
+            ALTITUDE_M,
+        ];
+        // GeoMipMaps' selection: each tile's level within 1 px, then its stitches.
+        let geomip_started = Instant::now();
+        let scale = pixels_at_one_metre(0.96, 1080.0);
+        for (i, ((c, &(top, _)), errs)) in
+            centres.iter().zip(&heights).zip(&geomip_errors).enumerate()
+        {
+            let half = TILE_M / 2.0;
+            let d = distance_to_box(
+                eye,
+                [c[0] - half, c[1] - half, 0.0],
+                [c[0] + half, c[1] + half, top],
+            );
+            geomip_levels_now[i] = coarsest_level_within(errs, scale / d, 1.0);
+        }
+        stitches.clear();
+        let side = SIDE as usize;
+        stitches.extend((0..tiles).map(|i| {
+            let (x, y) = (i % side, i / side);
+            let level = |j: usize| Some(geomip_levels_now[j]);
+            Stitch::new(
+                geomip_levels_now[i],
+                [
+                    if y > 0 { level(i - side) } else { None },
+                    if x + 1 < side { level(i + 1) } else { None },
+                    if y + 1 < side { level(i + side) } else { None },
+                    if x > 0 { level(i - 1) } else { None },
+                ],
+            )
+        }));
+        black_box(&stitches);
+        geomip_ns.push(geomip_started.elapsed().as_nanos() as u64);
+    }
+
     let (lod, floor) = (Stats::of(&mut lod_ns), Stats::of(&mut floor_ns));
     println!(
         "{tiles} visible tiles of {TILE_SIZE}^2, global budget {GLOBAL_BUDGET} triangles, {FRAMES} frames"
@@ -192,6 +250,10 @@ fn main() {
     println!(
         "{}",
         Stats::of(&mut plain_ns).row("importance + share + select, no caps")
+    );
+    println!(
+        "{}",
+        Stats::of(&mut geomip_ns).row("GeoMipMaps: levels within 1 px + stitches")
     );
     println!("{}", floor.row("baseline: distances only"));
     println!(
