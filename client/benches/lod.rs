@@ -98,12 +98,7 @@ fn main() {
     let middle = f64::from(SIDE) * TILE_M / 2.0;
     let radius = middle / 2.0;
     for frame in 0..FRAMES {
-        let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
-        let eye = [
-            middle + radius * angle.cos(),
-            middle + radius * angle.sin(),
-            ALTITUDE_M,
-        ];
+        let eye = eye_at(frame, middle, radius);
         let distance = |c: &[f64; 2]| {
             let (dx, dy) = (c[0] - eye[0], c[1] - eye[1]);
             (dx * dx + dy * dy + eye[2] * eye[2]).sqrt()
@@ -194,12 +189,7 @@ fn main() {
     // GeoMipMaps' selection over the same path, in a loop of its own so that neither
     // measurement disturbs the other's caches.
     for frame in 0..FRAMES {
-        let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
-        let eye = [
-            middle + radius * angle.cos(),
-            middle + radius * angle.sin(),
-            ALTITUDE_M,
-        ];
+        let eye = eye_at(frame, middle, radius);
         // GeoMipMaps' selection: each tile's level within 1 px, then its stitches.
         let geomip_started = Instant::now();
         let scale = pixels_at_one_metre(0.96, 1080.0);
@@ -266,4 +256,14 @@ fn main() {
             "MISSED (p99)"
         }
     );
+}
+
+/// The viewpoint of `frame`: circling the grid's middle at `radius`, at the altitude.
+fn eye_at(frame: usize, middle: f64, radius: f64) -> [f64; 3] {
+    let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
+    [
+        middle + radius * angle.cos(),
+        middle + radius * angle.sin(),
+        ALTITUDE_M,
+    ]
 }

@@ -160,14 +160,50 @@ pub struct RenderArgs {
     /// Camera pitch, degrees above the horizon (negative looks down).
     #[arg(long, default_value_t = crate::render::camera::DEFAULT_PITCH_DEG, allow_negative_numbers = true)]
     pub pitch_deg: f64,
+    #[command(flatten)]
+    pub error: ErrorCapArgs,
+}
+
+/// The screen-space error threshold and the error cap: shared by `fly`, `view` and
+/// `bench accuracy`.
+#[derive(Debug, Clone, Copy, PartialEq, clap::Args)]
+pub struct ErrorCapArgs {
     /// Screen-space error threshold, pixels: no tile is drawn finer than the coarsest mask
-    /// whose projected error is within it, and `triangles_needed` counts those masks.
+    /// whose projected error is within it (GeoMipMaps choose their level by it too), and
+    /// `triangles_needed` counts those masks.
     #[arg(long, default_value_t = DEFAULT_MAX_ERROR_PX)]
     pub max_error_px: f64,
     /// Let tiles take finer masks than the error threshold needs when the budget allows
     /// (the paper's plain budget sharing).
     #[arg(long)]
     pub no_error_cap: bool,
+}
+
+impl Default for ErrorCapArgs {
+    fn default() -> ErrorCapArgs {
+        ErrorCapArgs {
+            max_error_px: DEFAULT_MAX_ERROR_PX,
+            no_error_cap: false,
+        }
+    }
+}
+
+impl ErrorCapArgs {
+    /// The level-of-detail settings with these options, once checked.
+    pub fn lod(&self, alpha: f64, height: HeightMeasure) -> Result<LodSettings, FlightError> {
+        if !(self.max_error_px.is_finite() && self.max_error_px > 0.0) {
+            return Err(FlightError::BadOption(format!(
+                "--max-error-px {} must be positive",
+                self.max_error_px
+            )));
+        }
+        Ok(LodSettings {
+            alpha,
+            height,
+            max_error_px: self.max_error_px,
+            cap_at_needed: !self.no_error_cap,
+        })
+    }
 }
 
 impl Default for RenderArgs {
@@ -181,8 +217,7 @@ impl Default for RenderArgs {
             alpha: DEFAULT_ALPHA,
             height_measure: HeightMeasure::default(),
             pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
-            max_error_px: DEFAULT_MAX_ERROR_PX,
-            no_error_cap: false,
+            error: ErrorCapArgs::default(),
         }
     }
 }
@@ -200,12 +235,6 @@ impl RenderArgs {
             return Err(FlightError::BadOption(format!(
                 "--target-fps {} must be positive",
                 self.target_fps
-            )));
-        }
-        if !(self.max_error_px.is_finite() && self.max_error_px > 0.0) {
-            return Err(FlightError::BadOption(format!(
-                "--max-error-px {} must be positive",
-                self.max_error_px
             )));
         }
         let budget = match self.fixed_budget {
@@ -227,12 +256,7 @@ impl RenderArgs {
         };
         Ok(RenderConfig {
             method: self.method,
-            lod: LodSettings {
-                alpha: self.alpha,
-                height: self.height_measure,
-                max_error_px: self.max_error_px,
-                cap_at_needed: !self.no_error_cap,
-            },
+            lod: self.error.lod(self.alpha, self.height_measure)?,
             filler: self.crack_filler,
             budget,
             ..RenderConfig::default()

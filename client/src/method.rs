@@ -58,6 +58,9 @@ pub trait LodMethod: std::fmt::Debug + Send {
         target: &wgpu::TextureView,
     ) -> MethodOutput;
 
+    /// Draws later frames with these settings (the method stays the same kind).
+    fn configure(&mut self, lod: LodSettings, filler: CrackFiller);
+
     /// A tile became resident (for methods keeping their own copy of the terrain).
     fn tile_resident(&mut self, _id: TileId, _heights: &Heights) {}
 
@@ -149,6 +152,19 @@ impl LodMethod for StripMasks {
         }
     }
 
+    fn configure(&mut self, lod: LodSettings, filler: CrackFiller) {
+        if self.reference {
+            // The reference keeps full resolution: no cap, no filler.
+            self.lod = LodSettings {
+                cap_at_needed: false,
+                ..lod
+            };
+        } else {
+            self.lod = lod;
+            self.filler = filler;
+        }
+    }
+
     fn draw(
         &mut self,
         input: &MethodInput<'_>,
@@ -207,6 +223,11 @@ impl LodMethod for GeoMipMaps {
         MethodKind::Geomipmap.name().to_string()
     }
 
+    fn configure(&mut self, lod: LodSettings, _filler: CrackFiller) {
+        // Crack-free by construction: no filler.
+        self.lod = lod;
+    }
+
     fn draw(
         &mut self,
         input: &MethodInput<'_>,
@@ -216,54 +237,60 @@ impl LodMethod for GeoMipMaps {
         use crate::lod::geomipmap::{Stitch, triangles};
         use crate::lod::needed;
         let started = Instant::now();
-        // Culling and importances as the strip masks have them (importances rank the
-        // textures); the budget plays no part.
-        let mut plan = plan::plan_frame(
+        // Culling, importances (they rank the textures) and the strip-mask levels needed
+        // (the common yardstick of triangles needed), as the strip masks have them; no
+        // budget plays a part.
+        let ranked = plan::rank_visible(
             input.camera,
             input.viewport,
             input.layout,
             input.tiles,
-            u32::MAX,
-            &self.masks,
-            &LodSettings {
-                cap_at_needed: false,
-                ..self.lod
-            },
+            &self.lod,
         );
         let scale = needed::pixels_at_one_metre(input.camera.fov_y, f64::from(input.viewport[1]));
         let extent = input.layout.tile_extent_m();
-        let boxes: std::collections::HashMap<TileId, (f64, f64)> = input
-            .tiles
-            .iter()
-            .map(|t| (t.id, (t.min_m, t.max_m)))
-            .collect();
-        let mut levels = std::collections::HashMap::new();
-        for d in &plan.draws {
-            let (lo, hi) = boxes[&d.id];
-            let [x0, y0] = input.layout.tile_origin_m(d.id);
+        let mut levels = std::collections::HashMap::with_capacity(ranked.visible.len());
+        for &i in &ranked.visible {
+            let tile = &input.tiles[i];
+            let [x0, y0] = input.layout.tile_origin_m(tile.id);
             let distance = needed::distance_to_box(
                 input.camera.position,
-                [x0, y0, lo],
-                [x0 + extent[0], y0 + extent[1], hi],
+                [x0, y0, tile.min_m],
+                [x0 + extent[0], y0 + extent[1], tile.max_m],
             );
-            let level = self.error_minima.get(&d.id).map_or(0, |minima| {
+            let level = self.error_minima.get(&tile.id).map_or(0, |minima| {
                 needed::coarsest_level_within(minima, scale / distance, self.lod.max_error_px)
             });
-            levels.insert(d.id, level);
+            levels.insert(tile.id, level);
         }
         let n = input.layout.tile_size;
+        let mut plan = plan::FramePlan {
+            budget: input.budget,
+            importances: ranked.importances,
+            triangles_needed: ranked
+                .needed_levels
+                .iter()
+                .map(|&l| u64::from(self.masks.triangle_count(l)))
+                .sum(),
+            needed_levels: ranked.needed_levels,
+            ..plan::FramePlan::default()
+        };
         let mut drawn = 0u64;
-        for d in &mut plan.draws {
-            let level = levels[&d.id];
+        for &i in &ranked.visible {
+            let id = input.tiles[i].id;
+            let level = levels[&id];
             let near = |dx: i64, dy: i64| {
-                let (x, y) = (i64::from(d.id.x) + dx, i64::from(d.id.y) + dy);
+                let (x, y) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
                 (x >= 0 && y >= 0)
                     .then(|| levels.get(&TileId::new(x as u32, y as u32)).copied())
                     .flatten()
             };
             let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
-            d.level = level;
-            d.stitch = Some(stitch);
+            plan.draws.push(plan::Draw {
+                id,
+                level,
+                stitch: Some(stitch),
+            });
             drawn += u64::from(
                 *self
                     .counts

@@ -209,16 +209,21 @@ impl Scene {
     /// starts the frame-rate controller again. Resident tiles stay. Nothing happens without rendering.
     pub fn reconfigure(&mut self, config: RenderConfig) {
         if let Some(r) = &mut self.rendering {
-            r.method = method::build(
-                config.method,
-                config.lod,
-                config.filler,
-                Arc::clone(&r.masks),
-            );
-            // The new method learns the tiles already resident.
-            for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
-                if let Some(tile) = tile {
-                    r.method.tile_resident(record.id(), &tile.heights);
+            if config.method == r.config.method {
+                // Same method: new settings, and whatever it learnt of the tiles stays.
+                r.method.configure(config.lod, config.filler);
+            } else {
+                r.method = method::build(
+                    config.method,
+                    config.lod,
+                    config.filler,
+                    Arc::clone(&r.masks),
+                );
+                // The new method learns the tiles already resident.
+                for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
+                    if let Some(tile) = tile {
+                        r.method.tile_resident(record.id(), &tile.heights);
+                    }
                 }
             }
             if config.budget != r.config.budget {

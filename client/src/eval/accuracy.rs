@@ -15,11 +15,10 @@
 use super::Variants;
 use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
-use crate::flight::{FlightError, heading, parse_size};
+use crate::flight::{ErrorCapArgs, FlightError, heading, parse_size};
 use crate::lod::budget::BudgetMode;
 use crate::method::MethodKind;
 use crate::path::CameraPath;
-use crate::render::plan::DEFAULT_MAX_ERROR_PX;
 use crate::render::{Camera, CrackFiller, LodSettings};
 use crate::scene::RenderConfig;
 use std::fmt::Write as _;
@@ -56,13 +55,9 @@ pub struct AccuracyArgs {
     /// Camera pitch, degrees above the horizon.
     #[arg(long, default_value_t = crate::render::camera::DEFAULT_PITCH_DEG, allow_negative_numbers = true)]
     pub pitch_deg: f64,
-    /// Screen-space error threshold, pixels: of the share of pixels above it, of the
-    /// triangles needed, and of the strip masks' error cap.
-    #[arg(long, default_value_t = DEFAULT_MAX_ERROR_PX)]
-    pub max_error_px: f64,
-    /// Let tiles take finer masks than the threshold needs (the paper's plain sharing).
-    #[arg(long)]
-    pub no_error_cap: bool,
+    /// The error threshold (also of the share of pixels above it) and the strip masks' cap.
+    #[command(flatten)]
+    pub error: ErrorCapArgs,
     /// Draws per configuration and camera; the frame time is their median.
     #[arg(long, default_value_t = 3)]
     pub repeats: u32,
@@ -83,8 +78,7 @@ impl AccuracyArgs {
             flight: None,
             size: (640, 360),
             pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
-            max_error_px: DEFAULT_MAX_ERROR_PX,
-            no_error_cap: false,
+            error: ErrorCapArgs::default(),
             repeats: 3,
             label: None,
         }
@@ -162,11 +156,8 @@ pub struct AccuracyReport {
 /// runtime.
 pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     check(args)?;
-    let lod = LodSettings {
-        max_error_px: args.max_error_px,
-        cap_at_needed: !args.no_error_cap,
-        ..LodSettings::default()
-    };
+    let defaults = LodSettings::default();
+    let lod = args.error.lod(defaults.alpha, defaults.height)?;
     let base = RenderConfig {
         lod,
         ..RenderConfig::default()
@@ -208,7 +199,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
                 ..base
             };
             let measured =
-                session.measure(camera, render, &reference, args.max_error_px, args.repeats)?;
+                session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
             rows.push(Row {
                 camera: i as u32,
                 config,
@@ -226,7 +217,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             .unwrap_or_else(|| manifest.dataset.clone()),
         adapter: session.gpu.description(),
         size: args.size,
-        threshold_px: args.max_error_px,
+        threshold_px: lod.max_error_px,
         cameras: args.cameras,
         tiles: manifest.tiles.len(),
         resident_bytes: session.scene.resident_bytes(),
@@ -253,12 +244,6 @@ fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
     }
     if args.cameras == 0 {
         return bad("--cameras must be at least 1".into());
-    }
-    if !(args.max_error_px.is_finite() && args.max_error_px > 0.0) {
-        return bad(format!(
-            "--max-error-px {} must be positive",
-            args.max_error_px
-        ));
     }
     Ok(())
 }

@@ -168,31 +168,39 @@ pub fn needed_level(
     needed::coarsest_level_within(tile.error_minima_m, pixel_scale / distance, threshold_px)
 }
 
-/// Culls `tiles` against the camera's frustum (by bounding box), ranks the visible ones by
-/// importance and shares `budget` triangles among them, on a viewport of `viewport` pixels
-/// (width, height).
-pub fn plan_frame(
+/// The tiles of a frame in view, with what every method needs of them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Ranked {
+    /// Indices into the candidates, in candidate order.
+    pub visible: Vec<usize>,
+    /// Visual importance of each, summing to 1.
+    pub importances: Vec<f64>,
+    /// Strip-mask level each needs to stay within the error threshold.
+    pub needed_levels: Vec<u32>,
+}
+
+/// Culls `tiles` against the camera's frustum (by bounding box) on a viewport of
+/// `viewport` pixels (width, height), and gives each visible tile its importance and the
+/// strip-mask level it needs. Shared by every per-tile method.
+pub fn rank_visible(
     camera: &Camera,
     viewport: [u32; 2],
     layout: &Layout,
     tiles: &[Candidate],
-    budget: u32,
-    masks: &MaskSet,
     settings: &LodSettings,
-) -> FramePlan {
+) -> Ranked {
     let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
     let eye = DVec3::from(camera.position);
     let extent = layout.tile_extent_m();
-    let mut visible = Vec::new();
-    let mut views = Vec::new();
-    let mut needed_levels = Vec::new();
     let pixel_scale = needed::pixels_at_one_metre(camera.fov_y, f64::from(viewport[1]));
-    for i in visible_tiles(camera, aspect, layout, tiles) {
+    let visible = visible_tiles(camera, aspect, layout, tiles);
+    let mut views = Vec::with_capacity(visible.len());
+    let mut needed_levels = Vec::with_capacity(visible.len());
+    for &i in &visible {
         let tile = &tiles[i];
         let [x0, y0] = layout.tile_origin_m(tile.id);
         let lo = DVec3::new(x0, y0, tile.min_m) - eye;
         let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
-        visible.push(tile.id);
         needed_levels.push(needed_level(
             camera.position,
             pixel_scale,
@@ -206,7 +214,30 @@ pub fn plan_frame(
             roughness_m: tile.roughness_m,
         });
     }
-    let importances = importance::importance(&views, settings.alpha, settings.height);
+    Ranked {
+        importances: importance::importance(&views, settings.alpha, settings.height),
+        visible,
+        needed_levels,
+    }
+}
+
+/// Culls `tiles` against the camera's frustum (by bounding box), ranks the visible ones by
+/// importance ([`rank_visible`]) and shares `budget` triangles among them, on a viewport
+/// of `viewport` pixels (width, height).
+pub fn plan_frame(
+    camera: &Camera,
+    viewport: [u32; 2],
+    layout: &Layout,
+    tiles: &[Candidate],
+    budget: u32,
+    masks: &MaskSet,
+    settings: &LodSettings,
+) -> FramePlan {
+    let Ranked {
+        visible,
+        importances,
+        needed_levels,
+    } = rank_visible(camera, viewport, layout, tiles, settings);
     let caps: Vec<u32> = if settings.cap_at_needed {
         needed_levels
             .iter()
@@ -230,7 +261,7 @@ pub fn plan_frame(
     };
     for a in allocations {
         plan.draws.push(Draw {
-            id: visible[a.tile],
+            id: tiles[visible[a.tile]].id,
             level: a.level,
             stitch: None,
         });
