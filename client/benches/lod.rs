@@ -22,9 +22,7 @@ use std::time::Instant;
 use terrain_client::lod::budget::{Allocation, share_into};
 use terrain_client::lod::geomipmap::Stitch;
 use terrain_client::lod::importance::{DEFAULT_ALPHA, HeightMeasure, TileView, importance_into};
-use terrain_client::lod::needed::{
-    coarsest_level_within, distance_to_box, pixels_at_one_metre, suffix_minima,
-};
+use terrain_client::lod::needed::{ErrorProjection, coarsest_level_within, suffix_minima};
 use terrain_client::lod::strips::MaskSet;
 
 const SIDE: u32 = 64;
@@ -126,7 +124,7 @@ fn main() {
             &mut importances,
         );
         let caps_started = Instant::now();
-        let scale = pixels_at_one_metre(0.96, 1080.0);
+        let projection = projection_at(frame, middle, radius);
         caps.clear();
         caps.extend(
             centres
@@ -135,12 +133,12 @@ fn main() {
                 .zip(&errors)
                 .map(|((c, &(top, _)), errs)| {
                     let half = TILE_M / 2.0;
-                    let d = distance_to_box(
-                        eye,
+                    let k = projection.pixels_per_metre(
                         [c[0] - half, c[1] - half, 0.0],
                         [c[0] + half, c[1] + half, top],
+                        1.0,
                     );
-                    let level = coarsest_level_within(errs, scale / d, 1.0);
+                    let level = coarsest_level_within(errs, k, 1.0);
                     masks.triangle_count(level)
                 }),
         );
@@ -189,20 +187,19 @@ fn main() {
     // GeoMipMaps' selection over the same path, in a loop of its own so that neither
     // measurement disturbs the other's caches.
     for frame in 0..FRAMES {
-        let eye = eye_at(frame, middle, radius);
         // GeoMipMaps' selection: each tile's level within 1 px, then its stitches.
         let geomip_started = Instant::now();
-        let scale = pixels_at_one_metre(0.96, 1080.0);
+        let projection = projection_at(frame, middle, radius);
         for (i, ((c, &(top, _)), errs)) in
             centres.iter().zip(&heights).zip(&geomip_errors).enumerate()
         {
             let half = TILE_M / 2.0;
-            let d = distance_to_box(
-                eye,
+            let k = projection.pixels_per_metre(
                 [c[0] - half, c[1] - half, 0.0],
                 [c[0] + half, c[1] + half, top],
+                1.0,
             );
-            geomip_levels_now[i] = coarsest_level_within(errs, scale / d, 1.0);
+            geomip_levels_now[i] = coarsest_level_within(errs, k, 1.0);
         }
         stitches.clear();
         let side = SIDE as usize;
@@ -259,6 +256,24 @@ fn main() {
 }
 
 /// The viewpoint of `frame`: circling the grid's middle at `radius`, at the altitude.
+/// The error bound of frame `frame`: from [`eye_at`], looking along the path, 20 degrees
+/// down, 0.96 rad of vertical field of view on 1920x1080.
+fn projection_at(frame: usize, middle: f64, radius: f64) -> ErrorProjection {
+    let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
+    let pitch = -20f64.to_radians();
+    ErrorProjection::new(
+        eye_at(frame, middle, radius),
+        [
+            -angle.sin() * pitch.cos(),
+            angle.cos() * pitch.cos(),
+            pitch.sin(),
+        ],
+        0.96,
+        [1920, 1080],
+        1.0,
+    )
+}
+
 fn eye_at(frame: usize, middle: f64, radius: f64) -> [f64; 3] {
     let angle = frame as f64 * SPEED_M_PER_FRAME / radius;
     [

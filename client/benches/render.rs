@@ -77,7 +77,7 @@ fn main() {
                 offset_m: 0.0,
                 codes,
             };
-            renderer.upload_tile(id, &heights, f64::from(lo) / 10.0);
+            renderer.upload_tile(id, std::sync::Arc::new(heights), f64::from(lo) / 10.0);
             let texture = image::RgbaImage::from_fn(64, 64, |x, y| {
                 image::Rgba([90 + (x * 2) as u8, 140, 70 + (y * 2) as u8, 255])
             });

@@ -66,6 +66,11 @@ pub trait LodMethod: std::fmt::Debug + Send {
 
     /// A tile was evicted.
     fn tile_evicted(&mut self, _id: TileId) {}
+
+    /// Bytes of what the method keeps per tile (error tables), for the memory report.
+    fn lod_bytes(&self) -> u64 {
+        0
+    }
 }
 
 /// The methods a flight or a benchmark can run.
@@ -97,6 +102,12 @@ impl MethodKind {
     /// by construction, or have no tiles).
     pub fn uses_filler(self) -> bool {
         matches!(self, MethodKind::StripMasks)
+    }
+
+    /// Whether the method draws tiles block by block with MapBlock textures
+    /// ([`crate::render::blocks`]), as the GeoMipMaps paper does.
+    pub fn uses_texture_blocks(self) -> bool {
+        matches!(self, MethodKind::Geomipmap)
     }
 }
 
@@ -247,19 +258,20 @@ impl LodMethod for GeoMipMaps {
             input.tiles,
             &self.lod,
         );
-        let scale = needed::pixels_at_one_metre(input.camera.fov_y, f64::from(input.viewport[1]));
-        let extent = input.layout.tile_extent_m();
+        let projection = plan::error_projection(input.camera, input.viewport);
+        let threshold = self.lod.max_error_px;
         let mut levels = std::collections::HashMap::with_capacity(ranked.visible.len());
         for &i in &ranked.visible {
             let tile = &input.tiles[i];
-            let [x0, y0] = input.layout.tile_origin_m(tile.id);
-            let distance = needed::distance_to_box(
-                input.camera.position,
-                [x0, y0, tile.min_m],
-                [x0 + extent[0], y0 + extent[1], tile.max_m],
-            );
             let level = self.error_minima.get(&tile.id).map_or(0, |minima| {
-                needed::coarsest_level_within(minima, scale / distance, self.lod.max_error_px)
+                let k = plan::tile_pixels_per_metre(
+                    &projection,
+                    input.layout,
+                    tile.id,
+                    [tile.min_m, tile.max_m],
+                    threshold,
+                );
+                needed::coarsest_level_within(minima, k, threshold)
             });
             levels.insert(tile.id, level);
         }
@@ -317,5 +329,9 @@ impl LodMethod for GeoMipMaps {
 
     fn tile_evicted(&mut self, id: TileId) {
         self.error_minima.remove(&id);
+    }
+
+    fn lod_bytes(&self) -> u64 {
+        self.error_minima.values().map(|m| 4 * m.len() as u64).sum()
     }
 }

@@ -40,6 +40,9 @@ pub struct RenderConfig {
     pub budget: BudgetMode,
     /// Texture uploads at most per frame, so that a burst of arrivals cannot stall one.
     pub uploads_per_frame: usize,
+    /// For methods drawing with MapBlocks ([`MethodKind::uses_texture_blocks`]): the largest
+    /// block texture side, texels (`None`: the adapter's limit).
+    pub texture_block_limit: Option<u32>,
 }
 
 impl Default for RenderConfig {
@@ -50,6 +53,7 @@ impl Default for RenderConfig {
             filler: CrackFiller::default(),
             budget: BudgetMode::default(),
             uploads_per_frame: 8,
+            texture_block_limit: None,
         }
     }
 }
@@ -57,7 +61,8 @@ impl Default for RenderConfig {
 /// A tile held in memory.
 #[derive(Debug, Clone)]
 struct ResidentTile {
-    heights: terrain_shared::Heights,
+    /// Shared with the renderer, which makes samples of them when it draws the tile.
+    heights: Arc<terrain_shared::Heights>,
     /// Encoded texture levels held, coarsest first.
     textures: Vec<bytes::Bytes>,
     /// Levels of `textures` on the GPU (0 before the first upload).
@@ -93,6 +98,50 @@ pub struct DrawReport {
     pub triangles_needed: u64,
     /// The method that drew, e.g. `strip-masks/planar-shadow`.
     pub method: String,
+}
+
+/// The bytes a scene keeps for its terrain's geometry ([`Scene::geometry_memory`]): what the
+/// GeoMipMaps paper counts in its bytes per sample (heights, level-of-detail data, index
+/// sets), textures apart.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct GeometryMemory {
+    /// Samples of the resident tiles (shared borders counted in each tile, as stored).
+    pub samples: u64,
+    /// Decoded height codes (CPU), shared with the renderer.
+    pub cpu_heights: u64,
+    /// Per-tile error tables: the manifest's strip-mask errors and the method's own.
+    pub cpu_lod: u64,
+    /// Pooled sample buffers (only tiles drawn lately hold one), index sets and textures.
+    pub gpu: crate::render::GpuResidency,
+}
+
+impl GeometryMemory {
+    /// Geometry bytes: heights, error tables, sample buffers and index sets.
+    pub fn bytes(&self) -> u64 {
+        self.cpu_heights + self.cpu_lod + self.gpu.sample_bytes + self.gpu.index_bytes
+    }
+
+    /// [`GeometryMemory::bytes`] per resident sample.
+    pub fn per_sample(&self) -> f64 {
+        self.bytes() as f64 / self.samples.max(1) as f64
+    }
+}
+
+impl std::fmt::Display for GeometryMemory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let per = |b: u64| b as f64 / self.samples.max(1) as f64;
+        write!(
+            f,
+            "{:.2} B/sample: heights {:.2}, error tables {:.3}, GPU samples {:.2} ({} of {} tiles hold a buffer), index sets {:.3}",
+            self.per_sample(),
+            per(self.cpu_heights),
+            per(self.cpu_lod),
+            per(self.gpu.sample_bytes),
+            self.gpu.sample_buffers,
+            self.gpu.tiles,
+            per(self.gpu.index_bytes),
+        )
+    }
 }
 
 /// The rendering half of a scene.
@@ -144,7 +193,7 @@ impl Scene {
         };
         let rendering = render.map(|(gpu, format, config)| {
             let masks = Arc::new(MaskSet::new(manifest.tile_size));
-            Rendering {
+            let mut r = Rendering {
                 renderer: TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks)),
                 method: method::build(config.method, config.lod, config.filler, Arc::clone(&masks)),
                 masks,
@@ -152,12 +201,10 @@ impl Scene {
                 config,
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
-                texture_costs: manifest
-                    .tiles
-                    .iter()
-                    .map(|t| extra_costs(&manifest, t))
-                    .collect(),
-            }
+                texture_costs: Vec::new(),
+            };
+            r.set_texture_blocks(&manifest);
+            r
         });
         let rendering_on = rendering.is_some();
         Scene {
@@ -190,6 +237,25 @@ impl Scene {
     /// Bytes held by resident tiles, textures included.
     pub fn resident_bytes(&self) -> u64 {
         self.tiles.iter().flatten().map(|t| t.bytes.total()).sum()
+    }
+
+    /// What the scene keeps for its geometry now (see [`GeometryMemory`]).
+    pub fn geometry_memory(&self) -> GeometryMemory {
+        let resident = self.tiles.iter().flatten();
+        GeometryMemory {
+            samples: self.resident_tiles() * u64::from(self.manifest.tile_size).pow(2),
+            cpu_heights: resident.map(|t| t.bytes.decoded_heights).sum(),
+            cpu_lod: self
+                .error_minima
+                .iter()
+                .map(|m| 4 * m.len() as u64)
+                .sum::<u64>()
+                + self.rendering.as_ref().map_or(0, |r| r.method.lod_bytes()),
+            gpu: self
+                .rendering
+                .as_ref()
+                .map_or_else(Default::default, |r| r.renderer.resident_gpu()),
+        }
     }
 
     pub fn resident_tiles(&self) -> u64 {
@@ -230,6 +296,12 @@ impl Scene {
                 r.controller = FrameRateController::new(config.budget);
             }
             r.config = config;
+            r.set_texture_blocks(&self.manifest);
+            for (record, tile) in self.manifest.tiles.iter().zip(&mut self.tiles) {
+                if let Some(tile) = tile {
+                    tile.bytes.gpu = r.renderer.tile_bytes(record.id());
+                }
+            }
         }
     }
 
@@ -372,6 +444,7 @@ impl Scene {
                 ..
             } => {
                 let i = self.index(id);
+                let heights = Arc::new(heights);
                 let mut bytes = TileBytes {
                     decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
                     textures: coarsest_texture.len() as u64,
@@ -381,7 +454,7 @@ impl Scene {
                 if let Some(r) = &mut self.rendering {
                     let record = &self.manifest.tiles[i];
                     r.renderer
-                        .upload_tile(id, &heights, f64::from(record.min_m));
+                        .upload_tile(id, Arc::clone(&heights), f64::from(record.min_m));
                     r.method.tile_resident(id, &heights);
                     if let Some(image) = decode_texture(&coarsest_texture, id, 0) {
                         r.renderer.upload_texture(id, 0, &[image]);
@@ -619,6 +692,31 @@ impl Scene {
         let x = ((tx - tx.floor()) * cells).round() as usize;
         let y = ((ty - ty.floor()) * cells).round() as usize;
         Some(tile.heights.metres(x, y))
+    }
+}
+
+impl Rendering {
+    /// MapBlocks on or off as the method wants, and the texture costs that follow (a block
+    /// texture copies its tiles' textures).
+    fn set_texture_blocks(&mut self, manifest: &Manifest) {
+        let blocks = self.config.method.uses_texture_blocks();
+        self.renderer.set_texture_blocks(blocks.then(|| {
+            crate::render::blocks::BlockLayout::new(
+                [manifest.grid.columns, manifest.grid.rows],
+                manifest
+                    .texture
+                    .level_size(manifest.texture.levels.saturating_sub(1)),
+                self.config
+                    .texture_block_limit
+                    .unwrap_or(self.renderer.max_texture_side()),
+            )
+        }));
+        let copies = if blocks { 2 } else { 1 };
+        self.texture_costs = manifest
+            .tiles
+            .iter()
+            .map(|t| extra_costs(manifest, t, copies))
+            .collect();
     }
 }
 

@@ -56,9 +56,12 @@ pub struct TileUniform {
     /// The planar shadow's corners (north-west, south-west, north-east, south-east), render
     /// space, projected onto the shadow plane; `w` unused.
     pub shadow: [[f32; 4]; 4],
+    /// Where the tile lies in the texture bound with it: `uv = (x, y) + (column, row) /
+    /// cells * (z, w)`; `[0, 0, 1, 1]` for its own texture, a part of a MapBlock's otherwise.
+    pub uv: [f32; 4],
 }
 
-/// One sample of a tile in its storage buffer, bind group 2.
+/// One sample of a tile in its storage buffer, bind group 2 (its texture is group 3).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 pub struct Sample {

@@ -28,6 +28,9 @@ struct Tile {
     // render space, already projected from the viewpoint onto the plane below the tile
     // (on the CPU: four points a tile, see the renderer's `shadow_corner`).
     shadow: array<vec4<f32>, 4>,
+    // Where the tile lies in the texture bound with it: uv = xy + (column, row) / cells * zw.
+    // (0, 0, 1, 1) for a tile's own texture; a part of a MapBlock's texture otherwise.
+    uv: vec4<f32>,
 };
 
 struct Sample {
@@ -38,9 +41,11 @@ struct Sample {
 
 @group(0) @binding(0) var<uniform> frame: Frame;
 @group(1) @binding(0) var<uniform> tile: Tile;
+// The tile's samples (group 2) and the texture it is drawn with (group 3: its own, or its
+// MapBlock's, bound once for every tile of the block).
 @group(2) @binding(0) var<storage, read> samples: array<Sample>;
-@group(2) @binding(1) var tile_texture: texture_2d<f32>;
-@group(2) @binding(2) var tile_sampler: sampler;
+@group(3) @binding(0) var tile_texture: texture_2d<f32>;
+@group(3) @binding(1) var tile_sampler: sampler;
 
 struct Varyings {
     @builtin(position) clip: vec4<f32>,
@@ -63,7 +68,7 @@ fn place(column: u32, row: u32, height: f32) -> Varyings {
     let position = position_of(column, row, height);
     var out: Varyings;
     out.clip = frame.view_proj * vec4<f32>(position, 1.0);
-    out.uv = vec2<f32>(f32(column), f32(row)) / cells;
+    out.uv = tile.uv.xy + vec2<f32>(f32(column), f32(row)) / cells * tile.uv.zw;
     out.normal = vec3<f32>(0.0, 1.0, 0.0);
     return out;
 }

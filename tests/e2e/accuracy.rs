@@ -56,7 +56,7 @@ fn draw_flat(
     for y in 0..2 {
         for x in 0..2 {
             let id = TileId::new(x, y);
-            renderer.upload_tile(id, &flat(height_m), height_m);
+            renderer.upload_tile(id, Arc::new(flat(height_m)), height_m);
             if Some(id) != missing {
                 draws.push(Draw {
                     id,
@@ -477,6 +477,104 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
             "some tiles were drawn coarser than full resolution"
         );
         assert!(strip_cracks > 0);
+        session.close();
+    });
+}
+
+#[test]
+fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() {
+    use terrain_client::eval::session::Session;
+    use terrain_client::method::MethodKind;
+    use terrain_client::render::blocks::BlockLayout;
+    use terrain_client::scene::RenderConfig;
+    let Some(_) = golden::gpu("accuracy::geomipmaps_with_the_texture_cut_into_map_blocks") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    runtime().block_on(async {
+        let config = |limit: Option<u32>| RenderConfig {
+            method: MethodKind::Geomipmap,
+            texture_block_limit: limit,
+            ..RenderConfig::default()
+        };
+        let mut session = Session::open(server.base_url(), None, config(None), (480, 270))
+            .await
+            .expect("session");
+        let manifest = Arc::clone(&session.manifest);
+        let grid = [manifest.grid.columns, manifest.grid.rows];
+        let finest = manifest.texture.size;
+        let path = terrain_client::path::CameraPath::default_for(&manifest);
+        let mut cameras = accuracy::cameras_along(&path, 2, -25.0);
+        cameras.push(Camera::looking_at(
+            [6000.0, 6000.0, 2600.0],
+            [12000.0, 11000.0, 600.0],
+        ));
+        let centre = session.centre();
+        assert!(
+            session
+                .settle(centre, &cameras[0], std::time::Duration::from_secs(120))
+                .await
+                .expect("loads")
+        );
+        // The adapter takes the whole terrain's texture as one: one block, bound once.
+        let adapter_limit = session.gpu.device.limits().max_texture_dimension_2d;
+        assert!(grid[0].max(grid[1]) * finest <= adapter_limit);
+        // A limit of two tiles' textures: 2x2-tile blocks, so the terrain's texture is larger
+        // than the limit and is cut.
+        let small = 2 * finest;
+        let layout = BlockLayout::new(grid, finest, small);
+        assert_eq!(layout.tiles, [2, 2]);
+        assert!(
+            grid[0] * finest > small,
+            "the texture exceeds the small limit"
+        );
+        for camera in &cameras {
+            let (one, one_report) = session.capture(camera, config(None)).expect("one texture");
+            let drawn = one_report.plan.draws.len();
+            assert!(drawn > 4, "{drawn} tiles drawn");
+            assert_eq!(one_report.stats.texture_binds, 1, "one texture, bound once");
+            let (cut, cut_report) = session
+                .capture(camera, config(Some(small)))
+                .expect("blocks");
+            let blocks: std::collections::HashSet<[u32; 2]> = cut_report
+                .plan
+                .draws
+                .iter()
+                .map(|d| layout.block_of(d.id))
+                .collect();
+            assert!(blocks.len() > 1, "several blocks in view");
+            assert_eq!(
+                cut_report.stats.texture_binds as usize,
+                blocks.len(),
+                "each block's texture bound once"
+            );
+            assert_eq!(cut_report.plan.draws, one_report.plan.draws, "same levels");
+            // Every tile's own texture, for the record: one bind per tile.
+            let (own, own_report) = session
+                .capture(camera, config(Some(finest / 2)))
+                .expect("a block per tile");
+            assert_eq!(own_report.stats.texture_binds as usize, drawn);
+            let terrain = one.points.iter().filter(|p| p.is_some()).count();
+            assert!(
+                terrain * 2 > one.points.len(),
+                "the frame is mostly terrain"
+            );
+            for (name, other) in [("2x2 blocks", &cut), ("1x1 blocks", &own)] {
+                let differing = golden::differing_pixels(&one.color, &other.color);
+                let share = differing as f64 / f64::from(one.color.width() * one.color.height());
+                println!(
+                    "{name}: {differing} pixels differ from one texture ({:.3}%)",
+                    share * 100.0
+                );
+                assert!(
+                    share <= golden::MAX_DIFFERING_SHARE,
+                    "{name}: {differing} pixels differ ({:.2}%) at {camera:?}",
+                    share * 100.0
+                );
+            }
+        }
         session.close();
     });
 }

@@ -75,7 +75,11 @@ fn renderer(gpu: &Gpu, terrain: &Terrain, masks: &std::sync::Arc<MaskSet>) -> Te
     );
     for (id, heights, levels) in &terrain.tiles {
         let record = terrain.manifest.tile(*id).expect("in grid");
-        renderer.upload_tile(*id, heights, f64::from(record.min_m));
+        renderer.upload_tile(
+            *id,
+            std::sync::Arc::new(heights.clone()),
+            f64::from(record.min_m),
+        );
         renderer.upload_texture(*id, levels.len() as u32 - 1, levels);
     }
     renderer
@@ -449,7 +453,11 @@ fn textures_refined_and_coarsened_on_the_gpu_render_as_if_uploaded_whole() {
         );
         for (id, heights, levels) in &terrain.tiles {
             let record = terrain.manifest.tile(*id).expect("in grid");
-            renderer.upload_tile(*id, heights, f64::from(record.min_m));
+            renderer.upload_tile(
+                *id,
+                std::sync::Arc::new(heights.clone()),
+                f64::from(record.min_m),
+            );
             levels_of(&mut renderer, *id, levels);
         }
         draw(

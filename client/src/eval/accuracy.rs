@@ -149,6 +149,9 @@ pub struct AccuracyReport {
     pub reference_ms: f64,
     pub rows: Vec<Row>,
     pub summaries: Vec<Summary>,
+    /// Per method, the geometry the scene kept right after its last frame (the last
+    /// camera, the largest budget).
+    pub geometry: Vec<(String, crate::scene::GeometryMemory)>,
     pub files: Vec<PathBuf>,
 }
 
@@ -186,6 +189,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     }
     bar.set_message("measuring");
     let mut rows = Vec::new();
+    let mut geometry: Vec<(String, crate::scene::GeometryMemory)> = Vec::new();
     let (mut reference_triangles, mut reference_ms) = (Vec::new(), Vec::new());
     for (i, camera) in cameras.iter().enumerate() {
         let (reference, report) = session.reference(camera)?;
@@ -200,6 +204,14 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             };
             let measured =
                 session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
+            if i + 1 == cameras.len() {
+                let method = config.method.name().to_string();
+                let memory = session.scene.geometry_memory();
+                match geometry.iter_mut().find(|(m, _)| *m == method) {
+                    Some(entry) => entry.1 = memory,
+                    None => geometry.push((method, memory)),
+                }
+            }
             rows.push(Row {
                 camera: i as u32,
                 config,
@@ -226,6 +238,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             / reference_triangles.len().max(1) as f64,
         reference_ms: median(&mut reference_ms),
         summaries: summarise(&rows, &configs(args)),
+        geometry,
         rows,
         files: Vec::new(),
     };
@@ -388,7 +401,7 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     for m in &report.summaries {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.3} | {:.1} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} |",
+            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.3} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} |",
             m.config.series(),
             m.config.budget,
             m.triangles,
@@ -405,6 +418,15 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.frame_ms,
             m.cpu_ms
         );
+    }
+    if !report.geometry.is_empty() {
+        let _ = writeln!(
+            s,
+            "\nResident geometry after each method's last frame (heights, error tables, GPU sample buffers, index sets; textures apart):\n"
+        );
+        for (method, memory) in &report.geometry {
+            let _ = writeln!(s, "- {method}: {memory}");
+        }
     }
     s
 }

@@ -40,14 +40,17 @@ pub struct Measured {
     pub capture: Capture,
 }
 
-/// Bytes the whole database holds with every texture level, as the scene counts them.
+/// Bytes the whole database holds with every texture level, as the scene counts them for a
+/// method with MapBlocks (the most any method holds).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
     manifest
         .tiles
         .iter()
         .map(|t| {
+            let coarsest = u64::from(manifest.texture.level_size(0)).pow(2) * 4;
             expected_tile_bytes(manifest, t, true).total()
-                + extra_costs(manifest, t).last().copied().unwrap_or(0)
+                + coarsest
+                + extra_costs(manifest, t, 2).last().copied().unwrap_or(0)
         })
         .sum()
 }

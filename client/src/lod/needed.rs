@@ -1,14 +1,25 @@
-//! The fewest triangles a frame needs: per tile, the coarsest strip mask whose vertical
-//! error, projected to the screen, stays within a threshold in pixels. What a frame draws,
-//! set against this, says whether it models more than the scene needs (a flat tile needs
-//! two triangles whatever the budget).
+//! The fewest triangles a frame needs: per tile, the coarsest level (strip mask or GeoMipMap)
+//! whose vertical error, projected to the screen, stays within a threshold in pixels. What a
+//! frame draws, set against this, says whether it models more than the scene needs (a flat
+//! tile needs two triangles whatever the budget).
 //!
-//! The projection is the usual screen-space error bound (e.g. Yusov and Turlapov's quadtree
-//! patches): a vertical error of `e` metres seen from `d` metres spans at most
-//! `e * h / (2 d tan(fov_y / 2))` pixels on a viewport `h` pixels high, with `d` the distance
-//! from the viewpoint to the nearest point of the tile's bounding box (conservative: no
-//! point of the tile is nearer). Per-level errors are the manifest's `mask_errors_m`,
-//! measured by the builder with the same triangulation the strips draw.
+//! **The bound** ([`ErrorProjection`]). The accuracy measures ([`crate::eval`]) take, for
+//! every pixel, the point `P` drawn there and the true surface's point `Q` straight above or
+//! below it, `e` metres away, and count the pixels between their projections. With `P` at
+//! view depth `z` and `t` the tangent of its angle off the view axis, that distance is
+//! exactly `f * e * |u_xy - t u_z| / (z + e u_z)` for the unit vertical `u` in view space
+//! (`f` the focal length in pixels), hence at most `f * e * sqrt(1 + t^2) / (z - e)`. Over a
+//! tile, `z` is at least the view depth of its bounding box's nearest corner (and at least
+//! the near plane: nothing nearer is drawn), and `t` at most the largest over its corners
+//! (the set of points within a given angle of the axis is a convex cone), itself at most the
+//! viewport corner's. So a level whose error `e` satisfies `e <= tau * z / (f sec + tau)`
+//! keeps every pixel of the tile within `tau` pixels: [`ErrorProjection::pixels_per_metre`]
+//! is the `(f sec + tau) / z` that [`coarsest_level_within`] compares with. (Dividing by the
+//! Euclidean distance to the box instead, the textbook bound, is not one: off the view axis
+//! the depth is smaller than the distance, and at a 16:9 viewport's corner that
+//! underestimates the error by a factor of up to 2.4.) Per-level errors are the manifest's
+//! `mask_errors_m` for strip masks, measured by the builder with the triangulation the strips
+//! draw, and [`crate::lod::geomipmap::level_errors`] for GeoMipMaps.
 
 /// Pixels per metre of vertical error at `distance_m` for a viewport `height_px` high with a
 /// vertical field of view `fov_y` (radians). Infinite at distance 0.
@@ -44,6 +55,74 @@ pub fn coarsest_level_within(minima: &[f32], pixels_per_metre: f64, threshold_px
     match minima.last() {
         Some(&e) if f64::from(e) <= limit => minima.len() as u32 - 1,
         _ => (minima.partition_point(|&e| f64::from(e) <= limit)).saturating_sub(1) as u32,
+    }
+}
+
+/// Per-frame constants of the screen-space error bound (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ErrorProjection {
+    eye: [f64; 3],
+    /// Unit view direction, in the same (world) frame as `eye`.
+    forward: [f64; 3],
+    /// Focal length, pixels: [`pixels_at_one_metre`].
+    focal_px: f64,
+    /// Squared tangent of the angle between the view axis and the viewport's corner.
+    tan2_corner: f64,
+    near: f64,
+}
+
+impl ErrorProjection {
+    /// The bound for a camera at `eye` looking along `forward` with a vertical field of view
+    /// `fov_y` (radians) onto a viewport of `viewport` pixels, near plane at `near` metres.
+    pub fn new(
+        eye: [f64; 3],
+        forward: [f64; 3],
+        fov_y: f64,
+        viewport: [u32; 2],
+        near: f64,
+    ) -> ErrorProjection {
+        let length = forward
+            .iter()
+            .map(|c| c * c)
+            .sum::<f64>()
+            .sqrt()
+            .max(1e-300);
+        let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
+        let tan_y = (fov_y / 2.0).tan();
+        ErrorProjection {
+            eye,
+            forward: forward.map(|c| c / length),
+            focal_px: pixels_at_one_metre(fov_y, f64::from(viewport[1])),
+            tan2_corner: tan_y * tan_y * (1.0 + aspect * aspect),
+            near: near.max(1e-6),
+        }
+    }
+
+    /// For a tile whose bounding box runs from `min` to `max`: the `k` such that an error of
+    /// `e` metres with `e * k <= threshold_px` keeps every pixel the tile draws within
+    /// `threshold_px` of the true surface, by the bound of the module documentation.
+    pub fn pixels_per_metre(&self, min: [f64; 3], max: [f64; 3], threshold_px: f64) -> f64 {
+        let mut depth = f64::INFINITY;
+        let mut tan2: f64 = 0.0;
+        for corner in 0..8 {
+            let p = [0, 1, 2].map(|i| {
+                let c = if corner >> i & 1 == 0 { min[i] } else { max[i] };
+                c - self.eye[i]
+            });
+            let z = p[0] * self.forward[0] + p[1] * self.forward[1] + p[2] * self.forward[2];
+            depth = depth.min(z);
+            tan2 = if z <= self.near {
+                self.tan2_corner
+            } else {
+                let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
+                tan2.max((r2 - z * z).max(0.0) / (z * z))
+            };
+            if tan2 >= self.tan2_corner {
+                tan2 = self.tan2_corner;
+            }
+        }
+        let sec = (1.0 + tan2.min(self.tan2_corner)).sqrt();
+        (self.focal_px * sec + threshold_px) / depth.max(self.near)
     }
 }
 
@@ -109,6 +188,80 @@ mod tests {
                 .unwrap_or(0) as u32;
             assert_eq!(coarsest_level_within(&minima, k, 1.0), scan, "k = {k}");
         }
+    }
+
+    /// Any point of a box drawn on a pinhole camera's viewport, raised or lowered by the
+    /// largest error the bound allows, moves at most the threshold on the screen; and the
+    /// bound is not loose on the view axis.
+    #[test]
+    fn the_bound_holds_for_every_drawn_point_of_the_box() {
+        use glam::DVec3;
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut random = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (width, height, fov_y, near) = (640u32, 360u32, 55f64.to_radians(), 1.0);
+        let focal = pixels_at_one_metre(fov_y, f64::from(height));
+        let mut checked = 0;
+        for _ in 0..400 {
+            let eye = DVec3::new(random() * 2000.0, random() * 2000.0, random() * 800.0);
+            let (yaw, pitch) = (random() * 6.3, (random() - 0.7) * 1.5);
+            let forward = DVec3::new(
+                yaw.cos() * pitch.cos(),
+                yaw.sin() * pitch.cos(),
+                pitch.sin(),
+            );
+            let right = forward.cross(DVec3::Z).normalize();
+            let up = right.cross(forward);
+            let min = DVec3::new(random() * 2000.0, random() * 2000.0, random() * 300.0);
+            let max = min + DVec3::new(100.0, 100.0, random() * 200.0);
+            let projection = ErrorProjection::new(
+                eye.to_array(),
+                forward.to_array(),
+                fov_y,
+                [width, height],
+                near,
+            );
+            let threshold = 1.0;
+            let e =
+                threshold / projection.pixels_per_metre(min.to_array(), max.to_array(), threshold);
+            let screen = |p: DVec3| {
+                let d = p - eye;
+                let z = d.dot(forward);
+                (z > 0.0).then(|| [focal * d.dot(right) / z, focal * d.dot(up) / z])
+            };
+            let on_viewport = |s: [f64; 2]| {
+                s[0].abs() <= f64::from(width) / 2.0 && s[1].abs() <= f64::from(height) / 2.0
+            };
+            for _ in 0..200 {
+                let p = min + (max - min) * DVec3::new(random(), random(), random());
+                let Some(drawn) = screen(p).filter(|&s| on_viewport(s)) else {
+                    continue;
+                };
+                if (p - eye).dot(forward) < near {
+                    continue;
+                }
+                for sign in [-1.0, 1.0] {
+                    let Some(truth) = screen(p + DVec3::Z * (sign * e)) else {
+                        panic!("the truth behind the camera: e = {e} is not within the bound");
+                    };
+                    let moved = (drawn[0] - truth[0]).hypot(drawn[1] - truth[1]);
+                    assert!(
+                        moved <= threshold * (1.0 + 1e-9),
+                        "{moved} px > {threshold}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 10_000, "only {checked} points drawn");
+        // On the axis, far away, the bound is the pinhole's: tight within the secant.
+        let far = ErrorProjection::new([0.0; 3], [1.0, 0.0, 0.0], fov_y, [width, height], near);
+        let k = far.pixels_per_metre([10_000.0, -1.0, -1.0], [10_002.0, 1.0, 1.0], 1.0);
+        assert!((k / (focal / 10_000.0) - 1.0).abs() < 0.01, "{k}");
     }
 
     #[test]

@@ -8,13 +8,17 @@
 //! - [`textures`]: the texture budget, how fine each tile's texture goes.
 //! - [`mesh`]: a tile's samples and normals, and the skirt strips.
 //! - [`terrain`]: GPU resources and the render pass, with the crack fillers.
+//! - [`pool`]: the least-recently-used pool of sample buffers (the GeoMipMaps VBO manager).
+//! - [`blocks`]: MapBlocks, textures of `n x m` tiles bound once per block.
 //! - [`offscreen`]: a colour target read back into an image (headless flights, tests).
 
+pub mod blocks;
 pub mod camera;
 pub mod gpu;
 pub mod mesh;
 pub mod offscreen;
 pub mod plan;
+pub mod pool;
 pub mod terrain;
 pub mod textures;
 
@@ -22,4 +26,4 @@ pub use camera::Camera;
 pub use gpu::{Gpu, GpuError};
 pub use offscreen::Offscreen;
 pub use plan::{Draw, FramePlan, Layout, LodSettings};
-pub use terrain::{CrackFiller, RenderStats, TerrainRenderer};
+pub use terrain::{CrackFiller, GpuResidency, RenderStats, TerrainRenderer};

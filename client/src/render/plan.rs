@@ -148,24 +148,51 @@ pub fn visible_tiles(
         .collect()
 }
 
-/// The coarsest mask level of `tile` whose vertical error, projected from the nearest point
-/// of its bounding box, is within `threshold_px`; `pixel_scale` is
-/// [`needed::pixels_at_one_metre`] of the camera and viewport.
+/// The error bound of `camera`'s frames on a viewport of `viewport` pixels.
+pub fn error_projection(camera: &Camera, viewport: [u32; 2]) -> needed::ErrorProjection {
+    needed::ErrorProjection::new(
+        camera.position,
+        camera.direction().to_array(),
+        camera.fov_y,
+        viewport,
+        camera.near,
+    )
+}
+
+/// Pixels per metre of vertical error, at most, anywhere `tile` is drawn
+/// ([`needed::ErrorProjection::pixels_per_metre`]).
+pub fn tile_pixels_per_metre(
+    projection: &needed::ErrorProjection,
+    layout: &Layout,
+    id: TileId,
+    height_m: [f64; 2],
+    threshold_px: f64,
+) -> f64 {
+    let extent = layout.tile_extent_m();
+    let [x0, y0] = layout.tile_origin_m(id);
+    projection.pixels_per_metre(
+        [x0, y0, height_m[0]],
+        [x0 + extent[0], y0 + extent[1], height_m[1]],
+        threshold_px,
+    )
+}
+
+/// The coarsest mask level of `tile` whose vertical error keeps every pixel it draws within
+/// `threshold_px` ([`needed::ErrorProjection`]).
 pub fn needed_level(
-    eye: [f64; 3],
-    pixel_scale: f64,
+    projection: &needed::ErrorProjection,
     layout: &Layout,
     tile: &Candidate,
     threshold_px: f64,
 ) -> u32 {
-    let extent = layout.tile_extent_m();
-    let [x0, y0] = layout.tile_origin_m(tile.id);
-    let distance = needed::distance_to_box(
-        eye,
-        [x0, y0, tile.min_m],
-        [x0 + extent[0], y0 + extent[1], tile.max_m],
+    let k = tile_pixels_per_metre(
+        projection,
+        layout,
+        tile.id,
+        [tile.min_m, tile.max_m],
+        threshold_px,
     );
-    needed::coarsest_level_within(tile.error_minima_m, pixel_scale / distance, threshold_px)
+    needed::coarsest_level_within(tile.error_minima_m, k, threshold_px)
 }
 
 /// The tiles of a frame in view, with what every method needs of them.
@@ -192,7 +219,7 @@ pub fn rank_visible(
     let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
     let eye = DVec3::from(camera.position);
     let extent = layout.tile_extent_m();
-    let pixel_scale = needed::pixels_at_one_metre(camera.fov_y, f64::from(viewport[1]));
+    let projection = error_projection(camera, viewport);
     let visible = visible_tiles(camera, aspect, layout, tiles);
     let mut views = Vec::with_capacity(visible.len());
     let mut needed_levels = Vec::with_capacity(visible.len());
@@ -202,8 +229,7 @@ pub fn rank_visible(
         let lo = DVec3::new(x0, y0, tile.min_m) - eye;
         let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
         needed_levels.push(needed_level(
-            camera.position,
-            pixel_scale,
+            &projection,
             layout,
             tile,
             settings.max_error_px,

@@ -1,8 +1,12 @@
 //! The terrain renderer: GPU resources of resident tiles and one render pass per frame.
 //!
-//! Every tile has a storage buffer of its samples (height and normal, 8 bytes each, see
-//! [`super::mesh`]) and a texture holding the finest level it has so far, with the coarser
-//! levels as its mips. Every mask level has one index buffer, built and uploaded the first
+//! A tile drawn has a storage buffer of its samples (height and normal, 8 bytes each, see
+//! [`super::mesh`]) from a pool of buffers handed to the tiles drawn, least recently used
+//! first ([`super::pool`], the GeoMipMaps paper's VBO manager): a resident tile keeps only
+//! its heights (shared with the scene) until it is drawn. Each tile has a texture holding
+//! the finest level it has so far, with the coarser levels as its mips; with MapBlocks on
+//! ([`super::blocks`]), tiles are drawn block by block with their block's texture, bound once
+//! per block. Every mask level has one index buffer, built and uploaded the first
 //! time a tile draws it and shared by every tile (the strip-mask paper's section 5.1); the
 //! shader turns an index into a position from the tile's origin and spacing. Cracks between
 //! tiles of different levels are filled by [`CrackFiller`].
@@ -10,11 +14,14 @@
 //! `render` draws into any `TextureView` of the renderer's format: an offscreen texture for
 //! the headless flight and tests, or a window's surface for the viewer.
 
+use super::blocks::{BlockLayout, BlockRect};
 use super::camera::Camera;
 use super::gpu::Gpu;
 use super::mesh;
 use super::plan::{Draw, Layout};
+use super::pool::LruPool;
 use std::collections::HashMap;
+use std::sync::Arc;
 use terrain_shaders::{FrameUniform, Sample, TileUniform};
 use terrain_shared::{Heights, TileId};
 
@@ -58,18 +65,42 @@ pub struct RenderStats {
     /// Triangles of the crack fillers.
     pub filler_triangles: u64,
     pub draw_calls: u32,
+    /// Texture bind groups set: one per tile, or one per MapBlock with blocks on.
+    pub texture_binds: u32,
+    /// Tiles whose samples were uploaded to a pooled buffer this frame (they had none).
+    pub sample_uploads: u32,
     /// CPU time of uniforms, command encoding and submission.
     pub encode_ms: f64,
     /// GPU time of the render pass, when the adapter has timestamp queries.
     pub gpu_ms: Option<f64>,
 }
 
+/// What the renderer holds on the GPU ([`TerrainRenderer::resident_gpu`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct GpuResidency {
+    /// Resident tiles.
+    pub tiles: u64,
+    /// Sample buffers in the pool (at most one per resident tile; only drawn tiles get one).
+    pub sample_buffers: u64,
+    pub sample_bytes: u64,
+    /// The tiles' own textures, every mip.
+    pub texture_bytes: u64,
+    /// MapBlock textures.
+    pub block_bytes: u64,
+    /// Shared index sets (strips, skirts, stitched GeoMipMap sets).
+    pub index_bytes: u64,
+}
+
 /// A resident tile on the GPU.
 #[derive(Debug)]
 struct GpuTile {
-    samples: wgpu::Buffer,
+    /// Its heights, shared with the scene; turned into samples when it gets a buffer.
+    heights: Arc<Heights>,
     texture: wgpu::Texture,
-    bind_group: wgpu::BindGroup,
+    texture_group: wgpu::BindGroup,
+    /// Changes with every change of the texture (unique across tiles), so a MapBlock knows
+    /// when to assemble its texture again.
+    texture_version: u64,
     /// Finest texture level uploaded (manifest numbering: 0 is the coarsest).
     texture_level: Option<u32>,
     min_m: f64,
@@ -77,6 +108,30 @@ struct GpuTile {
     corners_m: [f64; 4],
     sample_bytes: u64,
     texture_bytes: u64,
+}
+
+/// A pooled buffer of one tile's samples, with its bind group.
+#[derive(Debug)]
+struct PooledSamples {
+    buffer: wgpu::Buffer,
+    group: wgpu::BindGroup,
+}
+
+/// A MapBlock's assembled texture.
+#[derive(Debug)]
+struct Block {
+    /// Its resident tiles and their texture versions when it was assembled.
+    members: Vec<(TileId, u64)>,
+    rect: BlockRect,
+    group: wgpu::BindGroup,
+    bytes: u64,
+}
+
+/// MapBlocks: the layout and the blocks assembled so far.
+#[derive(Debug)]
+struct Blocks {
+    layout: BlockLayout,
+    assembled: HashMap<[u32; 2], Block>,
 }
 
 /// Where the planar shadow puts a tile corner at `corner` (render space, relative to the
@@ -111,7 +166,8 @@ pub struct TerrainRenderer {
     masks: std::sync::Arc<crate::lod::strips::MaskSet>,
     frame_buffer: wgpu::Buffer,
     frame_group: wgpu::BindGroup,
-    tile_group_layout: wgpu::BindGroupLayout,
+    sample_group_layout: wgpu::BindGroupLayout,
+    texture_group_layout: wgpu::BindGroupLayout,
     uniform_layout: wgpu::BindGroupLayout,
     tile_uniforms: wgpu::Buffer,
     tile_uniform_group: wgpu::BindGroup,
@@ -127,6 +183,9 @@ pub struct TerrainRenderer {
     quad: wgpu::Buffer,
     skirts: HashMap<u32, (wgpu::Buffer, u32)>,
     tiles: HashMap<TileId, GpuTile>,
+    pool: LruPool<TileId, PooledSamples>,
+    blocks: Option<Blocks>,
+    next_texture_version: u64,
     depth: Option<(wgpu::Texture, wgpu::TextureView)>,
     /// Whether the depth buffer is kept after a frame, for [`TerrainRenderer::read_depth`].
     keep_depth: bool,
@@ -166,10 +225,10 @@ impl TerrainRenderer {
             label: Some("tile uniforms"),
             entries: &[uniform_entry(true, size_of::<TileUniform>() as u64)],
         });
-        let tile_group_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("tile"),
-            entries: &[
-                wgpu::BindGroupLayoutEntry {
+        let sample_group_layout =
+            device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("tile samples"),
+                entries: &[wgpu::BindGroupLayoutEntry {
                     binding: 0,
                     visibility: wgpu::ShaderStages::VERTEX,
                     ty: wgpu::BindingType::Buffer {
@@ -178,31 +237,37 @@ impl TerrainRenderer {
                         min_binding_size: wgpu::BufferSize::new(size_of::<Sample>() as u64),
                     },
                     count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
+                }],
+            });
+        let texture_group_layout =
+            device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("tile texture"),
+                entries: &[
+                    wgpu::BindGroupLayoutEntry {
+                        binding: 0,
+                        visibility: wgpu::ShaderStages::FRAGMENT,
+                        ty: wgpu::BindingType::Texture {
+                            sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                            view_dimension: wgpu::TextureViewDimension::D2,
+                            multisampled: false,
+                        },
+                        count: None,
                     },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 2,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                    count: None,
-                },
-            ],
-        });
+                    wgpu::BindGroupLayoutEntry {
+                        binding: 1,
+                        visibility: wgpu::ShaderStages::FRAGMENT,
+                        ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                        count: None,
+                    },
+                ],
+            });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("terrain"),
             bind_group_layouts: &[
                 Some(&frame_layout),
                 Some(&uniform_layout),
-                Some(&tile_group_layout),
+                Some(&sample_group_layout),
+                Some(&texture_group_layout),
             ],
             immediate_size: 0,
         });
@@ -317,7 +382,8 @@ impl TerrainRenderer {
             masks,
             frame_buffer,
             frame_group,
-            tile_group_layout,
+            sample_group_layout,
+            texture_group_layout,
             uniform_layout,
             tile_uniforms,
             tile_uniform_group,
@@ -329,6 +395,9 @@ impl TerrainRenderer {
             stitched: HashMap::new(),
             skirts: HashMap::new(),
             tiles: HashMap::new(),
+            pool: LruPool::default(),
+            blocks: None,
+            next_texture_version: 0,
             depth: None,
             keep_depth: false,
             timestamps,
@@ -342,52 +411,109 @@ impl TerrainRenderer {
         self.tiles.get(&id).and_then(|t| t.texture_level)
     }
 
-    /// GPU bytes `id` holds (samples and texture).
+    /// GPU bytes charged to `id`: a sample buffer (whether or not the pool holds one for
+    /// it now: at most one per resident tile) and its texture, twice with MapBlocks on
+    /// (its copy in the block texture is at most as fine).
     pub fn tile_bytes(&self, id: TileId) -> u64 {
+        let copies = if self.blocks.is_some() { 2 } else { 1 };
         self.tiles
             .get(&id)
-            .map_or(0, |t| t.sample_bytes + t.texture_bytes)
+            .map_or(0, |t| t.sample_bytes + copies * t.texture_bytes)
     }
 
-    /// Uploads a tile's samples (heights and normals); it draws with a grey texture until
-    /// [`TerrainRenderer::upload_texture`]. Returns the GPU bytes of its samples.
-    pub fn upload_tile(&mut self, id: TileId, heights: &Heights, min_m: f64) -> u64 {
-        let samples = mesh::tile_samples(heights, self.layout.spacing_m);
-        let bytes: &[u8] = bytemuck::cast_slice(&samples);
-        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("tile samples"),
-            size: bytes.len() as u64,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        self.queue.write_buffer(&buffer, 0, bytes);
+    /// Bytes of one tile's sample buffer.
+    pub fn sample_buffer_bytes(&self) -> u64 {
+        u64::from(self.layout.tile_size).pow(2) * size_of::<Sample>() as u64
+    }
+
+    /// What the renderer holds on the GPU now, beyond the shared index sets.
+    pub fn resident_gpu(&self) -> GpuResidency {
+        GpuResidency {
+            tiles: self.tiles.len() as u64,
+            sample_buffers: self.pool.len() as u64,
+            sample_bytes: self.pool.len() as u64 * self.sample_buffer_bytes(),
+            texture_bytes: self.tiles.values().map(|t| t.texture_bytes).sum(),
+            block_bytes: self
+                .blocks
+                .as_ref()
+                .map_or(0, |b| b.assembled.values().map(|b| b.bytes).sum()),
+            index_bytes: self
+                .strips
+                .values()
+                .chain(self.skirts.values())
+                .map(|(b, _)| b.size())
+                .chain(self.stitched.values().map(|(b, _, _)| b.size()))
+                .sum(),
+        }
+    }
+
+    /// The largest texture side the adapter takes.
+    pub fn max_texture_side(&self) -> u32 {
+        self.max_texture_side
+    }
+
+    /// Draws tiles block by block with MapBlock textures cut by `layout` (`None`: each tile
+    /// with its own texture).
+    pub fn set_texture_blocks(&mut self, layout: Option<BlockLayout>) {
+        if self.blocks.as_ref().map(|b| b.layout) != layout {
+            self.blocks = layout.map(|layout| Blocks {
+                layout,
+                assembled: HashMap::new(),
+            });
+        }
+    }
+
+    /// Makes `id` resident with its heights; it draws with a grey texture until
+    /// [`TerrainRenderer::upload_texture`], and gets a sample buffer from the pool when it is
+    /// drawn. Returns the GPU bytes charged for its samples.
+    pub fn upload_tile(&mut self, id: TileId, heights: Arc<Heights>, min_m: f64) -> u64 {
         let texture = self.texture(&[image::RgbaImage::from_pixel(
             1,
             1,
             image::Rgba([128, 128, 128, 255]),
         )]);
-        let bind_group = self.tile_bind_group(&buffer, &texture);
+        let texture_group = self.texture_bind_group(&texture);
+        let last = self.layout.tile_size as usize - 1;
+        let corners_m = [(0, 0), (0, last), (last, 0), (last, last)]
+            .map(|(column, row)| f64::from(heights.metres(column, row) as f32));
+        // A tile that comes back starts afresh: its old buffer may hold other samples.
+        self.release_samples(id);
+        let texture_version = self.bump_version();
+        let sample_bytes = self.sample_buffer_bytes();
         self.tiles.insert(
             id,
             GpuTile {
-                sample_bytes: bytes.len() as u64,
-                samples: buffer,
+                sample_bytes,
+                heights,
                 texture,
-                bind_group,
+                texture_group,
+                texture_version,
                 texture_level: None,
                 min_m,
-                corners_m: {
-                    let (n, last) = (
-                        self.layout.tile_size as usize,
-                        self.layout.tile_size as usize - 1,
-                    );
-                    [(0, 0), (0, last), (last, 0), (last, last)]
-                        .map(|(column, row)| f64::from(samples[row * n + column].height))
-                },
+                corners_m,
                 texture_bytes: 4,
             },
         );
-        bytes.len() as u64
+        self.forget_block_of(id);
+        sample_bytes
+    }
+
+    fn bump_version(&mut self) -> u64 {
+        self.next_texture_version += 1;
+        self.next_texture_version
+    }
+
+    /// `id`'s block texture, if any, is assembled again when next drawn.
+    fn forget_block_of(&mut self, id: TileId) {
+        if let Some(blocks) = &mut self.blocks {
+            let key = blocks.layout.block_of(id);
+            blocks.assembled.remove(&key);
+        }
+    }
+
+    fn release_samples(&mut self, id: TileId) {
+        let keep = self.tiles.len();
+        self.pool.release(id, keep);
     }
 
     /// Replaces `id`'s texture by `levels`, coarsest first: the last is the finest and the
@@ -411,13 +537,12 @@ impl TerrainRenderer {
             .iter()
             .map(|l| u64::from(l.width()) * u64::from(l.height()) * 4)
             .sum();
-        let Some(tile) = self.tiles.get(&id) else {
-            return 0;
-        };
-        let bind_group = self.tile_bind_group(&tile.samples, &texture);
+        let texture_group = self.texture_bind_group(&texture);
+        let version = self.bump_version();
         if let Some(tile) = self.tiles.get_mut(&id) {
             tile.texture = texture;
-            tile.bind_group = bind_group;
+            tile.texture_group = texture_group;
+            tile.texture_version = version;
             tile.texture_level = Some(level.saturating_sub(dropped));
             tile.texture_bytes = bytes;
         }
@@ -488,7 +613,10 @@ impl TerrainRenderer {
 
     /// Frees `id`'s GPU resources.
     pub fn remove_tile(&mut self, id: TileId) {
-        self.tiles.remove(&id);
+        if self.tiles.remove(&id).is_some() {
+            self.release_samples(id);
+            self.forget_block_of(id);
+        }
     }
 
     /// Draws `draws` seen from `camera` into `target` (cleared to [`SKY`] first), fills
@@ -519,6 +647,12 @@ impl TerrainRenderer {
                 self.ensure_skirt(d.level);
             }
         }
+        let (sample_slots, sample_uploads) = self.pool_samples(&drawn);
+        let block_keys = self.frame_blocks(&drawn);
+        let block_rect = |slot: usize| {
+            let key = block_keys[slot]?;
+            Some(self.blocks.as_ref()?.assembled.get(&key)?.rect)
+        };
 
         // Uniforms: the frame's, then one slot per drawn tile.
         let light = Camera::to_render(glam::DVec3::new(
@@ -583,6 +717,7 @@ impl TerrainRenderer {
                     (tile.min_m - drop) as f32,
                 ],
                 shadow,
+                uv: block_rect(slot).map_or([0.0, 0.0, 1.0, 1.0], |r| r.uv(d.id)),
             };
             let at = slot * self.uniform_stride as usize;
             uniforms[at..at + size_of::<TileUniform>()].copy_from_slice(bytemuck::bytes_of(&u));
@@ -596,7 +731,20 @@ impl TerrainRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("frame"),
             });
-        let mut stats = RenderStats::default();
+        let mut stats = RenderStats {
+            sample_uploads,
+            ..RenderStats::default()
+        };
+        // Tiles block by block (each block's texture bound once), then those drawn with
+        // their own textures, in the plan's order within each.
+        let mut order: Vec<usize> = (0..drawn.len()).collect();
+        order.sort_by_key(|&slot| (block_keys[slot].is_none(), block_keys[slot]));
+        let texture_group = |slot: usize| -> (&wgpu::BindGroup, Option<[u32; 2]>) {
+            match (block_keys[slot], &self.blocks) {
+                (Some(key), Some(blocks)) => (&blocks.assembled[&key].group, Some(key)),
+                _ => (&self.tiles[&drawn[slot].id].texture_group, None),
+            }
+        };
         {
             let depth = &self.depth.as_ref().expect("ensured above").1;
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -639,11 +787,18 @@ impl TerrainRenderer {
             });
             pass.set_bind_group(0, &self.frame_group, &[]);
             pass.set_pipeline(&self.surface_pipeline);
-            for (slot, d) in drawn.iter().enumerate() {
-                let tile = &self.tiles[&d.id];
+            let mut bound: Option<[u32; 2]> = None;
+            for &slot in &order {
+                let d = drawn[slot];
                 let offset = (slot as u64 * self.uniform_stride) as u32;
                 pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
-                pass.set_bind_group(2, &tile.bind_group, &[]);
+                pass.set_bind_group(2, &self.pool.get(sample_slots[slot]).group, &[]);
+                let (group, block) = texture_group(slot);
+                if block.is_none() || block != bound {
+                    pass.set_bind_group(3, group, &[]);
+                    stats.texture_binds += 1;
+                    bound = block;
+                }
                 if let Some(stitch) = d.stitch {
                     // GeoMipMaps are crack-free by construction: no filler.
                     let (buffer, len, triangles) = &self.stitched[&stitch];
@@ -668,11 +823,17 @@ impl TerrainRenderer {
             }
             if filler == CrackFiller::PlanarShadow {
                 pass.set_index_buffer(self.quad.slice(..), wgpu::IndexFormat::Uint32);
-                for (slot, d) in drawn.iter().enumerate().filter(|(_, d)| d.stitch.is_none()) {
-                    let tile = &self.tiles[&d.id];
+                let mut bound: Option<[u32; 2]> = None;
+                for &slot in order.iter().filter(|&&slot| drawn[slot].stitch.is_none()) {
                     let offset = (slot as u64 * self.uniform_stride) as u32;
                     pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
-                    pass.set_bind_group(2, &tile.bind_group, &[]);
+                    pass.set_bind_group(2, &self.pool.get(sample_slots[slot]).group, &[]);
+                    let (group, block) = texture_group(slot);
+                    if block.is_none() || block != bound {
+                        pass.set_bind_group(3, group, &[]);
+                        stats.texture_binds += 1;
+                        bound = block;
+                    }
                     pass.draw_indexed(0..4, 0, 0..1);
                     stats.filler_triangles += 2;
                     stats.draw_calls += 1;
@@ -885,38 +1046,198 @@ impl TerrainRenderer {
             self.write_mip(&texture, 0, image);
         }
         self.queue.submit([encoder.finish()]);
-        let bind_group = self.tile_bind_group(&tile.samples, &texture);
+        let texture_group = self.texture_bind_group(&texture);
         let bytes = (0..mips)
             .map(|m| u64::from((side >> m).max(1)).pow(2) * 4)
             .sum();
+        let version = self.bump_version();
         if let Some(tile) = self.tiles.get_mut(&id) {
             tile.texture = texture;
-            tile.bind_group = bind_group;
+            tile.texture_group = texture_group;
+            tile.texture_version = version;
             tile.texture_level = Some(level);
             tile.texture_bytes = bytes;
         }
     }
 
-    fn tile_bind_group(&self, samples: &wgpu::Buffer, texture: &wgpu::Texture) -> wgpu::BindGroup {
+    fn texture_bind_group(&self, texture: &wgpu::Texture) -> wgpu::BindGroup {
         let view = texture.create_view(&Default::default());
         self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("tile"),
-            layout: &self.tile_group_layout,
+            label: Some("tile texture"),
+            layout: &self.texture_group_layout,
             entries: &[
                 wgpu::BindGroupEntry {
                     binding: 0,
-                    resource: samples.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
                     resource: wgpu::BindingResource::TextureView(&view),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 2,
+                    binding: 1,
                     resource: wgpu::BindingResource::Sampler(&self.sampler),
                 },
             ],
         })
+    }
+
+    /// Hands each drawn tile a sample buffer from the pool, uploading the samples of those
+    /// that had none; returns the slots and the number of uploads.
+    fn pool_samples(&mut self, drawn: &[&Draw]) -> (Vec<usize>, u32) {
+        // What a shrinking pool drops is freed with it.
+        drop(self.pool.begin_frame());
+        let bytes = self.sample_buffer_bytes();
+        let mut uploads = 0;
+        let mut slots = Vec::with_capacity(drawn.len());
+        for d in drawn {
+            let (device, layout) = (&self.device, &self.sample_group_layout);
+            let got = self.pool.acquire(d.id, || {
+                let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("tile samples"),
+                    size: bytes,
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("tile samples"),
+                    layout,
+                    entries: &[wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: buffer.as_entire_binding(),
+                    }],
+                });
+                PooledSamples { buffer, group }
+            });
+            if got.needs_upload() {
+                let samples = mesh::tile_samples(&self.tiles[&d.id].heights, self.layout.spacing_m);
+                self.queue.write_buffer(
+                    &self.pool.get(got.slot()).buffer,
+                    0,
+                    bytemuck::cast_slice(&samples),
+                );
+                uploads += 1;
+            }
+            slots.push(got.slot());
+        }
+        (slots, uploads)
+    }
+
+    /// With MapBlocks on, the block of each drawn tile whose texture is assembled (blocks
+    /// whose tiles changed are assembled again first); `None` for a tile drawn with its own
+    /// texture (blocks off, or a block with a tile still untextured).
+    fn frame_blocks(&mut self, drawn: &[&Draw]) -> Vec<Option<[u32; 2]>> {
+        let Some(layout) = self.blocks.as_ref().map(|b| b.layout) else {
+            return vec![None; drawn.len()];
+        };
+        let keys: std::collections::BTreeSet<[u32; 2]> =
+            drawn.iter().map(|d| layout.block_of(d.id)).collect();
+        for key in keys {
+            self.assemble_block(layout, key);
+        }
+        let assembled = &self.blocks.as_ref().expect("blocks on").assembled;
+        drawn
+            .iter()
+            .map(|d| {
+                let key = layout.block_of(d.id);
+                assembled.contains_key(&key).then_some(key)
+            })
+            .collect()
+    }
+
+    /// Assembles block `key`'s texture from its resident tiles' textures, unless it is
+    /// current: every tile's mips copied side by side at the finest level all of them hold.
+    /// Leaves the block out when a tile has no texture yet or the levels do not line up.
+    fn assemble_block(&mut self, layout: BlockLayout, key: [u32; 2]) {
+        let members: Vec<(TileId, u64)> = layout
+            .members(key)
+            .filter_map(|id| self.tiles.get(&id).map(|t| (id, t.texture_version)))
+            .collect();
+        let blocks = self.blocks.as_mut().expect("blocks on");
+        if blocks
+            .assembled
+            .get(&key)
+            .is_some_and(|b| b.members == members)
+        {
+            return;
+        }
+        blocks.assembled.remove(&key);
+        let Some(level) = members
+            .iter()
+            .map(|(id, _)| self.tiles[id].texture_level)
+            .collect::<Option<Vec<u32>>>()
+            .and_then(|levels| levels.into_iter().min())
+        else {
+            return;
+        };
+        // Per tile: the mip holding `level`; the side there, and the mips below it.
+        let (mut side, mut mips) = (None, u32::MAX);
+        let mut sources = Vec::with_capacity(members.len());
+        for (id, _) in &members {
+            let tile = &self.tiles[id];
+            let first = tile.texture_level.unwrap_or(level) - level;
+            let count = tile.texture.mip_level_count();
+            let s = tile.texture.width() >> first.min(31);
+            if first >= count
+                || *side.get_or_insert(s) != s
+                || tile.texture.height() != tile.texture.width()
+            {
+                return;
+            }
+            mips = mips.min(count - first);
+            sources.push((*id, first));
+        }
+        let (Some(side), Some(rect)) = (side, BlockRect::around(members.iter().map(|m| m.0)))
+        else {
+            return;
+        };
+        let mips = mips.min(side.ilog2() + 1);
+        let [w, h] = rect.size();
+        let texture = self.blank_texture(w * side, h * side, mips);
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("map block"),
+            });
+        for (id, first) in &sources {
+            let [x, y] = rect.texel_origin(*id, side);
+            for mip in 0..mips {
+                let s = side >> mip;
+                encoder.copy_texture_to_texture(
+                    wgpu::TexelCopyTextureInfo {
+                        texture: &self.tiles[id].texture,
+                        mip_level: first + mip,
+                        origin: wgpu::Origin3d::ZERO,
+                        aspect: wgpu::TextureAspect::All,
+                    },
+                    wgpu::TexelCopyTextureInfo {
+                        texture: &texture,
+                        mip_level: mip,
+                        origin: wgpu::Origin3d {
+                            x: x >> mip,
+                            y: y >> mip,
+                            z: 0,
+                        },
+                        aspect: wgpu::TextureAspect::All,
+                    },
+                    wgpu::Extent3d {
+                        width: s,
+                        height: s,
+                        depth_or_array_layers: 1,
+                    },
+                );
+            }
+        }
+        self.queue.submit([encoder.finish()]);
+        let bytes = (0..mips)
+            .map(|m| u64::from((w * side) >> m) * u64::from((h * side) >> m) * 4)
+            .sum();
+        let group = self.texture_bind_group(&texture);
+        self.blocks.as_mut().expect("blocks on").assembled.insert(
+            key,
+            Block {
+                members,
+                rect,
+                group,
+                bytes,
+            },
+        );
     }
 }
 

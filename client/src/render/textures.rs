@@ -57,17 +57,19 @@ pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) ->
 }
 
 /// Extra bytes of holding each texture level of `tile` (index = level) beyond the
-/// coarsest: the encoded levels kept on the CPU plus their RGBA mips on the GPU.
+/// coarsest: the encoded levels kept on the CPU plus their RGBA mips on the GPU, `gpu_copies`
+/// times (2 with MapBlocks, whose block textures copy the tiles').
 pub fn extra_costs(
     manifest: &terrain_shared::Manifest,
     tile: &terrain_shared::TileRecord,
+    gpu_copies: u64,
 ) -> Vec<u64> {
     let mut cost = 0u64;
     (0..tile.texture.len())
         .map(|level| {
             if level > 0 {
                 let side = u64::from(manifest.texture.level_size(level as u32));
-                cost += tile.texture[level].bytes + side * side * 4;
+                cost += tile.texture[level].bytes + gpu_copies * side * side * 4;
             }
             cost
         })
