@@ -251,6 +251,49 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
     check_sweep(&report, &budgets);
 }
 
+/// GeoMipMaps over the Puget Sound flight of the evaluation (8 cameras at 640x360): no crack
+/// and no pixel beyond the 1 px threshold, by the accuracy metric. The projection from the
+/// Euclidean distance alone let 1.6 px through here.
+#[test]
+fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() {
+    use terrain_client::method::MethodKind;
+    let Some(png) = kit_file("geomipmaps over puget", "puget_sound_1k/ps_height_1k.png") else {
+        return;
+    };
+    let Some(_) = golden::gpu("accuracy::geomipmaps_keep_every_pixel_of_the_puget_sound_flight")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_db(&png, tmp.path());
+    let server = TestServer::start(&db);
+    let mut args = AccuracyArgs {
+        budgets: vec![1_000_000],
+        repeats: 1,
+        ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
+    };
+    args.variants.methods = vec![MethodKind::Geomipmap];
+    let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+    assert_eq!(report.rows.len(), 8);
+    for row in &report.rows {
+        let m = &row.measured.measures;
+        println!(
+            "camera {}: max {:.3} px, mean {:.4} px, {} triangles",
+            row.camera, m.error.max_px, m.error.mean_px, row.measured.report.stats.triangles
+        );
+        assert_eq!(m.crack_pixels, 0, "camera {}: {m:?}", row.camera);
+        assert!(
+            m.error.max_px <= report.threshold_px,
+            "camera {}: {:?}",
+            row.camera,
+            m.error
+        );
+    }
+    let geometry = &report.geometry[0].1;
+    println!("geomipmap: {geometry}");
+    assert!(geometry.gpu.sample_buffers <= geometry.gpu.tiles);
+}
+
 fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
     build(
         &BuildOptions::new(input, dir.join("db")),
