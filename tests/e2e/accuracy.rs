@@ -252,8 +252,11 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
 }
 
 /// GeoMipMaps over the Puget Sound flight of the evaluation (8 cameras at 640x360): no crack
-/// and no pixel beyond the 1 px threshold, by the accuracy metric. The projection from the
-/// Euclidean distance alone let 1.6 px through here.
+/// and no pixel beyond the 1 px threshold, by the accuracy metric, but for the pixels the
+/// reference itself gets wrong (the measure's floor: one rasterizer pinhole on lavapipe, a
+/// point 178 m under the surface at 58 km, 1.135 px). The projection from the Euclidean
+/// distance alone let 1.6 px through here, and GeoMipMaps' level 0 (corner cells split the
+/// other way) 1.56 px.
 #[test]
 fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() {
     use terrain_client::method::MethodKind;
@@ -275,20 +278,34 @@ fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() 
     args.variants.methods = vec![MethodKind::Geomipmap];
     let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
     assert_eq!(report.rows.len(), 8);
+    let mut exact_cameras = 0;
     for row in &report.rows {
         let m = &row.measured.measures;
+        let floor = report.reference_errors[row.camera as usize];
         println!(
-            "camera {}: max {:.3} px, mean {:.4} px, {} triangles",
-            row.camera, m.error.max_px, m.error.mean_px, row.measured.report.stats.triangles
+            "camera {}: max {:.3} px, mean {:.4} px, {} above {} px, {} triangles; the reference: max {:.3} px, {} above",
+            row.camera,
+            m.error.max_px,
+            m.error.mean_px,
+            m.error.above_threshold,
+            report.threshold_px,
+            row.measured.report.stats.triangles,
+            floor.max_px,
+            floor.above_threshold
         );
         assert_eq!(m.crack_pixels, 0, "camera {}: {m:?}", row.camera);
         assert!(
-            m.error.max_px <= report.threshold_px,
-            "camera {}: {:?}",
+            m.error.max_px <= report.threshold_px.max(floor.max_px)
+                && m.error.above_threshold <= floor.above_threshold,
+            "camera {}: {:?} (the reference: {floor:?})",
             row.camera,
             m.error
         );
+        if floor.above_threshold == 0 {
+            exact_cameras += 1;
+        }
     }
+    assert!(exact_cameras >= 6, "the floor excuses at most two cameras");
     let geometry = &report.geometry[0].1;
     println!("geomipmap: {geometry}");
     assert!(geometry.gpu.sample_buffers <= geometry.gpu.tiles);

@@ -234,6 +234,26 @@ impl Session {
         })
     }
 
+    /// The screen-space error of `capture` itself against the true surface: for the
+    /// reference, the floor of the measure (pixels the renderer itself gets wrong, such as a
+    /// rasterizer's pinhole showing a point under the surface).
+    pub fn own_error(
+        &self,
+        capture: &Capture,
+        camera: &Camera,
+        threshold_px: f64,
+    ) -> super::metrics::ErrorStats {
+        let scene = &self.scene;
+        super::metrics::screen_space_error(
+            &capture.points,
+            capture.color.width(),
+            capture.color.height(),
+            camera,
+            |x, y| scene.surface_height(x, y),
+            threshold_px,
+        )
+    }
+
     fn reconfigure(&mut self, config: RenderConfig) {
         self.scene.reconfigure(config);
     }
