@@ -10,9 +10,9 @@
 //! exactly `f * e * |u_xy - t u_z| / (z + e u_z)` for the unit vertical `u` in view space
 //! (`f` the focal length in pixels), hence at most `f * e * sqrt(1 + t^2) / (z - e)`. Over a
 //! tile, `z` is at least the view depth of its bounding box's nearest corner (and at least
-//! the near plane: nothing nearer is drawn), and `t` at most the largest over its corners
-//! (the set of points within a given angle of the axis is a convex cone), itself at most the
-//! viewport corner's. So a level whose error `e` satisfies `e <= tau * z / (f sec + tau)`
+//! the near plane: nothing nearer is drawn), and `t` at most what the box's circumscribed
+//! sphere allows (the centre's distance from the axis plus the radius, over the centre's
+//! depth less the radius), and at most the viewport corner's. So a level whose error `e` satisfies `e <= tau * z / (f sec + tau)`
 //! keeps every pixel of the tile within `tau` pixels: [`ErrorProjection::pixels_per_metre`]
 //! is the `(f sec + tau) / z` that [`coarsest_level_within`] compares with. (Dividing by the
 //! Euclidean distance to the box instead, the textbook bound, is not one: off the view axis
@@ -102,26 +102,28 @@ impl ErrorProjection {
     /// `e` metres with `e * k <= threshold_px` keeps every pixel the tile draws within
     /// `threshold_px` of the true surface, by the bound of the module documentation.
     pub fn pixels_per_metre(&self, min: [f64; 3], max: [f64; 3], threshold_px: f64) -> f64 {
-        let mut depth = f64::INFINITY;
-        let mut tan2: f64 = 0.0;
-        for corner in 0..8 {
-            let p = [0, 1, 2].map(|i| {
-                let c = if corner >> i & 1 == 0 { min[i] } else { max[i] };
-                c - self.eye[i]
-            });
-            let z = p[0] * self.forward[0] + p[1] * self.forward[1] + p[2] * self.forward[2];
-            depth = depth.min(z);
-            tan2 = if z <= self.near {
-                self.tan2_corner
-            } else {
-                let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
-                tan2.max((r2 - z * z).max(0.0) / (z * z))
-            };
-            if tan2 >= self.tan2_corner {
-                tan2 = self.tan2_corner;
-            }
+        // The nearest view depth of the box, exactly: per axis the end the view looks from.
+        let (mut depth, mut centre_z, mut centre2, mut radius2) = (0.0, 0.0, 0.0, 0.0);
+        for i in 0..3 {
+            let (lo, hi, f) = (min[i] - self.eye[i], max[i] - self.eye[i], self.forward[i]);
+            depth += if f >= 0.0 { lo * f } else { hi * f };
+            let (c, h) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+            centre_z += c * f;
+            centre2 += c * c;
+            radius2 += h * h;
         }
-        let sec = (1.0 + tan2.min(self.tan2_corner)).sqrt();
+        // The angle off the axis, bounded over the box's circumscribed sphere: no point of it
+        // is farther from the axis than the centre plus the radius, nor nearer the eye's
+        // plane than the centre minus the radius. One square root a tile.
+        let radius = radius2.sqrt();
+        let near_z = centre_z - radius;
+        let tan2 = if near_z <= self.near {
+            self.tan2_corner
+        } else {
+            let off_axis = (centre2 - centre_z * centre_z).max(0.0).sqrt() + radius;
+            ((off_axis * off_axis) / (near_z * near_z)).min(self.tan2_corner)
+        };
+        let sec = (1.0 + tan2).sqrt();
         (self.focal_px * sec + threshold_px) / depth.max(self.near)
     }
 }
