@@ -43,6 +43,9 @@ pub struct RenderConfig {
     /// For methods drawing with MapBlocks ([`MethodKind::uses_texture_blocks`]): the largest
     /// block texture side, texels (`None`: the adapter's limit).
     pub texture_block_limit: Option<u32>,
+    /// Whether those methods use MapBlocks at all (`false`: every tile with its own
+    /// texture, for comparison).
+    pub texture_blocks: bool,
 }
 
 impl Default for RenderConfig {
@@ -54,6 +57,7 @@ impl Default for RenderConfig {
             budget: BudgetMode::default(),
             uploads_per_frame: 8,
             texture_block_limit: None,
+            texture_blocks: true,
         }
     }
 }
@@ -699,7 +703,7 @@ impl Rendering {
     /// MapBlocks on or off as the method wants, and the texture costs that follow (a block
     /// texture copies its tiles' textures).
     fn set_texture_blocks(&mut self, manifest: &Manifest) {
-        let blocks = self.config.method.uses_texture_blocks();
+        let blocks = self.config.method.uses_texture_blocks() && self.config.texture_blocks;
         self.renderer.set_texture_blocks(blocks.then(|| {
             crate::render::blocks::BlockLayout::new(
                 [manifest.grid.columns, manifest.grid.rows],

@@ -559,6 +559,10 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
             texture_block_limit: limit,
             ..RenderConfig::default()
         };
+        let own_textures = RenderConfig {
+            texture_blocks: false,
+            ..config(None)
+        };
         let mut session = Session::open(server.base_url(), None, config(None), (480, 270))
             .await
             .expect("session");
@@ -612,22 +616,25 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
             );
             assert_eq!(cut_report.plan.draws, one_report.plan.draws, "same levels");
             // Every tile's own texture, for the record: one bind per tile.
-            let (own, own_report) = session
+            let (single, single_report) = session
                 .capture(camera, config(Some(finest / 2)))
                 .expect("a block per tile");
+            assert_eq!(single_report.stats.texture_binds as usize, drawn);
+            let (own, own_report) = session.capture(camera, own_textures).expect("own textures");
             assert_eq!(own_report.stats.texture_binds as usize, drawn);
             let terrain = one.points.iter().filter(|p| p.is_some()).count();
             assert!(
                 terrain * 2 > one.points.len(),
                 "the frame is mostly terrain"
             );
-            for (name, other) in [("2x2 blocks", &cut), ("1x1 blocks", &own)] {
-                let differing = golden::differing_pixels(&one.color, &other.color);
-                let share = differing as f64 / f64::from(one.color.width() * one.color.height());
-                println!(
-                    "{name}: {differing} pixels differ from one texture ({:.3}%)",
-                    share * 100.0
-                );
+            for (name, a, b) in [
+                ("one texture against the tiles' own", &own, &one),
+                ("2x2 blocks against one texture", &one, &cut),
+                ("1x1 blocks against one texture", &one, &single),
+            ] {
+                let differing = golden::differing_pixels(&a.color, &b.color);
+                let share = differing as f64 / f64::from(a.color.width() * a.color.height());
+                println!("{name}: {differing} pixels differ ({:.3}%)", share * 100.0);
                 assert!(
                     share <= golden::MAX_DIFFERING_SHARE,
                     "{name}: {differing} pixels differ ({:.2}%) at {camera:?}",

@@ -122,6 +122,9 @@ struct PooledSamples {
 struct Block {
     /// Its resident tiles and their texture versions when it was assembled.
     members: Vec<(TileId, u64)>,
+    /// The tiles drawn with it: those whose texture is at the block's level (the others,
+    /// still coarser, are drawn with their own until they catch up).
+    holds: std::collections::HashSet<TileId>,
     rect: BlockRect,
     group: wgpu::BindGroup,
     bytes: u64,
@@ -1136,14 +1139,18 @@ impl TerrainRenderer {
             .iter()
             .map(|d| {
                 let key = layout.block_of(d.id);
-                assembled.contains_key(&key).then_some(key)
+                assembled
+                    .get(&key)
+                    .is_some_and(|b| b.holds.contains(&d.id))
+                    .then_some(key)
             })
             .collect()
     }
 
     /// Assembles block `key`'s texture from its resident tiles' textures, unless it is
-    /// current: every tile's mips copied side by side at the finest level all of them hold.
-    /// Leaves the block out when a tile has no texture yet or the levels do not line up.
+    /// current: the mips of every tile at the finest level any of them holds, copied side by
+    /// side. A tile still at a coarser level (or untextured) is left out of the block and
+    /// drawn with its own texture, so no tile is drawn coarser than it holds.
     fn assemble_block(&mut self, layout: BlockLayout, key: [u32; 2]) {
         let members: Vec<(TileId, u64)> = layout
             .members(key)
@@ -1160,31 +1167,27 @@ impl TerrainRenderer {
         blocks.assembled.remove(&key);
         let Some(level) = members
             .iter()
-            .map(|(id, _)| self.tiles[id].texture_level)
-            .collect::<Option<Vec<u32>>>()
-            .and_then(|levels| levels.into_iter().min())
+            .filter_map(|(id, _)| self.tiles[id].texture_level)
+            .max()
         else {
             return;
         };
-        // Per tile: the mip holding `level`; the side there, and the mips below it.
+        // The tiles at that level, square, all of one side; the mips all of them have.
         let (mut side, mut mips) = (None, u32::MAX);
         let mut sources = Vec::with_capacity(members.len());
         for (id, _) in &members {
             let tile = &self.tiles[id];
-            let first = tile.texture_level.unwrap_or(level) - level;
-            let count = tile.texture.mip_level_count();
-            let s = tile.texture.width() >> first.min(31);
-            if first >= count
-                || *side.get_or_insert(s) != s
-                || tile.texture.height() != tile.texture.width()
+            let (width, count) = (tile.texture.width(), tile.texture.mip_level_count());
+            if tile.texture_level != Some(level)
+                || tile.texture.height() != width
+                || *side.get_or_insert(width) != width
             {
-                return;
+                continue;
             }
-            mips = mips.min(count - first);
-            sources.push((*id, first));
+            mips = mips.min(count);
+            sources.push(*id);
         }
-        let (Some(side), Some(rect)) = (side, BlockRect::around(members.iter().map(|m| m.0)))
-        else {
+        let (Some(side), Some(rect)) = (side, BlockRect::around(sources.iter().copied())) else {
             return;
         };
         let mips = mips.min(side.ilog2() + 1);
@@ -1195,14 +1198,14 @@ impl TerrainRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("map block"),
             });
-        for (id, first) in &sources {
+        for id in &sources {
             let [x, y] = rect.texel_origin(*id, side);
             for mip in 0..mips {
                 let s = side >> mip;
                 encoder.copy_texture_to_texture(
                     wgpu::TexelCopyTextureInfo {
                         texture: &self.tiles[id].texture,
-                        mip_level: first + mip,
+                        mip_level: mip,
                         origin: wgpu::Origin3d::ZERO,
                         aspect: wgpu::TextureAspect::All,
                     },
@@ -1233,6 +1236,7 @@ impl TerrainRenderer {
             key,
             Block {
                 members,
+                holds: sources.into_iter().collect(),
                 rect,
                 group,
                 bytes,
