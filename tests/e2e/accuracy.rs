@@ -502,6 +502,7 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
         );
         let mut strip_cracks = 0;
         let mut coarser = false;
+        let mut exact = 0;
         for camera in &cameras {
             let (reference, _) = session.reference(camera).expect("reference");
             let geomip = RenderConfig {
@@ -512,11 +513,23 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
                 .measure(camera, geomip, &reference, 1.0, 1)
                 .expect("measure");
             assert_eq!(m.measures.crack_pixels, 0, "{camera:?}: {:?}", m.measures);
+            // Within 1 px but for what the reference itself gets wrong (the measure's
+            // floor: a rasterizer pinhole shows a point under the surface).
+            let floor = session.own_error(&reference, camera, 1.0);
+            println!(
+                "max {:.3} px, {} above 1 px; the reference: max {:.3} px, {} above",
+                m.measures.error.max_px,
+                m.measures.error.above_threshold,
+                floor.max_px,
+                floor.above_threshold
+            );
             assert!(
-                m.measures.error.max_px <= 1.0,
-                "{camera:?}: the chosen levels keep within 1 px: {:?}",
+                m.measures.error.max_px <= floor.max_px.max(1.0)
+                    && m.measures.error.above_threshold <= floor.above_threshold,
+                "{camera:?}: the chosen levels keep within 1 px: {:?} (the reference: {floor:?})",
                 m.measures.error
             );
+            exact += usize::from(floor.above_threshold == 0);
             coarser |= m.report.plan.draws.iter().any(|d| d.level > 0);
             // The same frame in strip masks on a small budget does crack: the measure sees
             // cracks where there are some.
@@ -537,6 +550,7 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
             "some tiles were drawn coarser than full resolution"
         );
         assert!(strip_cracks > 0);
+        assert!(exact >= 4, "the floor excuses at most two cameras");
         session.close();
     });
 }
