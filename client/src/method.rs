@@ -258,19 +258,13 @@ impl LodMethod for GeoMipMaps {
             input.tiles,
             &self.lod,
         );
-        let projection = plan::error_projection(input.camera, input.viewport);
+        // The error bound per visible tile, as the planner computed it for the strip masks'
+        // needed levels, compared with this method's own level errors.
         let threshold = self.lod.max_error_px;
         let mut levels = std::collections::HashMap::with_capacity(ranked.visible.len());
-        for &i in &ranked.visible {
+        for (&i, &k) in ranked.visible.iter().zip(&ranked.pixels_per_metre) {
             let tile = &input.tiles[i];
             let level = self.error_minima.get(&tile.id).map_or(0, |minima| {
-                let k = plan::tile_pixels_per_metre(
-                    &projection,
-                    input.layout,
-                    tile.id,
-                    [tile.min_m, tile.max_m],
-                    threshold,
-                );
                 needed::coarsest_level_within(minima, k, threshold)
             });
             levels.insert(tile.id, level);

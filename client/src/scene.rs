@@ -48,6 +48,23 @@ pub struct RenderConfig {
     pub texture_blocks: bool,
 }
 
+impl RenderConfig {
+    /// Whether this configuration draws with MapBlocks.
+    pub fn uses_texture_blocks(&self) -> bool {
+        self.method.uses_texture_blocks() && self.texture_blocks
+    }
+
+    /// Copies of each tile's GPU texture this configuration holds (see
+    /// [`crate::render::blocks::TEXTURE_COPIES`]).
+    pub fn texture_copies(&self) -> u64 {
+        if self.uses_texture_blocks() {
+            crate::render::blocks::TEXTURE_COPIES
+        } else {
+            1
+        }
+    }
+}
+
 impl Default for RenderConfig {
     fn default() -> RenderConfig {
         RenderConfig {
@@ -210,12 +227,12 @@ impl Scene {
             r.set_texture_blocks(&manifest);
             r
         });
-        let rendering_on = rendering.is_some();
+        let copies = rendering.as_ref().map_or(0, |r| r.config.texture_copies());
         Scene {
             expected_bytes: manifest
                 .tiles
                 .iter()
-                .map(|t| expected_tile_bytes(&manifest, t, rendering_on).total())
+                .map(|t| expected_tile_bytes(&manifest, t, copies).total())
                 .collect(),
             layout,
             pager,
@@ -299,11 +316,25 @@ impl Scene {
             if config.budget != r.config.budget {
                 r.controller = FrameRateController::new(config.budget);
             }
+            let before = r.config.texture_copies();
             r.config = config;
             r.set_texture_blocks(&self.manifest);
-            for (record, tile) in self.manifest.tiles.iter().zip(&mut self.tiles) {
-                if let Some(tile) = tile {
-                    tile.bytes.gpu = r.renderer.tile_bytes(record.id());
+            let after = r.config.texture_copies();
+            if after != before {
+                // Blocks on or off: what each tile is charged, and what the pager expects
+                // of each, change with the copies of its GPU texture.
+                let coarsest = coarsest_rgba_bytes(&self.manifest);
+                let tiles = self.manifest.tiles.iter().zip(&mut self.tiles);
+                for (i, (record, tile)) in tiles.enumerate() {
+                    self.expected_bytes[i] =
+                        expected_tile_bytes(&self.manifest, record, after).total();
+                    if let Some(tile) = tile {
+                        tile.bytes.gpu = r.renderer.tile_bytes(record.id());
+                        if tile.uploaded_levels > 0 {
+                            self.base_bytes[i] =
+                                self.base_bytes[i] + after * coarsest - before * coarsest;
+                        }
+                    }
                 }
             }
         }
@@ -703,7 +734,7 @@ impl Rendering {
     /// MapBlocks on or off as the method wants, and the texture costs that follow (a block
     /// texture copies its tiles' textures).
     fn set_texture_blocks(&mut self, manifest: &Manifest) {
-        let blocks = self.config.method.uses_texture_blocks() && self.config.texture_blocks;
+        let blocks = self.config.uses_texture_blocks();
         self.renderer.set_texture_blocks(blocks.then(|| {
             crate::render::blocks::BlockLayout::new(
                 [manifest.grid.columns, manifest.grid.rows],
@@ -715,7 +746,7 @@ impl Rendering {
                     .unwrap_or(self.renderer.max_texture_side()),
             )
         }));
-        let copies = if blocks { 2 } else { 1 };
+        let copies = self.config.texture_copies();
         self.texture_costs = manifest
             .tiles
             .iter()
@@ -739,22 +770,28 @@ fn decode_texture(bytes: &[u8], id: TileId, level: u32) -> Option<image::RgbaIma
 
 /// What a tile holds once resident at its coarsest texture, known from the manifest before
 /// it is fetched: decoded codes and the coarsest level's bytes, plus, when rendering, its GPU
-/// samples (8 bytes each) and the coarsest level as RGBA.
+/// samples (8 bytes each) and the coarsest level as RGBA, `gpu_texture_copies` times
+/// ([`RenderConfig::texture_copies`]; 0 when not rendering: no GPU bytes at all).
 pub fn expected_tile_bytes(
     manifest: &Manifest,
     tile: &terrain_shared::TileRecord,
-    rendering: bool,
+    gpu_texture_copies: u64,
 ) -> TileBytes {
     let samples = u64::from(manifest.tile_size).pow(2);
-    let coarsest_side = u64::from(manifest.texture.level_size(0));
     TileBytes {
         decoded_heights: samples * std::mem::size_of::<i32>() as u64,
         textures: tile.texture.first().map_or(0, |level| level.bytes),
         vertices: 0,
-        gpu: if rendering {
-            samples * size_of::<terrain_shaders::Sample>() as u64 + coarsest_side.pow(2) * 4
+        gpu: if gpu_texture_copies > 0 {
+            samples * size_of::<terrain_shaders::Sample>() as u64
+                + gpu_texture_copies * coarsest_rgba_bytes(manifest)
         } else {
             0
         },
     }
+}
+
+/// GPU bytes of a tile's coarsest texture level as RGBA.
+fn coarsest_rgba_bytes(manifest: &Manifest) -> u64 {
+    u64::from(manifest.texture.level_size(0)).pow(2) * 4
 }

@@ -613,6 +613,10 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
             let drawn = one_report.plan.draws.len();
             assert!(drawn > 4, "{drawn} tiles drawn");
             assert_eq!(one_report.stats.texture_binds, 1, "one texture, bound once");
+            // The pool keeps the drawn tiles' sample buffers: the same frame again uploads
+            // nothing.
+            let (_, again) = session.capture(camera, config(None)).expect("again");
+            assert_eq!(again.stats.sample_uploads, 0, "{:?}", again.stats);
             let (cut, cut_report) = session
                 .capture(camera, config(Some(small)))
                 .expect("blocks");

@@ -335,7 +335,7 @@ fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts()
         .manifest
         .tiles
         .iter()
-        .map(|t| terrain_client::flight::expected_tile_bytes(&report.manifest, t, true).total())
+        .map(|t| terrain_client::flight::expected_tile_bytes(&report.manifest, t, 1).total())
         .sum();
     // Room for every tile at its coarsest texture and a little more: finer texture levels
     // must fit in what is left.

@@ -43,14 +43,16 @@ pub struct Measured {
 /// Bytes the whole database holds with every texture level, as the scene counts them for a
 /// method with MapBlocks (the most any method holds).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
+    let copies = crate::render::blocks::TEXTURE_COPIES;
     manifest
         .tiles
         .iter()
         .map(|t| {
-            let coarsest = u64::from(manifest.texture.level_size(0)).pow(2) * 4;
-            expected_tile_bytes(manifest, t, true).total()
-                + coarsest
-                + extra_costs(manifest, t, 2).last().copied().unwrap_or(0)
+            expected_tile_bytes(manifest, t, copies).total()
+                + extra_costs(manifest, t, copies)
+                    .last()
+                    .copied()
+                    .unwrap_or(0)
         })
         .sum()
 }

@@ -459,7 +459,7 @@ async fn run_one(
         let one = manifest
             .tiles
             .iter()
-            .map(|t| expected_tile_bytes(&manifest, t, true).total())
+            .map(|t| expected_tile_bytes(&manifest, t, config.texture_copies()).total())
             .max()
             .unwrap_or(0);
         3 * one

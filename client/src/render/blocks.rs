@@ -11,6 +11,11 @@
 
 use terrain_shared::TileId;
 
+/// Copies of a tile's GPU texture held while MapBlocks are on: its own, and its part of the
+/// block texture (at most as fine). Memory budgets charge a tile's GPU texture this many
+/// times.
+pub const TEXTURE_COPIES: u64 = 2;
+
 /// How the tile grid is cut into blocks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BlockLayout {

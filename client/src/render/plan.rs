@@ -177,24 +177,6 @@ pub fn tile_pixels_per_metre(
     )
 }
 
-/// The coarsest mask level of `tile` whose vertical error keeps every pixel it draws within
-/// `threshold_px` ([`needed::ErrorProjection`]).
-pub fn needed_level(
-    projection: &needed::ErrorProjection,
-    layout: &Layout,
-    tile: &Candidate,
-    threshold_px: f64,
-) -> u32 {
-    let k = tile_pixels_per_metre(
-        projection,
-        layout,
-        tile.id,
-        [tile.min_m, tile.max_m],
-        threshold_px,
-    );
-    needed::coarsest_level_within(tile.error_minima_m, k, threshold_px)
-}
-
 /// The tiles of a frame in view, with what every method needs of them.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Ranked {
@@ -204,6 +186,9 @@ pub struct Ranked {
     pub importances: Vec<f64>,
     /// Strip-mask level each needs to stay within the error threshold.
     pub needed_levels: Vec<u32>,
+    /// Pixels per metre of vertical error, at most, anywhere each is drawn
+    /// ([`tile_pixels_per_metre`]): what any method compares its own level errors with.
+    pub pixels_per_metre: Vec<f64>,
 }
 
 /// Culls `tiles` against the camera's frustum (by bounding box) on a viewport of
@@ -223,17 +208,25 @@ pub fn rank_visible(
     let visible = visible_tiles(camera, aspect, layout, tiles);
     let mut views = Vec::with_capacity(visible.len());
     let mut needed_levels = Vec::with_capacity(visible.len());
+    let mut pixels_per_metre = Vec::with_capacity(visible.len());
     for &i in &visible {
         let tile = &tiles[i];
         let [x0, y0] = layout.tile_origin_m(tile.id);
         let lo = DVec3::new(x0, y0, tile.min_m) - eye;
         let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
-        needed_levels.push(needed_level(
+        let k = tile_pixels_per_metre(
             &projection,
             layout,
-            tile,
+            tile.id,
+            [tile.min_m, tile.max_m],
+            settings.max_error_px,
+        );
+        needed_levels.push(needed::coarsest_level_within(
+            tile.error_minima_m,
+            k,
             settings.max_error_px,
         ));
+        pixels_per_metre.push(k);
         views.push(TileView {
             distance_m: ((lo + hi) * 0.5).length(),
             bbox_height_m: tile.max_m - tile.min_m,
@@ -244,6 +237,7 @@ pub fn rank_visible(
         importances: importance::importance(&views, settings.alpha, settings.height),
         visible,
         needed_levels,
+        pixels_per_metre,
     }
 }
 
@@ -263,6 +257,7 @@ pub fn plan_frame(
         visible,
         importances,
         needed_levels,
+        ..
     } = rank_visible(camera, viewport, layout, tiles, settings);
     let caps: Vec<u32> = if settings.cap_at_needed {
         needed_levels

@@ -418,10 +418,20 @@ impl TerrainRenderer {
     /// it now: at most one per resident tile) and its texture, twice with MapBlocks on
     /// (its copy in the block texture is at most as fine).
     pub fn tile_bytes(&self, id: TileId) -> u64 {
-        let copies = if self.blocks.is_some() { 2 } else { 1 };
+        let copies = self.texture_copies();
         self.tiles
             .get(&id)
             .map_or(0, |t| t.sample_bytes + copies * t.texture_bytes)
+    }
+
+    /// Copies of each tile's GPU texture held: [`super::blocks::TEXTURE_COPIES`] with
+    /// MapBlocks on, else 1.
+    pub fn texture_copies(&self) -> u64 {
+        if self.blocks.is_some() {
+            super::blocks::TEXTURE_COPIES
+        } else {
+            1
+        }
     }
 
     /// Bytes of one tile's sample buffer.
@@ -429,7 +439,7 @@ impl TerrainRenderer {
         u64::from(self.layout.tile_size).pow(2) * size_of::<Sample>() as u64
     }
 
-    /// What the renderer holds on the GPU now, beyond the shared index sets.
+    /// What the renderer holds on the GPU now.
     pub fn resident_gpu(&self) -> GpuResidency {
         GpuResidency {
             tiles: self.tiles.len() as u64,
@@ -506,7 +516,8 @@ impl TerrainRenderer {
         self.next_texture_version
     }
 
-    /// `id`'s block texture, if any, is assembled again when next drawn.
+    /// Drops `id`'s block texture at once (it is assembled again when next drawn), so an
+    /// evicted tile's block does not hold GPU memory until its block is drawn again.
     fn forget_block_of(&mut self, id: TileId) {
         if let Some(blocks) = &mut self.blocks {
             let key = blocks.layout.block_of(id);
@@ -748,6 +759,22 @@ impl TerrainRenderer {
                 _ => (&self.tiles[&drawn[slot].id].texture_group, None),
             }
         };
+        // Binds tile `slot`'s uniforms, samples and texture; a block's texture only when the
+        // block changes (`bound`). Counts texture binds.
+        let bind_tile = |pass: &mut wgpu::RenderPass<'_>,
+                         slot: usize,
+                         bound: &mut Option<[u32; 2]>,
+                         binds: &mut u32| {
+            let offset = (slot as u64 * self.uniform_stride) as u32;
+            pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
+            pass.set_bind_group(2, &self.pool.get(sample_slots[slot]).group, &[]);
+            let (group, block) = texture_group(slot);
+            if block.is_none() || block != *bound {
+                pass.set_bind_group(3, group, &[]);
+                *binds += 1;
+                *bound = block;
+            }
+        };
         {
             let depth = &self.depth.as_ref().expect("ensured above").1;
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -793,15 +820,7 @@ impl TerrainRenderer {
             let mut bound: Option<[u32; 2]> = None;
             for &slot in &order {
                 let d = drawn[slot];
-                let offset = (slot as u64 * self.uniform_stride) as u32;
-                pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
-                pass.set_bind_group(2, &self.pool.get(sample_slots[slot]).group, &[]);
-                let (group, block) = texture_group(slot);
-                if block.is_none() || block != bound {
-                    pass.set_bind_group(3, group, &[]);
-                    stats.texture_binds += 1;
-                    bound = block;
-                }
+                bind_tile(&mut pass, slot, &mut bound, &mut stats.texture_binds);
                 if let Some(stitch) = d.stitch {
                     // GeoMipMaps are crack-free by construction: no filler.
                     let (buffer, len, triangles) = &self.stitched[&stitch];
@@ -828,15 +847,7 @@ impl TerrainRenderer {
                 pass.set_index_buffer(self.quad.slice(..), wgpu::IndexFormat::Uint32);
                 let mut bound: Option<[u32; 2]> = None;
                 for &slot in order.iter().filter(|&&slot| drawn[slot].stitch.is_none()) {
-                    let offset = (slot as u64 * self.uniform_stride) as u32;
-                    pass.set_bind_group(1, &self.tile_uniform_group, &[offset]);
-                    pass.set_bind_group(2, &self.pool.get(sample_slots[slot]).group, &[]);
-                    let (group, block) = texture_group(slot);
-                    if block.is_none() || block != bound {
-                        pass.set_bind_group(3, group, &[]);
-                        stats.texture_binds += 1;
-                        bound = block;
-                    }
+                    bind_tile(&mut pass, slot, &mut bound, &mut stats.texture_binds);
                     pass.draw_indexed(0..4, 0, 0..1);
                     stats.filler_triangles += 2;
                     stats.draw_calls += 1;
@@ -1050,9 +1061,7 @@ impl TerrainRenderer {
         }
         self.queue.submit([encoder.finish()]);
         let texture_group = self.texture_bind_group(&texture);
-        let bytes = (0..mips)
-            .map(|m| u64::from((side >> m).max(1)).pow(2) * 4)
-            .sum();
+        let bytes = mip_chain_bytes(side, side, mips);
         let version = self.bump_version();
         if let Some(tile) = self.tiles.get_mut(&id) {
             tile.texture = texture;
@@ -1228,9 +1237,7 @@ impl TerrainRenderer {
             }
         }
         self.queue.submit([encoder.finish()]);
-        let bytes = (0..mips)
-            .map(|m| u64::from((w * side) >> m) * u64::from((h * side) >> m) * 4)
-            .sum();
+        let bytes = mip_chain_bytes(w * side, h * side, mips);
         let group = self.texture_bind_group(&texture);
         self.blocks.as_mut().expect("blocks on").assembled.insert(
             key,
@@ -1243,6 +1250,13 @@ impl TerrainRenderer {
             },
         );
     }
+}
+
+/// Bytes of an RGBA texture of `mips` levels whose top is `width` x `height`.
+fn mip_chain_bytes(width: u32, height: u32, mips: u32) -> u64 {
+    (0..mips)
+        .map(|m| u64::from((width >> m).max(1)) * u64::from((height >> m).max(1)) * 4)
+        .sum()
 }
 
 fn uniform_buffer(
