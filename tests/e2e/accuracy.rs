@@ -466,9 +466,34 @@ fn the_bench_commands_refuse_bad_options_and_unreachable_servers_with_a_reason()
     );
 }
 
+/// A session holding the whole jacksboro database served by `server`, drawn with `config` at
+/// 480x270, loaded and settled; with `along` cameras along the default flight (25 degrees
+/// down) followed by `extra`.
+async fn whole_jacksboro(
+    server: &TestServer,
+    config: terrain_client::scene::RenderConfig,
+    along: u32,
+    extra: &[Camera],
+) -> (terrain_client::eval::session::Session, Vec<Camera>) {
+    let mut session =
+        terrain_client::eval::session::Session::open(server.base_url(), None, config, (480, 270))
+            .await
+            .expect("session");
+    let path = terrain_client::path::CameraPath::default_for(&session.manifest);
+    let mut cameras = accuracy::cameras_along(&path, along, -25.0);
+    cameras.extend_from_slice(extra);
+    let centre = session.centre();
+    assert!(
+        session
+            .settle(centre, &cameras[0], std::time::Duration::from_secs(120))
+            .await
+            .expect("loads")
+    );
+    (session, cameras)
+}
+
 #[test]
 fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
-    use terrain_client::eval::session::Session;
     use terrain_client::lod::budget::BudgetMode;
     use terrain_client::method::MethodKind;
     use terrain_client::scene::RenderConfig;
@@ -479,27 +504,16 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
     let db = build_jacksboro(tmp.path());
     let server = TestServer::start(&db.out);
     runtime().block_on(async {
-        let mut session =
-            Session::open(server.base_url(), None, RenderConfig::default(), (480, 270))
-                .await
-                .expect("session");
-        let path = terrain_client::path::CameraPath::default_for(&session.manifest);
-        let mut cameras = accuracy::cameras_along(&path, 4, -25.0);
-        cameras.push(Camera::looking_at(
-            [15000.0, 33000.0, 1500.0],
-            [15000.0, 12000.0, 500.0],
-        ));
-        cameras.push(Camera::looking_at(
-            [6000.0, 6000.0, 2600.0],
-            [12000.0, 11000.0, 600.0],
-        ));
-        let centre = session.centre();
-        assert!(
-            session
-                .settle(centre, &cameras[0], std::time::Duration::from_secs(120))
-                .await
-                .expect("loads")
-        );
+        let (mut session, cameras) = whole_jacksboro(
+            &server,
+            RenderConfig::default(),
+            4,
+            &[
+                Camera::looking_at([15000.0, 33000.0, 1500.0], [15000.0, 12000.0, 500.0]),
+                Camera::looking_at([6000.0, 6000.0, 2600.0], [12000.0, 11000.0, 600.0]),
+            ],
+        )
+        .await;
         let mut strip_cracks = 0;
         let mut coarser = false;
         let mut exact = 0;
@@ -557,7 +571,6 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
 
 #[test]
 fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() {
-    use terrain_client::eval::session::Session;
     use terrain_client::method::MethodKind;
     use terrain_client::render::blocks::BlockLayout;
     use terrain_client::scene::RenderConfig;
@@ -577,25 +590,19 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
             texture_blocks: false,
             ..config(None)
         };
-        let mut session = Session::open(server.base_url(), None, config(None), (480, 270))
-            .await
-            .expect("session");
+        let (mut session, cameras) = whole_jacksboro(
+            &server,
+            config(None),
+            2,
+            &[Camera::looking_at(
+                [6000.0, 6000.0, 2600.0],
+                [12000.0, 11000.0, 600.0],
+            )],
+        )
+        .await;
         let manifest = Arc::clone(&session.manifest);
         let grid = [manifest.grid.columns, manifest.grid.rows];
         let finest = manifest.texture.size;
-        let path = terrain_client::path::CameraPath::default_for(&manifest);
-        let mut cameras = accuracy::cameras_along(&path, 2, -25.0);
-        cameras.push(Camera::looking_at(
-            [6000.0, 6000.0, 2600.0],
-            [12000.0, 11000.0, 600.0],
-        ));
-        let centre = session.centre();
-        assert!(
-            session
-                .settle(centre, &cameras[0], std::time::Duration::from_secs(120))
-                .await
-                .expect("loads")
-        );
         // The adapter takes the whole terrain's texture as one: one block, bound once.
         let adapter_limit = session.gpu.device.limits().max_texture_dimension_2d;
         assert!(grid[0].max(grid[1]) * finest <= adapter_limit);
