@@ -253,10 +253,10 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
 
 /// GeoMipMaps over the Puget Sound flight of the evaluation (8 cameras at 640x360): no crack
 /// and no pixel beyond the 1 px threshold, by the accuracy metric, but for the pixels the
-/// reference itself gets wrong (the measure's floor: one rasterizer pinhole on lavapipe, a
-/// point 178 m under the surface at 58 km, 1.135 px). The projection from the Euclidean
-/// distance alone let 1.6 px through here, and GeoMipMaps' level 0 (corner cells split the
-/// other way) 1.56 px.
+/// reference itself gets wrong (the measure's floor: on lavapipe, a rasterizer pinhole through
+/// which a point under the surface shows). The projection from the Euclidean distance alone
+/// let 1.6 px through here, and GeoMipMaps' level 0 (corner cells split the other way)
+/// 1.56 px.
 #[test]
 fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() {
     use terrain_client::method::MethodKind;
