@@ -12,11 +12,11 @@ mod common;
 use common::{Stats, cpu_model};
 use std::sync::Arc;
 use std::time::Instant;
+use terrain_client::lod::plan::{Candidate, Layout, LodSettings, plan_frame};
 use terrain_client::lod::strips::MaskSet;
-use terrain_client::render::plan::{Candidate, plan_frame};
-use terrain_client::render::{
-    Camera, CrackFiller, Gpu, Layout, LodSettings, Offscreen, TerrainRenderer,
-};
+use terrain_client::method::strip_masks::StripMasks;
+use terrain_client::method::{CrackFiller, MethodConfig, MethodKind};
+use terrain_client::render::{Camera, Gpu, Offscreen, Renderer};
 use terrain_shared::{Heights, TileId};
 
 const SIDE: u32 = 8;
@@ -46,14 +46,24 @@ fn main() {
         }
     };
     println!("adapter: {}", gpu.description());
+    let cells = f64::from(N - 1);
     let layout = Layout {
         tile_size: N,
         spacing_m: [SPACING, SPACING],
+        extent_m: [f64::from(SIDE) * cells * SPACING; 2],
     };
     let masks = Arc::new(MaskSet::new(N));
     let format = terrain_client::render::offscreen::OFFSCREEN_FORMAT;
-    let mut renderer = TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks));
-    let cells = f64::from(N - 1);
+    let mut renderer = Renderer::new(&gpu, format, layout);
+    let mut method = StripMasks::new(
+        &MethodConfig {
+            kind: MethodKind::StripMasks,
+            lod: LodSettings::default(),
+            filler: CrackFiller::None,
+            texture_blocks: false,
+        },
+        N,
+    );
     let mut candidates = Vec::new();
     for ty in 0..SIDE {
         for tx in 0..SIDE {
@@ -77,11 +87,11 @@ fn main() {
                 offset_m: 0.0,
                 codes,
             };
-            renderer.upload_tile(id, std::sync::Arc::new(heights), f64::from(lo) / 10.0);
+            renderer.tiles.upload_tile(id, std::sync::Arc::new(heights));
             let texture = image::RgbaImage::from_fn(64, 64, |x, y| {
                 image::Rgba([90 + (x * 2) as u8, 140, 70 + (y * 2) as u8, 255])
             });
-            renderer.upload_texture(id, 0, &[texture]);
+            renderer.tiles.upload_texture(id, 0, &[texture]);
             candidates.push(Candidate {
                 id,
                 min_m: f64::from(lo) / 10.0,
@@ -105,6 +115,7 @@ fn main() {
         table(
             &gpu,
             &mut renderer,
+            &mut method,
             &layout,
             &masks,
             &candidates,
@@ -120,7 +131,8 @@ fn main() {
 #[allow(clippy::too_many_arguments)]
 fn table(
     gpu: &Gpu,
-    renderer: &mut TerrainRenderer,
+    renderer: &mut Renderer,
+    method: &mut StripMasks,
     layout: &Layout,
     masks: &MaskSet,
     candidates: &[Candidate],
@@ -161,7 +173,9 @@ fn table(
         let mut triangles = 0;
         for frame in 0..FRAMES + 3 {
             let started = Instant::now();
-            let stats = renderer.render(&target.view, camera, &draws, filler);
+            let mut recording = renderer.begin_frame(&target.view, camera);
+            method.draw_levels(&mut recording, layout, candidates, &draws, filler);
+            let stats = recording.finish();
             let ns = started.elapsed().as_nanos() as u64;
             triangles = stats.triangles + stats.filler_triangles;
             if frame >= 3 {

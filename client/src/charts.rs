@@ -6,7 +6,7 @@
 //! plotters' bitmap backend draws text with a font it is given; the project ships DejaVu
 //! Sans (`assets/fonts`, its licence beside it) so charts look the same on every machine.
 
-use crate::flight::FrameRecord;
+use crate::record::FrameRecord;
 use plotters::prelude::*;
 use std::path::Path;
 use thiserror::Error;
@@ -119,7 +119,7 @@ pub fn flight_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
 /// target and obtained frame rate, and triangles per frame with the global budget, over
 /// wall-clock time. Frames without rendering are left out.
 pub fn render_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result<(), ChartError> {
-    let rendered: Vec<(f64, &crate::flight::RenderRecord)> = records
+    let rendered: Vec<(f64, &crate::record::RenderRecord)> = records
         .iter()
         .filter_map(|r| r.render.as_ref().map(|x| (r.wall_s, x)))
         .collect();
@@ -134,7 +134,7 @@ pub fn render_chart(records: &[FrameRecord], title: &str, path: &Path) -> Result
     rate.push((
         "obtained (frames in the last second)",
         BLUE,
-        crate::flight::windowed_fps(records),
+        crate::record::windowed_fps(records),
     ));
     if rendered.iter().any(|(_, r)| r.target_fps.is_some()) {
         rate.push((

@@ -213,6 +213,24 @@ impl TileClient {
         self.get_verified(url, blob).await
     }
 
+    /// Fetches the body at `path` (a route of [`terrain_shared::routes`]), verified against
+    /// `hash` (BLAKE3, first 128 bits, hex) when given.
+    pub async fn blob(&self, path: &str, hash: Option<&str>) -> Result<Bytes, FetchError> {
+        let url = self.url(path);
+        let body = self.get(&url).await?;
+        if let Some(expected) = hash {
+            let found = content_hash(&body);
+            if found != expected {
+                return Err(FetchError::HashMismatch {
+                    url,
+                    expected: expected.to_string(),
+                    found,
+                });
+            }
+        }
+        Ok(body)
+    }
+
     async fn get_verified(&self, url: String, blob: &Blob) -> Result<Bytes, FetchError> {
         let body = self.get(&url).await?;
         let found = content_hash(&body);

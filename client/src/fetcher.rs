@@ -84,6 +84,9 @@ pub enum Want {
     Tile,
     /// One finer texture level (or any level) of a tile, on request.
     TextureLevel(u32),
+    /// Data of a level-of-detail method's own for the tile, its key the method's number
+    /// for the piece; where it lives is given with [`Fetcher::request_data`].
+    Data(u32),
 }
 
 /// A finished request, handed out by [`Fetcher::poll`].
@@ -105,6 +108,8 @@ pub enum FetchEvent {
         level: u32,
         bytes: Bytes,
     },
+    /// A method's own data ([`Want::Data`]), verified when its hash was given.
+    Data { id: TileId, key: u32, bytes: Bytes },
     /// The request gave up; `error` is the last failure.
     Failed {
         id: TileId,
@@ -120,6 +125,7 @@ impl FetchEvent {
         match self {
             FetchEvent::Tile { id, .. }
             | FetchEvent::TextureLevel { id, .. }
+            | FetchEvent::Data { id, .. }
             | FetchEvent::Failed { id, .. } => *id,
         }
     }
@@ -157,6 +163,8 @@ pub struct Fetcher {
     running: HashMap<Request, Running>,
     /// Requests queued or running, per tile: what [`Fetcher::pending`] lists.
     pending_tiles: HashMap<TileId, u32>,
+    /// Where each [`Want::Data`] request's body lives, until it ends.
+    data: HashMap<(TileId, u32), DataSource>,
     finished_sender: mpsc::UnboundedSender<Finished>,
     finished: mpsc::UnboundedReceiver<Finished>,
     counters: Arc<Counters>,
@@ -187,6 +195,7 @@ impl Fetcher {
             queue: RequestQueue::default(),
             running: HashMap::new(),
             pending_tiles: HashMap::new(),
+            data: HashMap::new(),
             finished_sender,
             finished,
             counters: Arc::new(Counters::default()),
@@ -210,6 +219,21 @@ impl Fetcher {
         if self.queue.push(request, priority) {
             *self.pending_tiles.entry(id).or_default() += 1;
         }
+    }
+
+    /// Queues a request for a method's own data of tile `id` (see [`Want::Data`]): the body
+    /// at `path` on the server, checked against `hash` (BLAKE3, first 128 bits, hex) when
+    /// given. Otherwise as [`Fetcher::request`].
+    pub fn request_data(
+        &mut self,
+        id: TileId,
+        key: u32,
+        path: String,
+        hash: Option<String>,
+        priority: u64,
+    ) {
+        self.data.insert((id, key), DataSource { path, hash });
+        self.request(id, Want::Data(key), priority);
     }
 
     /// Drops every queued request for these tiles and aborts their running ones: none of
@@ -274,7 +298,7 @@ impl Fetcher {
                     id: request.id,
                     want: request.want,
                     error: FetchError::Cancelled {
-                        url: self.client.url(&request.path(&self.manifest)),
+                        url: self.client.url(&request.path(&self.manifest, &self.data)),
                     },
                     attempts: 0,
                 });
@@ -347,6 +371,10 @@ impl Fetcher {
             manifest: Arc::clone(&self.manifest),
             config: self.config.clone(),
             counters: Arc::clone(&self.counters),
+            data: match request.want {
+                Want::Data(key) => self.data.get(&(request.id, key)).cloned(),
+                _ => None,
+            },
             request,
             jitter_seed: mix(self.jitter_seed ^ mix(ticket)),
         };
@@ -368,6 +396,7 @@ impl Fetcher {
             *count -= 1;
             if *count == 0 {
                 self.pending_tiles.remove(&id);
+                self.data.retain(|(tile, _), _| *tile != id);
             }
         }
     }
@@ -433,12 +462,22 @@ struct Request {
 
 impl Request {
     /// The route of the request's first blob, to name it in an error.
-    fn path(&self, manifest: &Manifest) -> String {
+    fn path(&self, manifest: &Manifest, data: &HashMap<(TileId, u32), DataSource>) -> String {
         match self.want {
             Want::Tile => routes::heights(&manifest.content_version, self.id),
             Want::TextureLevel(level) => routes::texture(&manifest.content_version, self.id, level),
+            Want::Data(key) => data
+                .get(&(self.id, key))
+                .map_or_else(String::new, |d| d.path.clone()),
         }
     }
+}
+
+/// Where a [`Want::Data`] body lives and the hash it must have.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct DataSource {
+    path: String,
+    hash: Option<String>,
 }
 
 /// Queued requests, smallest priority key first, first come first served among equal keys.
@@ -553,6 +592,7 @@ fn verdict(config: &FetcherConfig, kind: FailureKind, tries: u32, corrupt: u32) 
 enum Part {
     Heights,
     Texture(u32),
+    Data(u32),
 }
 
 /// One request, run as a task.
@@ -562,6 +602,8 @@ struct Job {
     config: FetcherConfig,
     counters: Arc<Counters>,
     request: Request,
+    /// For [`Want::Data`]: where the body lives.
+    data: Option<DataSource>,
     jitter_seed: u64,
 }
 
@@ -576,6 +618,10 @@ impl Job {
                 .with_retries(Part::Texture(level), || self.texture(level))
                 .await
                 .map(|(bytes, _)| FetchEvent::TextureLevel { id, level, bytes }),
+            Want::Data(key) => self
+                .with_retries(Part::Data(key), || self.data())
+                .await
+                .map(|(bytes, _)| FetchEvent::Data { id, key, bytes }),
         };
         result.unwrap_or_else(|(error, attempts)| {
             tracing::debug!(tile = %id, ?want, attempts, %error, "giving up");
@@ -665,6 +711,21 @@ impl Job {
         .await
     }
 
+    /// One try of a method's data: fetched, and verified when its hash is known.
+    async fn data(&self) -> Result<Bytes, FetchError> {
+        let Some(source) = &self.data else {
+            return Err(FetchError::Cancelled {
+                url: format!("data of tile {} with no source", self.request.id),
+            });
+        };
+        let part = match self.request.want {
+            Want::Data(key) => Part::Data(key),
+            _ => Part::Heights,
+        };
+        self.counted(part, self.client.blob(&source.path, source.hash.as_deref()))
+            .await
+    }
+
     /// Runs one GET of `part`, counting the request and the body.
     async fn counted(
         &self,
@@ -707,6 +768,8 @@ fn expected_bytes(manifest: &Manifest, id: TileId, part: Part) -> Result<u64, Fe
                 levels: record.texture.len() as u32,
             }),
         },
+        // The manifest does not know a method's data.
+        Part::Data(_) => Ok(0),
     }
 }
 
@@ -714,6 +777,7 @@ fn part_salt(part: Part) -> u64 {
     match part {
         Part::Heights => 0,
         Part::Texture(level) => mix(u64::from(level) + 1),
+        Part::Data(key) => mix(u64::from(key) ^ 0xDA7A),
     }
 }
 

@@ -13,16 +13,16 @@
 //! frame rate, triangles per frame: the top panels of the strip-mask paper's Figures 6 and
 //! 7), `frames/frame-NNNNNN.png` every `--frame-every` frames, and a summary on stdout.
 
-use crate::fetch::{FetchError, TileClient};
-use crate::fetcher::{Fetcher, FetcherConfig};
+use crate::fetch::FetchError;
+use crate::fetcher::FetcherConfig;
 use crate::lod::budget::{BudgetMode, DEFAULT_TARGET_FPS};
 use crate::lod::importance::{DEFAULT_ALPHA, HeightMeasure};
+use crate::lod::plan::{DEFAULT_MAX_ERROR_PX, LodSettings};
 use crate::memory::{MemoryBudget, MemoryError, MemorySize};
+use crate::method::CrackFiller;
 use crate::method::MethodKind;
-use crate::page::PagerConfig;
 use crate::path::{CameraPath, PathError};
-use crate::render::plan::DEFAULT_MAX_ERROR_PX;
-use crate::render::{Camera, CrackFiller, Gpu, GpuError, LodSettings, Offscreen};
+use crate::render::{Camera, Gpu, GpuError, Offscreen};
 use crate::scene::{RenderConfig, Scene};
 use std::fmt;
 use std::path::PathBuf;
@@ -50,7 +50,7 @@ pub struct StreamArgs {
     #[arg(long, default_value_t = crate::memory::DEFAULT_LIMIT_PERCENT)]
     pub limit_percent: f64,
     /// HTTP requests at once.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = crate::fetcher::DEFAULT_CONCURRENCY)]
     pub concurrency: usize,
 }
 
@@ -61,7 +61,7 @@ impl StreamArgs {
             server: server.into(),
             memory,
             limit_percent: crate::memory::DEFAULT_LIMIT_PERCENT,
-            concurrency: 8,
+            concurrency: crate::fetcher::DEFAULT_CONCURRENCY,
         }
     }
 
@@ -160,6 +160,11 @@ pub struct RenderArgs {
     /// Camera pitch, degrees above the horizon (negative looks down).
     #[arg(long, default_value_t = crate::render::camera::DEFAULT_PITCH_DEG, allow_negative_numbers = true)]
     pub pitch_deg: f64,
+    /// Draw only the square of complete belts, as the strip-mask paper does. By default
+    /// every resident tile is drawn: cached tiles outside the square and those of a belt
+    /// still arriving show more of the terrain.
+    #[arg(long)]
+    pub draw_square_only: bool,
     #[command(flatten)]
     pub error: ErrorCapArgs,
 }
@@ -217,6 +222,7 @@ impl Default for RenderArgs {
             alpha: DEFAULT_ALPHA,
             height_measure: HeightMeasure::default(),
             pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
+            draw_square_only: false,
             error: ErrorCapArgs::default(),
         }
     }
@@ -259,6 +265,7 @@ impl RenderArgs {
             lod: self.error.lod(self.alpha, self.height_measure)?,
             filler: self.crack_filler,
             budget,
+            square_only: self.draw_square_only,
             ..RenderConfig::default()
         })
     }
@@ -290,11 +297,8 @@ pub enum FlightError {
     Memory(#[from] MemoryError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
-    #[error("tile {id} cannot be fetched: {message}")]
-    TileFailed {
-        id: terrain_shared::TileId,
-        message: String,
-    },
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
     #[error("cannot write {path}: {source}")]
     Write {
         path: PathBuf,
@@ -308,139 +312,7 @@ pub enum FlightError {
     BadOption(String),
 }
 
-/// Columns of `flight.csv`, one row per frame. The render columns are empty with
-/// `--no-render`; `gpu_ms` is empty where the adapter has no timestamp queries.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,fps,target_fps";
-
-/// What a rendered frame adds to its record.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RenderRecord {
-    pub visible_tiles: u32,
-    /// Triangles of the tiles' masks.
-    pub triangles: u64,
-    /// The fewest mask triangles keeping every drawn tile within 1 pixel of screen-space
-    /// error ([`crate::lod::needed`]).
-    pub triangles_needed: u64,
-    pub filler_triangles: u64,
-    pub draw_calls: u32,
-    /// Global triangle budget the frame was planned with.
-    pub global_budget: u32,
-    /// Tiles per mask level, `level:count` pairs, finest first.
-    pub mask_levels: Vec<(u32, u32)>,
-    /// Culling, importance, budget sharing and mask selection.
-    pub lod_ms: f64,
-    /// CPU time of the frame: paging and uploads, level of detail, command encoding.
-    pub cpu_ms: f64,
-    /// GPU time of the render pass (timestamp queries), when the adapter has them.
-    pub gpu_ms: Option<f64>,
-    /// Whole frame, start to GPU completion (frame PNGs not included).
-    pub frame_ms: f64,
-    /// Frame rate the controller aims for; `None` with a fixed budget.
-    pub target_fps: Option<f64>,
-}
-
-/// One frame of a flight, as written to `flight.csv`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FrameRecord {
-    pub frame: u64,
-    /// Flight time: frame / fps.
-    pub time_s: f64,
-    /// Wall-clock seconds since the flight started.
-    pub wall_s: f64,
-    pub position_m: [f64; 3],
-    /// Terrain height under the viewpoint (nearest sample of the resident current tile);
-    /// `None` while that tile is not resident or the viewpoint is off the terrain.
-    pub ground_m: Option<f64>,
-    pub current: [i64; 2],
-    /// Belt index of the farthest complete belt; `None` while the current tile is missing.
-    pub farthest_complete_belt: Option<u32>,
-    pub complete_belts: u32,
-    pub resident_tiles: u64,
-    pub resident_bytes: u64,
-    pub memory_limit_bytes: u64,
-    /// Bytes of response bodies received so far (retries included).
-    pub bytes_downloaded: u64,
-    pub in_flight: u64,
-    pub retries: u64,
-    /// Downloaded bytes of tiles evicted before they were ever part of the complete square.
-    pub evicted_unused_bytes: u64,
-    /// Bytes the texture budget could spend on finer levels this frame.
-    pub texture_budget_bytes: u64,
-    pub render: Option<RenderRecord>,
-}
-
-impl FrameRecord {
-    pub fn csv_row(&self) -> String {
-        let render = match &self.render {
-            None => ",,,,,,,,,,,,".to_string(),
-            Some(r) => format!(
-                "{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{:.2},{}",
-                r.visible_tiles,
-                r.triangles,
-                r.triangles_needed,
-                r.filler_triangles,
-                r.draw_calls,
-                r.global_budget,
-                r.mask_levels
-                    .iter()
-                    .map(|(l, c)| format!("{l}:{c}"))
-                    .collect::<Vec<_>>()
-                    .join(";"),
-                r.lod_ms,
-                r.cpu_ms,
-                r.gpu_ms.map_or(String::new(), |g| format!("{g:.3}")),
-                r.frame_ms,
-                1e3 / r.frame_ms.max(1e-6),
-                r.target_fps.map_or(String::new(), |t| format!("{t}")),
-            ),
-        };
-        format!(
-            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            self.frame,
-            self.time_s,
-            self.wall_s,
-            self.position_m[0],
-            self.position_m[1],
-            self.position_m[2],
-            self.ground_m.map_or(String::new(), |g| format!("{g:.1}")),
-            self.current[0],
-            self.current[1],
-            self.farthest_complete_belt
-                .map_or(String::new(), |b| b.to_string()),
-            self.complete_belts,
-            self.resident_tiles,
-            self.resident_bytes,
-            self.memory_limit_bytes,
-            self.bytes_downloaded,
-            self.in_flight,
-            self.retries,
-            self.evicted_unused_bytes,
-            self.texture_budget_bytes,
-            render,
-        )
-    }
-}
-
-/// The obtained frame rate as a viewer shows it: frames drawn in the last second of
-/// wall-clock time, at each rendered frame from the first full second on.
-pub fn windowed_fps(records: &[FrameRecord]) -> Vec<(f64, f64)> {
-    let rendered: Vec<f64> = records
-        .iter()
-        .filter(|r| r.render.is_some())
-        .map(|r| r.wall_s)
-        .collect();
-    let mut start = 0;
-    let mut out = Vec::new();
-    for (i, &t) in rendered.iter().enumerate() {
-        while rendered[start] <= t - 1.0 {
-            start += 1;
-        }
-        if t >= 1.0 {
-            out.push((t, (i + 1 - start) as f64));
-        }
-    }
-    out
-}
+pub use crate::record::{CSV_HEADER, FrameRecord, RenderRecord, windowed_fps};
 
 /// How the frame rate held its target, over the frames after the first second.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -639,8 +511,13 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         .then(|| args.render.config())
         .transpose()?;
     let budget = args.stream.budget()?;
-    let client = TileClient::new(&args.stream.server)?;
-    let manifest = Arc::new(client.manifest().await?);
+    let connection = Scene::connect(
+        &args.stream.server,
+        args.stream.fetcher_config(),
+        tokio::runtime::Handle::current(),
+    )
+    .await?;
+    let manifest = Arc::clone(&connection.manifest);
     let path = match &args.flight {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),
@@ -664,18 +541,6 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         None => None,
     };
 
-    let mut fetcher = Fetcher::new(
-        client,
-        Arc::clone(&manifest),
-        args.stream.fetcher_config(),
-        tokio::runtime::Handle::current(),
-    );
-    let pager = PagerConfig {
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
-        memory_limit: budget.limit_bytes(),
-        nearest_when_outside: !args.no_nearest_when_outside,
-    };
     let frames = (path.duration_s() * args.fps).ceil() as u64 + 1;
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()
@@ -693,9 +558,9 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         Some((gpu, target, _)) => (Some(target), Some(gpu.description())),
         None => (None, None),
     };
-    let mut scene = Scene::new(
-        Arc::clone(&manifest),
-        pager,
+    let mut scene = connection.scene(
+        budget.limit_bytes(),
+        !args.no_nearest_when_outside,
         render.as_ref().map(|(gpu, _, config)| {
             (
                 gpu.clone(),
@@ -704,6 +569,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             )
         }),
     );
+    let mut fetcher = connection.fetcher;
     let started = Instant::now();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.fps));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -770,6 +636,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             resident_tiles: scene.resident_tiles(),
             resident_bytes: scene.resident_bytes(),
             memory_limit_bytes: scene.memory_limit(),
+            gpu_bytes: scene.gpu_bytes(),
             bytes_downloaded: stats.bytes_downloaded,
             in_flight: scene.in_flight(),
             retries: stats.retries,
@@ -782,16 +649,16 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             Some(r) => format!(
                 "{} tiles, {:.1}/{:.1} MiB, {:.0} fps, {} triangles",
                 record.resident_tiles,
-                record.resident_bytes as f64 / 1048576.0,
-                record.memory_limit_bytes as f64 / 1048576.0,
+                record.resident_bytes as f64 / crate::memory::MIB,
+                record.memory_limit_bytes as f64 / crate::memory::MIB,
                 1e3 / r.frame_ms.max(1e-6),
                 r.triangles
             ),
             None => format!(
                 "{} tiles, {:.1}/{:.1} MiB",
                 record.resident_tiles,
-                record.resident_bytes as f64 / 1048576.0,
-                record.memory_limit_bytes as f64 / 1048576.0
+                record.resident_bytes as f64 / crate::memory::MIB,
+                record.memory_limit_bytes as f64 / crate::memory::MIB
             ),
         });
         records.push(record);
@@ -878,6 +745,7 @@ mod tests {
             resident_tiles: 0,
             resident_bytes: 0,
             memory_limit_bytes: 0,
+            gpu_bytes: 0,
             bytes_downloaded: 0,
             in_flight: 0,
             retries: 0,

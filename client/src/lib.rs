@@ -5,25 +5,28 @@
 //! 1. **fetch** ([`fetch`], [`fetcher`]): the manifest, then tiles by URL; every body is
 //!    checked against the manifest's content hash before anything else sees it, and
 //!    heights are decoded off the async threads. The [`fetcher`] carries out the pager's
-//!    requests: bounded concurrency, priority order, cancellation, retries with backoff.
+//!    and the method's requests: bounded concurrency, priority order, cancellation, retries
+//!    with backoff.
 //! 2. **page** ([`page`]): which belts of tiles around the viewpoint to hold, fetch and
 //!    drop within the memory limit ([`memory`]), Algorithm 1 of the strip-mask paper.
-//! 3. **choose LOD** ([`lod`]): each visible tile's visual importance, the global triangle
-//!    budget shared greedily by importance, and the strip mask each tile draws with (pure).
-//! 4. **render** ([`render`]): culling, upload of samples and textures, the render pass
-//!    with strip masks and crack fillers, offscreen read-back.
+//! 3. **choose and draw the level of detail** ([`method`], deciding with [`lod`]): each
+//!    method decides what to draw of the resident tiles and records it into a frame.
+//! 4. **render** ([`render`]): what every method shares on the GPU: the resident tiles'
+//!    samples and textures, the frame's uniforms, depth and read-back, the tile pipeline.
 //!
-//! [`scene`] runs steps 2 to 4 a frame at a time (with the texture budget). [`flight`]
-//! drives a scene headless along a camera path ([`path`]) and records each frame;
-//! [`viewer`] drives one in a window; [`charts`] draws the records; [`eval`] measures
-//! frames against the true surface and a reference.
+//! [`scene`] runs steps 2 to 4 a frame at a time (with the texture budget), from the one
+//! setup path [`scene::Scene::connect`]. [`flight`] drives a scene headless along a camera
+//! path ([`path`]) and records each frame ([`record`]); [`viewer`] drives one in a window;
+//! [`charts`] draws the records; [`eval`] measures frames against the true surface and a
+//! reference.
 //!
-//! Deciding code (paging, camera paths, the [`overview`] mosaic, the [`report`] of a fetch)
-//! is pure: values in, values out, no sockets, clocks or GPU, so it is tested with plain
-//! data. IO sits at the rim: [`fetch`] and [`fetcher`] talk HTTP, [`cli`] and [`flight`]
-//! write files and draw progress.
+//! Deciding code (paging, level of detail, camera paths, the [`overview`] mosaic, the
+//! [`report`] of a fetch) is pure: values in, values out, no sockets, clocks or GPU, so it
+//! is tested with plain data. IO sits at the rim: [`fetch`] and [`fetcher`] talk HTTP,
+//! [`cli`] and [`flight`] write files and draw progress.
 //!
-//! **Invariant:** nothing downstream of [`fetch`] sees bytes whose hash was not checked.
+//! **Invariant:** nothing downstream of [`fetch`] sees bytes whose hash was not checked
+//! (a method's own data is checked when its hash is given).
 //! **Invariant:** the pager never awaits, reads a clock or touches the GPU.
 
 pub mod charts;
@@ -38,6 +41,7 @@ pub mod method;
 pub mod overview;
 pub mod page;
 pub mod path;
+pub mod record;
 pub mod render;
 pub mod report;
 pub mod scene;

@@ -27,6 +27,9 @@ pub enum MemoryError {
     Unavailable(String),
 }
 
+/// Bytes in a mebibyte, for printing sizes in MiB.
+pub const MIB: f64 = 1048576.0;
+
 /// A memory size parsed from text such as `64MiB`, `1.5 GiB`, `500MB` or `1048576`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MemorySize(pub u64);
@@ -105,13 +108,16 @@ fn parse_meminfo_available(text: &str) -> Option<u64> {
 pub struct TileBytes {
     pub decoded_heights: u64,
     pub textures: u64,
-    pub vertices: u64,
+    /// What the level-of-detail method holds for it, CPU and GPU (its own tables, its own
+    /// copy of the terrain, data of its own).
+    pub method: u64,
+    /// The renderer's GPU bytes for it: sample buffer and texture copies.
     pub gpu: u64,
 }
 
 impl TileBytes {
     pub fn total(&self) -> u64 {
-        self.decoded_heights + self.textures + self.vertices + self.gpu
+        self.decoded_heights + self.textures + self.method + self.gpu
     }
 }
 
@@ -161,7 +167,7 @@ mod tests {
         let bytes = TileBytes {
             decoded_heights: 2,
             textures: 4,
-            vertices: 8,
+            method: 8,
             gpu: 16,
         };
         assert_eq!(bytes.total(), 30);

@@ -18,9 +18,11 @@
 //!   can be turned off so that belts are counted from a virtual tile outside the grid).
 //!   Near an edge the square becomes a rectangle; a jump to a far tile needs nothing special.
 //!
-//! The module owns these rules and nothing else. The caller (`flight`) owns fetching,
-//! decoding and counting each tile's bytes, the limit's percentage (`memory`), and carrying
-//! a [`Decision`] out: cancel, evict, request, then report the new state on the next frame.
+//! The module owns these rules and nothing else. The caller (`crate::scene::Scene::update`)
+//! owns fetching, decoding and counting each tile's bytes (with what the level-of-detail
+//! method holds for it), the limit (the budget's percentage, `memory`, less what the method
+//! holds for no tile), and carrying a [`Decision`] out: cancel, evict, request, then report
+//! the new state on the next frame.
 //! Nothing here does IO, reads a clock or awaits; [`decide`] allocates only the vectors it
 //! returns and makes one pass over the grid (benches/pager.rs: a few microseconds for
 //! 64x64 tiles), so it can run every frame.
@@ -836,10 +838,107 @@ mod tests {
         assert_eq!((decision.belt_count, decision.fetch.len()), (0, 0));
     }
 
-    // --- many frames: a simulated fetcher ------------------------------------------------
+    // --- many frames: a simulated fetcher, checked against what the pager promises -------
+    //
+    // The checks below state outcomes, taken from the module docs, ARCHITECTURE.md's
+    // invariants on the pager and the paper's section 4: what is resident, requested,
+    // dropped and cancelled after each frame, and where a still viewpoint comes to rest.
+    // They work everything out by brute force over the grid (rings, squares, byte sums,
+    // the largest square that fits) and call none of the module's helpers (`current_tile`,
+    // `belt_of`, `belt_tiles`, `square_tiles`), so a wrong rule in `decide` shows up as a
+    // broken promise instead of being reproduced by the checker. Every message names the
+    // promise it checks, in brackets.
+
+    /// Every tile of the grid, row-major, with its slot in the per-tile slices.
+    fn grid(config: &PagerConfig) -> impl Iterator<Item = (usize, TileId)> + use<> {
+        let (columns, rows) = (config.columns, config.rows);
+        (0..rows)
+            .flat_map(move |y| (0..columns).map(move |x| TileId::new(x, y)))
+            .enumerate()
+    }
+
+    fn slot(config: &PagerConfig, id: TileId) -> usize {
+        id.y as usize * config.columns as usize + id.x as usize
+    }
+
+    /// The tile under the viewpoint (tile `(i, j)` spans `[i, i+1) x [j, j+1)`); with the
+    /// nearest-tile option, the grid tile nearest to it, found by clamping each coordinate.
+    fn viewpoint_tile(config: &PagerConfig, viewpoint: [f64; 2]) -> (i64, i64) {
+        let axis = |v: f64, tiles: u32| {
+            let tile = v.floor() as i64;
+            if config.nearest_when_outside {
+                tile.clamp(0, i64::from(tiles) - 1)
+            } else {
+                tile
+            }
+        };
+        (
+            axis(viewpoint[0], config.columns),
+            axis(viewpoint[1], config.rows),
+        )
+    }
+
+    /// How many tiles out from `centre` `id` lies (the Chebyshev distance): its ring.
+    fn ring(centre: (i64, i64), id: TileId) -> u64 {
+        centre
+            .0
+            .abs_diff(i64::from(id.x))
+            .max(centre.1.abs_diff(i64::from(id.y)))
+    }
+
+    /// Rings needed around `centre` to cover the grid: one more than the farthest tile's.
+    fn rings(config: &PagerConfig, centre: (i64, i64)) -> u64 {
+        grid(config)
+            .map(|(_, id)| ring(centre, id) + 1)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// How many rings around `centre` hold only resident tiles (the square of complete
+    /// belts): the ring of the nearest missing tile, or every ring when none is missing.
+    fn complete_rings(config: &PagerConfig, centre: (i64, i64), resident: &[u64]) -> u64 {
+        grid(config)
+            .filter(|&(i, _)| resident[i] == 0)
+            .map(|(_, id)| ring(centre, id))
+            .min()
+            .unwrap_or_else(|| rings(config, centre))
+    }
+
+    /// Bytes of the tiles in rings `0..k` around `centre`: the square of `k` belts.
+    fn square_bytes(config: &PagerConfig, sizes: &[u64], centre: (i64, i64), k: u64) -> u64 {
+        grid(config)
+            .filter(|&(_, id)| ring(centre, id) < k)
+            .map(|(i, _)| sizes[i])
+            .sum()
+    }
+
+    /// The most rings around `centre` whose tiles together fit under the limit, trying
+    /// every count.
+    fn largest_square_that_fits(config: &PagerConfig, sizes: &[u64], centre: (i64, i64)) -> u64 {
+        (0..=rings(config, centre))
+            .filter(|&k| square_bytes(config, sizes, centre, k) <= config.memory_limit)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Where the square of a still viewpoint comes to rest, from nothing resident: without
+    /// sizes known, the paper's rule fetches a belt whenever memory is at or under the limit,
+    /// so the square ends one belt past the largest that fits (that belt overspends); with
+    /// sizes known, the largest that fits, but never less than the current tile.
+    fn resting_square(
+        config: &PagerConfig,
+        sizes: &[u64],
+        centre: (i64, i64),
+        predict: bool,
+    ) -> u64 {
+        let fits = largest_square_that_fits(config, sizes, centre);
+        let k = if predict { fits.max(1) } else { fits + 1 };
+        k.min(rings(config, centre))
+    }
 
     /// The caller's side of the pager, simulated: tiles land after a delay, and decisions are
-    /// carried out in the order `decide` asks for (cancel, evict, fetch).
+    /// carried out in the order `decide` asks for (cancel, evict, fetch). Every frame is
+    /// checked by [`World::check`].
     struct World {
         config: PagerConfig,
         /// Bytes each tile holds once delivered.
@@ -848,10 +947,18 @@ mod tests {
         in_flight: Vec<bool>,
         /// Frames left before an in-flight tile lands.
         arrives_in: Vec<u32>,
-        /// Bytes of the latest non-empty fetch list.
-        latest_fetch_bytes: u64,
         /// Whether the pager is told `sizes` before fetching (predicted admission).
         predict: bool,
+        /// The latest non-empty request.
+        requested: Vec<TileId>,
+        /// How far the latest request may take resident bytes over the limit: all of it
+        /// without sizes known; with them, only a lone current tile.
+        overspend: u64,
+        /// The viewpoint's tile and the rings complete around it, at the previous decision.
+        previous: Option<((i64, i64), u64)>,
+        /// Tiles evicted and cancelled so far.
+        evicted: usize,
+        cancelled: usize,
     }
 
     impl World {
@@ -863,13 +970,18 @@ mod tests {
                 resident: vec![0; tiles],
                 in_flight: vec![false; tiles],
                 arrives_in: vec![0; tiles],
-                latest_fetch_bytes: 0,
                 predict: false,
+                requested: Vec::new(),
+                overspend: 0,
+                previous: None,
+                evicted: 0,
+                cancelled: 0,
             }
         }
 
-        /// One frame: deliveries that are due, a decision, and its execution. A tile
-        /// requested with delay `d` lands at the start of frame `d + 1` after the request.
+        /// One frame: deliveries that are due, a decision, its execution, and the checks.
+        /// A tile requested with delay `d` lands at the start of frame `d + 1` after the
+        /// request.
         fn frame(&mut self, viewpoint: [f64; 2], delay: &mut dyn FnMut() -> u32) -> Decision {
             for i in 0..self.in_flight.len() {
                 if self.in_flight[i] {
@@ -881,33 +993,28 @@ mod tests {
                     }
                 }
             }
-            let view = PagerView {
-                viewpoint,
-                resident_bytes: &self.resident,
-                in_flight: &self.in_flight,
-                expected_bytes: self.predict.then_some(&self.sizes[..]),
-            };
-            let decision = decide(&self.config, &view);
-            self.check_decision(&view, &decision);
+            let (resident, in_flight) = (self.resident.clone(), self.in_flight.clone());
+            let decision = decide(
+                &self.config,
+                &PagerView {
+                    viewpoint,
+                    resident_bytes: &resident,
+                    in_flight: &in_flight,
+                    expected_bytes: self.predict.then_some(&self.sizes[..]),
+                },
+            );
             for &id in &decision.cancel {
-                self.in_flight[self.config.index(id)] = false;
+                self.in_flight[slot(&self.config, id)] = false;
             }
             for &id in &decision.evict {
-                self.resident[self.config.index(id)] = 0;
+                self.resident[slot(&self.config, id)] = 0;
             }
             for &id in &decision.fetch {
-                let i = self.config.index(id);
+                let i = slot(&self.config, id);
                 self.in_flight[i] = true;
                 self.arrives_in[i] = delay();
             }
-            if !decision.fetch.is_empty() {
-                self.latest_fetch_bytes = decision
-                    .fetch
-                    .iter()
-                    .map(|&id| self.sizes[self.config.index(id)])
-                    .sum();
-            }
-            self.check_square(&decision);
+            self.check(viewpoint, &resident, &in_flight, &decision);
             decision
         }
 
@@ -919,13 +1026,9 @@ mod tests {
             !self.in_flight.contains(&true)
         }
 
-        fn square_bytes(&self, current: CurrentTile, belts: u32) -> u64 {
-            square_tiles(&self.config, current, belts)
-                .map(|id| self.sizes[self.config.index(id)])
-                .sum()
-        }
-
-        /// Frames of a still viewpoint until a decision changes nothing; panics past `limit`.
+        /// Frames of a still viewpoint until a frame requests and drops nothing with nothing
+        /// in flight; panics past `limit`. `decide` being pure, the next frame would see the
+        /// same state and decide the same: the pager is at rest.
         fn settle(
             &mut self,
             viewpoint: [f64; 2],
@@ -941,114 +1044,277 @@ mod tests {
                     return decision;
                 }
             }
-            panic!("a still viewpoint at {viewpoint:?} did not settle within {limit} frames");
+            panic!(
+                "[comes to rest] a still viewpoint at {viewpoint:?} did not settle within {limit} frames"
+            );
         }
 
-        /// What every decision must satisfy, seen from the state it was taken in.
-        fn check_decision(&self, view: &PagerView<'_>, d: &Decision) {
-            let config = &self.config;
-            let resident = |id: TileId| view.resident_bytes[config.index(id)] > 0;
+        /// Checks one frame against the pager's promises. `resident` and `in_flight` are the
+        /// state the decision was taken in (after this frame's deliveries); `self` is the
+        /// state after carrying the decision out.
+        fn check(
+            &mut self,
+            viewpoint: [f64; 2],
+            resident: &[u64],
+            in_flight: &[bool],
+            d: &Decision,
+        ) {
+            let config = self.config;
             let limit = config.memory_limit;
-            assert_eq!(d.used_bytes, view.resident_bytes.iter().sum::<u64>());
-            // 1. Resident bytes exceed the limit by at most the belt fetched last: every
-            //    fetch starts at or under the limit with nothing in flight.
-            assert!(
-                d.used_bytes <= limit + self.latest_fetch_bytes,
-                "{} bytes resident, limit {limit}, latest fetch {}",
-                d.used_bytes,
-                self.latest_fetch_bytes
-            );
-            // 2. The complete belts form the square (or clipped rectangle), and it is the
-            //    largest: the next belt misses a tile.
-            assert!(square_tiles(config, d.current, d.complete_belts).all(resident));
-            assert!(
-                d.complete_belts == d.belt_count
-                    || !belt_tiles(config, d.current, d.complete_belts).all(resident)
-            );
-            assert_eq!(d.farthest_complete_belt, d.complete_belts.checked_sub(1));
-            // 3. Nothing of the square is evicted; only resident tiles of one belt beyond it,
-            //    over the limit, and never while loading.
-            assert!(
-                d.evict
-                    .iter()
-                    .all(|&id| resident(id) && belt_of(d.current, id) >= d.complete_belts)
-            );
-            assert!(
-                d.evict
-                    .windows(2)
-                    .all(|w| belt_of(d.current, w[0]) == belt_of(d.current, w[1]))
-            );
-            // With sizes known, cached tiles beyond the belt being built also make room when
-            // that belt does not fit under the limit (and only then).
-            let next_belt_needs: u64 = belt_tiles(config, d.current, d.complete_belts)
-                .filter(|&id| !resident(id))
-                .map(|id| view.expected_bytes.map_or(0, |e| e[config.index(id)]))
-                .sum();
-            let making_room = view.expected_bytes.is_some()
-                && d.complete_belts > 0
-                && d.used_bytes + next_belt_needs > limit
-                && d.evict
-                    .iter()
-                    .all(|&id| belt_of(d.current, id) > d.complete_belts);
-            assert!(d.evict.is_empty() || ((d.used_bytes > limit || making_room) && !d.loading));
-            // ...and that belt is the farthest holding any tile (the paper's dp); with nothing
-            // evicted over the limit, every resident tile is in the square.
-            let farthest = (0..config.tile_count())
-                .filter(|&i| view.resident_bytes[i] > 0)
-                .map(|i| {
-                    belt_of(
-                        d.current,
-                        TileId::new(
-                            (i % config.columns as usize) as u32,
-                            (i / config.columns as usize) as u32,
-                        ),
-                    )
-                })
-                .max();
-            if let Some(&evicted) = d.evict.first() {
-                assert_eq!(Some(belt_of(d.current, evicted)), farthest);
-            } else if d.used_bytes > limit && !d.loading {
-                assert!(farthest.is_none_or(|far| far < d.complete_belts));
-            }
-            // Fetch: missing tiles of the belt being built, nearest first, at or under the limit.
-            assert!(d.fetch.is_empty() || (d.used_bytes <= limit && !d.loading));
-            assert!(
-                d.fetch
-                    .iter()
-                    .all(|&id| !resident(id) && belt_of(d.current, id) == d.complete_belts)
-            );
-            let distance = |id: &TileId| {
-                (f64::from(id.x) + 0.5 - view.viewpoint[0])
-                    .hypot(f64::from(id.y) + 0.5 - view.viewpoint[1])
+            let centre = viewpoint_tile(&config, viewpoint);
+            let k = complete_rings(&config, centre, resident);
+            let ring = |id: TileId| ring(centre, id);
+            let was_resident = |id: TileId| resident[slot(&config, id)] > 0;
+            let was_in_flight = |id: TileId| in_flight[slot(&config, id)];
+            let used: u64 = resident.iter().sum();
+            let used_after = self.used();
+            let centre_tile = grid(&config).map(|(_, id)| id).find(|&id| ring(id) == 0);
+            let sorted = |ids: &[TileId]| {
+                let mut ids = ids.to_vec();
+                ids.sort();
+                ids
             };
+            let flying: Vec<TileId> = grid(&config)
+                .filter(|&(i, _)| in_flight[i])
+                .map(|(_, id)| id)
+                .collect();
+            let flying_after: Vec<TileId> = grid(&config)
+                .filter(|&(i, _)| self.in_flight[i])
+                .map(|(_, id)| id)
+                .collect();
+            let still_flying = flying.iter().filter(|id| !d.cancel.contains(id)).count();
+            let farthest_resident = grid(&config)
+                .filter(|&(i, _)| resident[i] > 0)
+                .map(|(_, id)| ring(id))
+                .max();
+            let missing_next: u64 = grid(&config)
+                .filter(|&(i, id)| resident[i] == 0 && ring(id) == k)
+                .map(|(i, _)| self.sizes[i])
+                .sum();
+
+            // [report] The decision describes the state as it is.
+            assert_eq!((d.current.x, d.current.y), centre, "[report] current tile");
+            assert_eq!(
+                u64::from(d.belt_count),
+                rings(&config, centre),
+                "[report] belt count"
+            );
+            assert_eq!(
+                u64::from(d.complete_belts),
+                k,
+                "[report] complete belts: rings whose tiles are all resident"
+            );
+            assert_eq!(
+                d.farthest_complete_belt.map(u64::from),
+                k.checked_sub(1),
+                "[report] farthest complete belt"
+            );
+            assert_eq!(d.used_bytes, used, "[report] used bytes");
+            assert_eq!(d.loading, still_flying > 0, "[report] loading");
+
+            // [consistent] No tile twice in a list; nothing resident or in flight requested,
+            // only resident tiles dropped, only in-flight tiles cancelled; nothing both
+            // requested and dropped.
+            for (name, list) in [
+                ("fetch", &d.fetch),
+                ("evict", &d.evict),
+                ("cancel", &d.cancel),
+            ] {
+                let mut unique = sorted(list);
+                unique.dedup();
+                assert_eq!(
+                    unique.len(),
+                    list.len(),
+                    "[consistent] {name} repeats a tile: {list:?}"
+                );
+            }
             assert!(
                 d.fetch
-                    .windows(2)
-                    .all(|w| distance(&w[0]) <= distance(&w[1]) + 1e-9)
-            );
-            // Cancel: exactly the in-flight tiles beyond the belt after the one being built.
-            let in_flight: Vec<TileId> = (0..config.rows)
-                .flat_map(|y| (0..config.columns).map(move |x| TileId::new(x, y)))
-                .filter(|&id| view.in_flight[config.index(id)])
-                .collect();
-            let unwanted = |id: &&TileId| belt_of(d.current, **id) > d.complete_belts + 1;
-            assert_eq!(
-                d.cancel,
-                in_flight
                     .iter()
-                    .filter(unwanted)
-                    .copied()
-                    .collect::<Vec<_>>()
+                    .all(|&id| !was_resident(id) && !was_in_flight(id)),
+                "[consistent] a resident or in-flight tile is requested: {:?}",
+                d.fetch
             );
-            assert_eq!(d.loading, d.cancel.len() < in_flight.len());
-        }
-
-        /// 2 and 3 again after the decision is carried out: the square is still whole.
-        fn check_square(&self, d: &Decision) {
             assert!(
-                square_tiles(&self.config, d.current, d.complete_belts)
-                    .all(|id| self.resident[self.config.index(id)] > 0)
+                d.evict.iter().all(|&id| was_resident(id)),
+                "[consistent] a tile not resident is evicted: {:?}",
+                d.evict
             );
+            assert!(
+                d.cancel.iter().all(|&id| was_in_flight(id)),
+                "[consistent] a tile not in flight is cancelled: {:?}",
+                d.cancel
+            );
+            assert!(
+                !d.fetch.iter().any(|id| d.evict.contains(id)),
+                "[consistent] a tile is both requested and evicted"
+            );
+
+            // [square kept] A complete belt of the current square is never evicted: the
+            // square is whole after the frame. With the viewpoint on the same tile as in the
+            // previous frame, the square never shrinks (the paper's stability).
+            assert!(
+                grid(&config)
+                    .filter(|&(_, id)| ring(id) < k)
+                    .all(|(i, _)| self.resident[i] > 0),
+                "[square kept] a tile of the {k} complete rings around {centre:?} was evicted: {:?}",
+                d.evict
+            );
+            if let Some((previous_centre, previous_k)) = self.previous
+                && previous_centre == centre
+            {
+                assert!(
+                    k >= previous_k,
+                    "[square kept] the square around {centre:?} shrank from {previous_k} to {k} rings"
+                );
+            }
+            self.previous = Some((centre, k));
+
+            // [one belt at a time] Nothing is requested or dropped while requested tiles are
+            // still in flight, so whatever is in flight after the frame is from one request.
+            assert!(
+                still_flying == 0 || (d.fetch.is_empty() && d.evict.is_empty()),
+                "[one belt at a time] {still_flying} tiles in flight, yet fetch {:?} evict {:?}",
+                d.fetch,
+                d.evict
+            );
+
+            // [by belts] A request is the whole of the nearest incomplete ring's missing
+            // tiles, nearest to the viewpoint first, started at or under the limit; with
+            // sizes known, only if it fits whole, except the current tile alone.
+            if !d.fetch.is_empty() {
+                let ring_k: Vec<TileId> = grid(&config)
+                    .filter(|&(i, id)| resident[i] == 0 && ring(id) == k)
+                    .map(|(_, id)| id)
+                    .collect();
+                assert_eq!(
+                    sorted(&d.fetch),
+                    sorted(&ring_k),
+                    "[by belts] the request is not the missing tiles of ring {k}"
+                );
+                let distance = |id: &TileId| {
+                    (f64::from(id.x) + 0.5 - viewpoint[0])
+                        .hypot(f64::from(id.y) + 0.5 - viewpoint[1])
+                };
+                assert!(
+                    d.fetch
+                        .windows(2)
+                        .all(|w| distance(&w[0]) <= distance(&w[1]) + 1e-9),
+                    "[by belts] not nearest first: {:?}",
+                    d.fetch
+                );
+                let bytes: u64 = d
+                    .fetch
+                    .iter()
+                    .map(|&id| self.sizes[slot(&config, id)])
+                    .sum();
+                let lone_current = d.fetch.len() == 1 && Some(d.fetch[0]) == centre_tile;
+                assert!(
+                    used <= limit,
+                    "[limit] a belt is requested with {used} bytes resident over the limit {limit}"
+                );
+                if self.predict {
+                    assert!(
+                        used + bytes <= limit || lone_current,
+                        "[limit] with sizes known, a belt of {bytes} bytes that does not fit ({used} resident, limit {limit}) is requested"
+                    );
+                }
+                self.requested = d.fetch.clone();
+                self.overspend = if !self.predict || lone_current {
+                    bytes
+                } else {
+                    0
+                };
+            }
+            assert!(
+                flying_after.iter().all(|id| self.requested.contains(id)),
+                "[one belt at a time] tiles of two requests in flight"
+            );
+
+            // [limit] Resident bytes exceed the limit by at most the belt requested last
+            // (with sizes known, by at most a lone current tile).
+            assert!(
+                used_after <= limit + self.overspend,
+                "[limit] {used_after} bytes resident, limit {limit}, latest request may overspend by {}",
+                self.overspend
+            );
+
+            // [evict] One ring a frame, the farthest holding a tile, all of it; under the
+            // limit, tiles outside the square stay cached, except, with sizes known, those
+            // beyond the next ring, to make room for it when it does not fit.
+            if let Some(&first) = d.evict.first() {
+                let r = ring(first);
+                assert!(
+                    d.evict.iter().all(|&id| ring(id) == r),
+                    "[evict] more than one ring evicted: {:?}",
+                    d.evict
+                );
+                assert!(
+                    grid(&config)
+                        .filter(|&(i, _)| self.resident[i] > 0)
+                        .all(|(_, id)| ring(id) < r),
+                    "[evict] ring {r} evicted while a tile as far or farther stays"
+                );
+                assert!(
+                    used > limit || (self.predict && r > k && used + missing_next > limit),
+                    "[evict] ring {r} evicted under the limit ({used} of {limit} bytes, {k} complete rings, {missing_next} bytes missing from ring {k})"
+                );
+                self.evicted += d.evict.len();
+            }
+
+            // [cancel] What the square wants now or next (its ring being built and the one
+            // after) is not cancelled; after the frame nothing farther is in flight, so a
+            // jump does not wait for the square it left.
+            assert!(
+                d.cancel.iter().all(|&id| ring(id) > k + 1),
+                "[cancel] a tile within ring {} of {centre:?} is cancelled: {:?}",
+                k + 1,
+                d.cancel
+            );
+            assert!(
+                flying_after.iter().all(|&id| ring(id) <= k + 1),
+                "[cancel] a tile beyond ring {} of {centre:?} is still in flight: {:?}",
+                k + 1,
+                flying_after
+            );
+            self.cancelled += d.cancel.len();
+
+            // [jump] A missing current tile is requested, first, in the frame the viewpoint
+            // reaches it, unless the new square's own tiles are in flight or memory is over
+            // the limit.
+            if let Some(tile) = centre_tile
+                && !was_resident(tile)
+                && still_flying == 0
+                && used <= limit
+            {
+                assert_eq!(
+                    d.fetch.first(),
+                    Some(&tile),
+                    "[jump] the missing current tile is not requested at once"
+                );
+            }
+
+            // [progress] With nothing in flight, the pager requests or drops something
+            // exactly while it is not at rest. At rest: every tile is resident; or over the
+            // limit with nothing outside the square to drop; or, with sizes known, at least
+            // the current tile held, the next ring does not fit and nothing beyond it is held.
+            let at_rest = k == rings(&config, centre)
+                || (used > limit && farthest_resident.is_none_or(|f| f < k))
+                || (self.predict
+                    && k >= 1
+                    && used <= limit
+                    && used + missing_next > limit
+                    && farthest_resident.is_none_or(|f| f <= k));
+            if still_flying == 0 {
+                assert_eq!(
+                    d.fetch.is_empty() && d.evict.is_empty(),
+                    at_rest,
+                    "[progress] idle is not the same as at rest: {k} complete rings of {}, {used} bytes, limit {limit}, farthest resident ring {farthest_resident:?}, fetch {:?}, evict {:?}",
+                    rings(&config, centre),
+                    d.fetch,
+                    d.evict
+                );
+            }
         }
     }
 
@@ -1124,13 +1390,15 @@ mod tests {
     }
 
     /// A random world: grid, per-tile sizes of 1 to 1000 bytes, a limit from 0 (below any
-    /// tile) to 120% of the whole grid, and the nearest-tile option on or off.
+    /// tile) to 120% of the whole grid, the nearest-tile option on or off, and sizes told to
+    /// the pager or not.
     fn world(
         columns: u32,
         rows: u32,
         seed: u64,
         limit_permille: u64,
         nearest: bool,
+        predict: bool,
     ) -> (World, Random) {
         let mut random = Random(seed);
         let sizes: Vec<u64> = (0..columns * rows)
@@ -1141,25 +1409,24 @@ mod tests {
             nearest_when_outside: nearest,
             ..PagerConfig::new(columns, rows, limit)
         };
-        (World::new(config, sizes), random)
+        let mut world = World::new(config, sizes);
+        world.predict = predict;
+        (world, random)
     }
 
-    /// Delays of 0 to 4 frames; each belt then takes at most 6 frames, and settling (a fetch
-    /// or an eviction per belt, at most 2 * belt_count + 1 of them) is bounded by this.
+    /// Delays of 0 to 4 frames: a request lands within MAX_DELAY + 1 frames.
     const MAX_DELAY: u64 = 4;
+
+    /// Frames a still viewpoint may take to come to rest after a walk: a request or an
+    /// eviction per ring (at most 2 * rings + 1 of them), each done within MAX_DELAY + 2.
     fn settle_limit(config: &PagerConfig) -> u32 {
         let belts = config.columns.max(config.rows) + 16; // grid plus the farthest walk off it
         (2 * belts + 2) * (MAX_DELAY as u32 + 2)
     }
 
-    /// Flies `walk` from the grid's centre, one decision a frame, calling `after_frame`
-    /// after each; returns where the walk ended.
-    fn walk_frames(
-        world: &mut World,
-        random: &mut Random,
-        walk: Vec<Move>,
-        mut after_frame: impl FnMut(&World) -> Result<(), TestCaseError>,
-    ) -> Result<[f64; 2], TestCaseError> {
+    /// Flies `walk` from the grid's centre, one decision a frame (each checked by
+    /// [`World::check`]); returns where the walk ended.
+    fn walk_frames(world: &mut World, random: &mut Random, walk: Vec<Move>) -> [f64; 2] {
         let (w, h) = (
             f64::from(world.config.columns),
             f64::from(world.config.rows),
@@ -1181,102 +1448,145 @@ mod tests {
                 }
             };
             for _ in 0..frames {
-                // `World::frame` checks every decision (properties 1 to 3).
                 world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
-                after_frame(world)?;
             }
         }
-        Ok(viewpoint)
+        viewpoint
     }
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(192))]
 
+        /// [converges] From nothing resident, a still viewpoint's square grows, a frame never
+        /// idle until it rests, to the largest square that fits (computed by trying every
+        /// count of rings); exactly that square is resident, and nothing was ever evicted or
+        /// cancelled.
         #[test]
-        fn a_still_viewpoint_from_empty_settles_on_the_largest_square_that_fits(
-            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
+        fn a_still_viewpoint_from_empty_grows_to_the_largest_square_that_fits_and_rests(
+            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(),
+            limit_permille in 0u64..=1200, nearest in any::<bool>(), predict in any::<bool>(),
             fx in -0.3f64..1.3, fy in -0.3f64..1.3,
         ) {
-            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
+            let (mut world, mut random) =
+                world(columns, rows, seed, limit_permille, nearest, predict);
             let viewpoint = [fx * f64::from(columns), fy * f64::from(rows)];
-            let limit = settle_limit(&world.config);
-            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
-            let k = d.complete_belts;
-            // Nothing outside the square was ever fetched.
-            prop_assert_eq!(world.used(), world.square_bytes(d.current, k));
-            prop_assert!(k >= 1 || d.belt_count == 0);
-            if k < d.belt_count {
-                let memory_limit = world.config.memory_limit;
-                prop_assert!(world.square_bytes(d.current, k) > memory_limit);
-                prop_assert!(world.square_bytes(d.current, k - 1) <= memory_limit);
+            let centre = viewpoint_tile(&world.config, viewpoint);
+            let target = resting_square(&world.config, &world.sizes, centre, predict);
+            // A ring lands within MAX_DELAY + 1 frames of its request and the next ring is
+            // requested in the frame after; at most every ring is requested.
+            let frames = (rings(&world.config, centre) as u32 + 1) * (MAX_DELAY as u32 + 2);
+            let mut rested = false;
+            for frame in 0..frames {
+                let d = world.frame(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32);
+                let busy = !d.fetch.is_empty() || !world.nothing_in_flight();
+                let k = complete_rings(&world.config, centre, &world.resident);
+                prop_assert!(k <= target,
+                    "[converges] frame {}: {} rings complete, past the {} that fit", frame, k, target);
+                if !busy {
+                    prop_assert_eq!(k, target,
+                        "[converges] frame {}: idle with {} of {} rings", frame, k, target);
+                    rested = true;
+                    break;
+                }
             }
+            prop_assert!(rested, "[converges] not at rest after {} frames", frames);
+            let square: Vec<usize> = grid(&world.config)
+                .filter(|&(_, id)| ring(centre, id) < target)
+                .map(|(i, _)| i)
+                .collect();
+            let resident: Vec<usize> = (0..world.resident.len())
+                .filter(|&i| world.resident[i] > 0)
+                .collect();
+            prop_assert_eq!(resident, square,
+                "[converges] not exactly the square of {} rings is resident", target);
+            prop_assert_eq!((world.evicted, world.cancelled), (0, 0),
+                "[converges] tiles evicted or cancelled");
         }
 
+        /// Every frame of a random walk keeps the promises [`World::check`] states; then a
+        /// still viewpoint comes to rest [rest after a walk] with at least the largest square
+        /// that fits (tiles cached on the way may complete a larger one, never dropped as it
+        /// is complete) and no memory held for nothing: over the limit, only the square;
+        /// under it, with sizes known, nothing beyond the next ring, which does not fit.
         #[test]
-        fn every_frame_of_a_random_walk_keeps_the_square_and_the_limit_and_a_still_viewpoint_then_settles(
-            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
+        fn every_frame_of_a_random_walk_keeps_the_pagers_promises_and_a_still_viewpoint_then_rests(
+            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(),
+            limit_permille in 0u64..=1200, nearest in any::<bool>(), predict in any::<bool>(),
             walk in proptest::collection::vec(moves(), 1..80),
         ) {
-            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
-            let viewpoint = walk_frames(&mut world, &mut random, walk, |_| Ok(()))?;
+            let (mut world, mut random) =
+                world(columns, rows, seed, limit_permille, nearest, predict);
+            let viewpoint = walk_frames(&mut world, &mut random, walk);
             let limit = settle_limit(&world.config);
-            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
-            // Settled: either everything is resident, or memory is over the limit and every
-            // tile outside the square has been dropped.
-            if d.complete_belts < d.belt_count {
-                prop_assert!(world.used() > world.config.memory_limit);
-                prop_assert_eq!(world.used(), world.square_bytes(d.current, d.complete_belts));
+            world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
+            let config = world.config;
+            let centre = viewpoint_tile(&config, viewpoint);
+            let all = rings(&config, centre);
+            let k = complete_rings(&config, centre, &world.resident);
+            let fits = largest_square_that_fits(&config, &world.sizes, centre);
+            let least = if predict { fits.max(1) } else { fits + 1 }.min(all);
+            prop_assert!(k >= least, "[rest after a walk] {} complete rings, {} fit", k, fits);
+            let farthest = grid(&config)
+                .filter(|&(i, _)| world.resident[i] > 0)
+                .map(|(_, id)| ring(centre, id))
+                .max();
+            if k < all {
+                if world.used() > config.memory_limit {
+                    prop_assert!(farthest.is_none_or(|f| f < k),
+                        "[rest after a walk] over the limit with tiles outside the square");
+                } else {
+                    prop_assert!(predict,
+                        "[rest after a walk] under the limit and not every tile resident");
+                    prop_assert!(farthest.is_none_or(|f| f <= k),
+                        "[rest after a walk] tiles beyond the next ring held");
+                    prop_assert!(square_bytes(&config, &world.sizes, centre, k + 1) > config.memory_limit,
+                        "[rest after a walk] the next ring would fit");
+                }
             }
         }
 
+        /// [jump] A jump far from a square still loading cancels every tile in flight for the
+        /// old square and requests the new current tile in the same frame.
         #[test]
-        fn with_sizes_known_a_still_viewpoint_from_empty_settles_on_the_largest_square_under_the_limit(
-            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
-            fx in -0.3f64..1.3, fy in -0.3f64..1.3,
+        fn a_jump_cancels_the_old_squares_requests_and_starts_the_new_square_in_the_same_frame(
+            columns in 10u32..=24, rows in 1u32..=24, seed in any::<u64>(),
+            limit_permille in 0u64..=1200, nearest in any::<bool>(), predict in any::<bool>(),
+            requests in 1usize..=3,
+            ax in 0.0f64..0.3, ay in 0.0f64..1.0, bx in 0.7f64..1.0, by in 0.0f64..1.0,
         ) {
-            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
-            world.predict = true;
-            let viewpoint = [fx * f64::from(columns), fy * f64::from(rows)];
-            let limit = settle_limit(&world.config);
-            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
-            let (k, memory_limit) = (d.complete_belts, world.config.memory_limit);
-            prop_assert_eq!(world.used(), world.square_bytes(d.current, k));
-            prop_assert!(k >= 1 || d.belt_count == 0);
-            // The current tile is always fetched; any larger square fits under the limit...
-            if k > 1 {
-                prop_assert!(world.square_bytes(d.current, k) <= memory_limit);
+            let (mut world, mut random) =
+                world(columns, rows, seed, limit_permille, nearest, predict);
+            let (w, h) = (f64::from(columns), f64::from(rows));
+            let (a, b) = ([ax * w, ay * h], [bx * w, by * h]);
+            // Delays of 1 to MAX_DELAY: the latest request is still in flight at the jump.
+            let mut delay = || 1 + random.below(MAX_DELAY) as u32;
+            // At A until its `requests`-th request (rings 0 to 2 around A, which on a grid 10
+            // or more wide lie 2 or more tiles from B's tile, beyond the ring B's empty square
+            // builds and the one after), or until it rests.
+            let mut made = 0;
+            for _ in 0..settle_limit(&world.config) {
+                let d = world.frame(a, &mut delay);
+                if !d.fetch.is_empty() {
+                    made += 1;
+                    if made == requests {
+                        break;
+                    }
+                } else if world.nothing_in_flight() {
+                    break;
+                }
             }
-            // ...and one more belt would not.
-            if k < d.belt_count {
-                prop_assert!(world.square_bytes(d.current, k + 1) > memory_limit);
-            }
-        }
-
-        #[test]
-        fn with_sizes_known_resident_bytes_exceed_the_limit_by_the_current_tile_at_most(
-            columns in 1u32..=24, rows in 1u32..=24, seed in any::<u64>(), limit_permille in 0u64..=1200, nearest in any::<bool>(),
-            walk in proptest::collection::vec(moves(), 1..80),
-        ) {
-            let (mut world, mut random) = world(columns, rows, seed, limit_permille, nearest);
-            world.predict = true;
-            let largest_tile = world.sizes.iter().copied().max().unwrap_or(0);
-            let viewpoint = walk_frames(&mut world, &mut random, walk, |world| {
-                prop_assert!(world.used() <= world.config.memory_limit + largest_tile,
-                    "{} bytes resident, limit {} + one tile {}", world.used(), world.config.memory_limit, largest_tile);
-                Ok(())
-            })?;
-            let limit = settle_limit(&world.config);
-            let d = world.settle(viewpoint, &mut || random.below(MAX_DELAY + 1) as u32, limit);
-            // Settled short of the whole grid: the next belt does not fit, and nothing beyond
-            // the belt being built is still held.
-            if d.complete_belts < d.belt_count {
-                prop_assert!(world.square_bytes(d.current, d.complete_belts + 1) > world.config.memory_limit);
-                let beyond = (0..world.config.tile_count())
-                    .filter(|&i| world.resident[i] > 0)
-                    .map(|i| TileId::new(i as u32 % columns, i as u32 / columns))
-                    .filter(|&id| belt_of(d.current, id) > d.complete_belts)
-                    .count();
-                prop_assert_eq!(beyond, 0);
+            let old: Vec<TileId> = grid(&world.config)
+                .filter(|&(i, _)| world.in_flight[i])
+                .map(|(_, id)| id)
+                .collect();
+            let d = world.frame(b, &mut delay);
+            if !old.is_empty() {
+                let mut cancelled = d.cancel.clone();
+                cancelled.sort_by_key(|id| (id.y, id.x));
+                prop_assert_eq!(cancelled, old, "[jump] not every old request cancelled");
+                let tile = TileId::new(b[0].floor() as u32, b[1].floor() as u32);
+                prop_assert_eq!(d.fetch, vec![tile],
+                    "[jump] the new current tile is not requested at once");
             }
         }
     }

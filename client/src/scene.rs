@@ -18,18 +18,26 @@
 //! the limit whatever arrives.
 
 use crate::fetcher::{FailureKind, FetchEvent, Fetcher, Want};
-use crate::flight::FlightError;
 use crate::lod::budget::{BudgetMode, FrameRateController};
-use crate::lod::strips::MaskSet;
+use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::memory::TileBytes;
-use crate::method::{self, LodMethod, MethodInput, MethodKind};
+use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, MethodKind};
 use crate::page::{self, Decision, PagerConfig, PagerView};
-use crate::render::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
-use crate::render::{Camera, CrackFiller, Gpu, RenderStats, TerrainRenderer};
+use crate::render::{Camera, Gpu, RenderStats, Renderer};
+use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Instant;
 use terrain_shared::{Manifest, TileId};
+
+/// Why a scene cannot go on.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The server refused a tile (4xx): it will never arrive, so the square of belts can
+    /// never complete.
+    #[error("tile {id} failed: {message}")]
+    TileFailed { id: TileId, message: String },
+}
 
 /// How a scene renders.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -40,27 +48,26 @@ pub struct RenderConfig {
     pub budget: BudgetMode,
     /// Texture uploads at most per frame, so that a burst of arrivals cannot stall one.
     pub uploads_per_frame: usize,
-    /// For methods drawing with MapBlocks ([`MethodKind::uses_texture_blocks`]): the largest
-    /// block texture side, texels (`None`: the adapter's limit).
+    /// For methods drawing with MapBlocks ([`MethodConfig::uses_texture_blocks`]): the
+    /// largest block texture side, texels (`None`: the adapter's limit).
     pub texture_block_limit: Option<u32>,
     /// Whether those methods use MapBlocks at all (`false`: every tile with its own
     /// texture, for comparison).
     pub texture_blocks: bool,
+    /// Give the method only the tiles of the square of complete belts (the strip-mask
+    /// paper's rendering); `false` (the default) gives it every resident tile: cached ones
+    /// outside the square and those of a belt still arriving.
+    pub square_only: bool,
 }
 
 impl RenderConfig {
-    /// Whether this configuration draws with MapBlocks.
-    pub fn uses_texture_blocks(&self) -> bool {
-        self.method.uses_texture_blocks() && self.texture_blocks
-    }
-
-    /// Copies of each tile's GPU texture this configuration holds (see
-    /// [`crate::render::blocks::TEXTURE_COPIES`]).
-    pub fn texture_copies(&self) -> u64 {
-        if self.uses_texture_blocks() {
-            crate::render::blocks::TEXTURE_COPIES
-        } else {
-            1
+    /// What the method is built and configured with.
+    pub fn method_config(&self) -> MethodConfig {
+        MethodConfig {
+            kind: self.method,
+            lod: self.lod,
+            filler: self.filler,
+            texture_blocks: self.texture_blocks,
         }
     }
 }
@@ -75,6 +82,7 @@ impl Default for RenderConfig {
             uploads_per_frame: 8,
             texture_block_limit: None,
             texture_blocks: true,
+            square_only: false,
         }
     }
 }
@@ -130,16 +138,19 @@ pub struct GeometryMemory {
     pub samples: u64,
     /// Decoded height codes (CPU), shared with the renderer.
     pub cpu_heights: u64,
-    /// Per-tile error tables: the manifest's strip-mask errors and the method's own.
+    /// Per-tile error tables: the manifest's strip-mask errors and what the method holds
+    /// on the CPU (its tables, strips).
     pub cpu_lod: u64,
-    /// Pooled sample buffers (only tiles drawn lately hold one), index sets and textures.
+    /// Pooled sample buffers (only tiles drawn lately hold one) and textures.
     pub gpu: crate::render::GpuResidency,
+    /// The method's GPU bytes (index sets, buffers of its own).
+    pub method_gpu: u64,
 }
 
 impl GeometryMemory {
-    /// Geometry bytes: heights, error tables, sample buffers and index sets.
+    /// Geometry bytes: heights, error tables, sample buffers and the method's GPU bytes.
     pub fn bytes(&self) -> u64 {
-        self.cpu_heights + self.cpu_lod + self.gpu.sample_bytes + self.gpu.index_bytes
+        self.cpu_heights + self.cpu_lod + self.gpu.sample_bytes + self.method_gpu
     }
 
     /// [`GeometryMemory::bytes`] per resident sample.
@@ -153,14 +164,14 @@ impl std::fmt::Display for GeometryMemory {
         let per = |b: u64| b as f64 / self.samples.max(1) as f64;
         write!(
             f,
-            "{:.2} B/sample: heights {:.2}, error tables {:.3}, GPU samples {:.2} ({} of {} tiles hold a buffer), index sets {:.3}",
+            "{:.2} B/sample: heights {:.2}, error tables {:.3}, GPU samples {:.2} ({} of {} tiles hold a buffer), method GPU (index sets) {:.3}",
             self.per_sample(),
             per(self.cpu_heights),
             per(self.cpu_lod),
             per(self.gpu.sample_bytes),
             self.gpu.sample_buffers,
             self.gpu.tiles,
-            per(self.gpu.index_bytes),
+            per(self.method_gpu),
         )
     }
 }
@@ -168,9 +179,10 @@ impl std::fmt::Display for GeometryMemory {
 /// The rendering half of a scene.
 #[derive(Debug)]
 struct Rendering {
-    renderer: TerrainRenderer,
-    masks: Arc<MaskSet>,
+    renderer: Renderer,
     method: Box<dyn LodMethod>,
+    /// Method data asked of the fetcher and not yet arrived.
+    data_pending: HashSet<(TileId, u32)>,
     controller: FrameRateController,
     config: RenderConfig,
     /// Target texture level per tile (index as `tiles`), from the last texture budget.
@@ -196,10 +208,54 @@ pub struct Scene {
     error_minima: Vec<Vec<f32>>,
     pub tiles_fetched: u64,
     pub evicted_unused_bytes: u64,
+    /// Per tile, whether it is in the square of complete belts (as of the last update).
+    in_square: Vec<bool>,
     rendering: Option<Rendering>,
 }
 
+/// A server's manifest and the fetcher that streams its tiles: what [`Scene::connect`]
+/// gives, and what every scene is made from.
+#[derive(Debug)]
+pub struct Connection {
+    pub manifest: Arc<Manifest>,
+    pub fetcher: Fetcher,
+}
+
+impl Connection {
+    /// A scene of the manifest's tiles holding at most `memory_limit` bytes (the pager's
+    /// limit), making the nearest tile current from off the terrain unless told not to;
+    /// with `render`, drawn by its GPU into targets of its format.
+    pub fn scene(
+        &self,
+        memory_limit: u64,
+        nearest_when_outside: bool,
+        render: Option<(Gpu, wgpu::TextureFormat, RenderConfig)>,
+    ) -> Scene {
+        let pager = PagerConfig {
+            columns: self.manifest.grid.columns,
+            rows: self.manifest.grid.rows,
+            memory_limit,
+            nearest_when_outside,
+        };
+        Scene::new(Arc::clone(&self.manifest), pager, render)
+    }
+}
+
 impl Scene {
+    /// The one way to a server: fetches its manifest (checked) and makes the fetcher that
+    /// streams its tiles with `config`, its requests running on `runtime` (which needs its
+    /// time driver: backoff sleeps there).
+    pub async fn connect(
+        server: &str,
+        config: crate::fetcher::FetcherConfig,
+        runtime: tokio::runtime::Handle,
+    ) -> Result<Connection, crate::fetch::FetchError> {
+        let client = crate::fetch::TileClient::new(server)?;
+        let manifest = Arc::new(client.manifest().await?);
+        let fetcher = Fetcher::new(client, Arc::clone(&manifest), config, runtime);
+        Ok(Connection { manifest, fetcher })
+    }
+
     /// A scene of `manifest`'s tiles paged by `pager`; with `render`, drawn by `gpu` into
     /// targets of `format`.
     pub fn new(
@@ -208,16 +264,14 @@ impl Scene {
         render: Option<(Gpu, wgpu::TextureFormat, RenderConfig)>,
     ) -> Scene {
         let count = manifest.tiles.len();
-        let layout = Layout {
-            tile_size: manifest.tile_size,
-            spacing_m: manifest.spacing_m,
-        };
+        let layout = Layout::of(&manifest);
         let rendering = render.map(|(gpu, format, config)| {
-            let masks = Arc::new(MaskSet::new(manifest.tile_size));
+            let renderer = Renderer::new(&gpu, format, layout);
+            let method = build_method(&renderer, &manifest, &config);
             let mut r = Rendering {
-                renderer: TerrainRenderer::new(&gpu, format, layout, Arc::clone(&masks)),
-                method: method::build(config.method, config.lod, config.filler, Arc::clone(&masks)),
-                masks,
+                renderer,
+                method,
+                data_pending: HashSet::new(),
                 controller: FrameRateController::new(config.budget),
                 config,
                 texture_target: vec![0; count],
@@ -227,13 +281,16 @@ impl Scene {
             r.set_texture_blocks(&manifest);
             r
         });
-        let copies = rendering.as_ref().map_or(0, |r| r.config.texture_copies());
+        let expected_bytes = manifest
+            .tiles
+            .iter()
+            .map(|t| match &rendering {
+                Some(r) => r.expected_tile_bytes(&manifest, t).total(),
+                None => expected_tile_bytes(&manifest, t, 0).total(),
+            })
+            .collect();
         Scene {
-            expected_bytes: manifest
-                .tiles
-                .iter()
-                .map(|t| expected_tile_bytes(&manifest, t, copies).total())
-                .collect(),
+            expected_bytes,
             layout,
             pager,
             tiles: vec![None; count],
@@ -246,6 +303,7 @@ impl Scene {
                 .collect(),
             tiles_fetched: 0,
             evicted_unused_bytes: 0,
+            in_square: vec![false; count],
             rendering,
             manifest,
         }
@@ -255,9 +313,59 @@ impl Scene {
         id.y as usize * self.manifest.grid.columns as usize + id.x as usize
     }
 
-    /// Bytes held by resident tiles, textures included.
+    /// Bytes the scene holds for the terrain, as the memory limit counts them: every
+    /// resident tile's (heights, encoded textures, what the method holds for it, its GPU
+    /// samples and texture copies as charged) and the method's shared bytes (index sets,
+    /// buffers of its own). The pager and the texture budget keep this under the limit.
     pub fn resident_bytes(&self) -> u64 {
-        self.tiles.iter().flatten().map(|t| t.bytes.total()).sum()
+        let tiles: u64 = self.tiles.iter().flatten().map(|t| t.bytes.total()).sum();
+        tiles
+            + self
+                .rendering
+                .as_ref()
+                .map_or(0, |r| r.method.shared_bytes().total())
+    }
+
+    /// Bytes of every GPU allocation held for the terrain now (labelled
+    /// [`crate::render::tiles::TERRAIN_LABEL`]): pooled sample buffers, tile textures,
+    /// MapBlock textures, and the method's own (index sets, buffers). 0 without rendering.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.rendering.as_ref().map_or(0, |r| {
+            r.renderer.tiles.residency().total() + r.method.gpu_bytes()
+        })
+    }
+
+    /// Bytes the scene holds on the CPU for the terrain: heights, encoded textures, and
+    /// what the method holds there.
+    pub fn cpu_bytes(&self) -> u64 {
+        let tiles: u64 = self
+            .tiles
+            .iter()
+            .flatten()
+            .map(|t| t.bytes.decoded_heights + t.bytes.textures)
+            .sum();
+        let method = self.rendering.as_ref().map_or(0, |r| {
+            let per_tile: u64 = self.tiles.iter().flatten().map(|t| t.bytes.method).sum();
+            per_tile + r.method.shared_bytes().total() - r.method.gpu_bytes()
+        });
+        tiles + method
+    }
+
+    /// The manifest of the terrain.
+    pub fn manifest(&self) -> &Arc<Manifest> {
+        &self.manifest
+    }
+
+    /// The device the scene renders with, if it renders.
+    pub fn gpu(&self) -> Option<&Gpu> {
+        self.rendering.as_ref().map(|r| r.renderer.gpu())
+    }
+
+    /// Finest texture level resident tile `id` holds on the GPU.
+    pub fn texture_level(&self, id: TileId) -> Option<u32> {
+        self.rendering
+            .as_ref()
+            .and_then(|r| r.renderer.tiles.texture_level(id))
     }
 
     /// What the scene keeps for its geometry now (see [`GeometryMemory`]).
@@ -271,11 +379,15 @@ impl Scene {
                 .iter()
                 .map(|m| 4 * m.len() as u64)
                 .sum::<u64>()
-                + self.rendering.as_ref().map_or(0, |r| r.method.lod_bytes()),
+                + self.rendering.as_ref().map_or(0, |r| {
+                    let per_tile: u64 = self.tiles.iter().flatten().map(|t| t.bytes.method).sum();
+                    per_tile + r.method.shared_bytes().cpu
+                }),
             gpu: self
                 .rendering
                 .as_ref()
-                .map_or_else(Default::default, |r| r.renderer.resident_gpu()),
+                .map_or_else(Default::default, |r| r.renderer.tiles.residency()),
+            method_gpu: self.rendering.as_ref().map_or(0, |r| r.method.gpu_bytes()),
         }
     }
 
@@ -293,49 +405,76 @@ impl Scene {
     }
 
     /// Draws later frames with `config`'s method and settings; a different budget mode
-    /// starts the frame-rate controller again. Resident tiles stay. Nothing happens without rendering.
+    /// starts the frame-rate controller again. Resident tiles stay. Nothing happens without
+    /// rendering.
     pub fn reconfigure(&mut self, config: RenderConfig) {
-        if let Some(r) = &mut self.rendering {
-            if config.method == r.config.method {
-                // Same method: new settings, and whatever it learnt of the tiles stays.
-                r.method.configure(config.lod, config.filler);
-            } else {
-                r.method = method::build(
-                    config.method,
-                    config.lod,
-                    config.filler,
-                    Arc::clone(&r.masks),
-                );
-                // The new method learns the tiles already resident.
-                for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
-                    if let Some(tile) = tile {
-                        r.method.tile_resident(record.id(), &tile.heights);
-                    }
-                }
+        let Some(r) = &mut self.rendering else {
+            return;
+        };
+        let method = (config.method != r.config.method)
+            .then(|| build_method(&r.renderer, &self.manifest, &config));
+        if method.is_none() {
+            // Same method: new settings, and whatever it learnt of the tiles stays.
+            r.method.configure(&config.method_config());
+        }
+        if config.budget != r.config.budget {
+            r.controller = FrameRateController::new(config.budget);
+        }
+        r.config = config;
+        match method {
+            Some(method) => self.install(method),
+            None => self.recount(),
+        }
+    }
+
+    /// Draws later frames with the method `make` builds (one of the scene's configuration's
+    /// kind, or any other [`LodMethod`]). Resident tiles stay; the method learns them.
+    /// Nothing happens without rendering.
+    pub fn use_method(&mut self, make: impl FnOnce(&method::Build<'_>) -> Box<dyn LodMethod>) {
+        let Some(r) = &self.rendering else {
+            return;
+        };
+        let method = make(&method::Build {
+            gpu: r.renderer.gpu(),
+            format: r.renderer.format(),
+            frame_layout: r.renderer.frame_bind_group_layout(),
+            manifest: &self.manifest,
+        });
+        self.install(method);
+    }
+
+    /// Makes `method` the scene's, teaching it the resident tiles.
+    fn install(&mut self, method: Box<dyn LodMethod>) {
+        let Some(r) = &mut self.rendering else {
+            return;
+        };
+        r.method = method;
+        r.data_pending.clear();
+        let gpu = r.renderer.gpu().clone();
+        for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
+            if let Some(tile) = tile {
+                r.method.tile_resident(&gpu, record.id(), &tile.heights);
             }
-            if config.budget != r.config.budget {
-                r.controller = FrameRateController::new(config.budget);
-            }
-            let before = r.config.texture_copies();
-            r.config = config;
-            r.set_texture_blocks(&self.manifest);
-            let after = r.config.texture_copies();
-            if after != before {
-                // Blocks on or off: what each tile is charged, and what the pager expects
-                // of each, change with the copies of its GPU texture.
-                let coarsest = coarsest_rgba_bytes(&self.manifest);
-                let tiles = self.manifest.tiles.iter().zip(&mut self.tiles);
-                for (i, (record, tile)) in tiles.enumerate() {
-                    self.expected_bytes[i] =
-                        expected_tile_bytes(&self.manifest, record, after).total();
-                    if let Some(tile) = tile {
-                        tile.bytes.gpu = r.renderer.tile_bytes(record.id());
-                        if tile.uploaded_levels > 0 {
-                            self.base_bytes[i] =
-                                self.base_bytes[i] + after * coarsest - before * coarsest;
-                        }
-                    }
-                }
+        }
+        self.recount();
+    }
+
+    /// MapBlocks as the configuration wants, and what each tile is charged and the pager
+    /// expects of each, after a change of method or settings.
+    fn recount(&mut self) {
+        let Some(r) = &mut self.rendering else {
+            return;
+        };
+        r.set_texture_blocks(&self.manifest);
+        // What each tile is charged, and what the pager expects of each, follow the method
+        // and the copies of each GPU texture.
+        for (i, (record, tile)) in self.manifest.tiles.iter().zip(&mut self.tiles).enumerate() {
+            self.expected_bytes[i] = r.expected_tile_bytes(&self.manifest, record).total();
+            if let Some(tile) = tile {
+                let id = record.id();
+                tile.bytes.gpu = r.renderer.tiles.tile_bytes(id);
+                tile.bytes.method = r.method.tile_bytes(id);
+                self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
             }
         }
     }
@@ -352,7 +491,7 @@ impl Scene {
         }
     }
 
-    /// The last frame's depth buffer (see [`TerrainRenderer::read_depth`]).
+    /// The last frame's depth buffer (see [`Renderer::read_depth`]).
     pub fn read_depth(&self) -> Option<Result<Vec<f32>, crate::render::GpuError>> {
         self.rendering.as_ref().map(|r| r.renderer.read_depth())
     }
@@ -402,14 +541,14 @@ impl Scene {
         );
         let (fu, fv) = (u - c0 as f64, v - r0 as f64);
         let h = |c: usize, r: usize| tile.heights.metres(c, r);
-        // Split along the diagonal from (c0, r1) to (c1, r0).
-        Some(if fu + fv <= 1.0 {
-            let h00 = h(c0, r0);
-            h00 + fu * (h(c0 + 1, r0) - h00) + fv * (h(c0, r0 + 1) - h00)
-        } else {
-            let h11 = h(c0 + 1, r0 + 1);
-            h11 + (1.0 - fu) * (h(c0, r0 + 1) - h11) + (1.0 - fv) * (h(c0 + 1, r0) - h11)
-        })
+        Some(terrain_shared::mask::cell_height(
+            h(c0, r0),
+            h(c0 + 1, r0),
+            h(c0, r0 + 1),
+            h(c0 + 1, r0 + 1),
+            fu,
+            fv,
+        ))
     }
 
     /// Deliveries, paging and the texture budget for a viewpoint at `position` (metres).
@@ -418,7 +557,7 @@ impl Scene {
         fetcher: &mut Fetcher,
         frame: u64,
         position: [f64; 3],
-    ) -> Result<Update, FlightError> {
+    ) -> Result<Update, SceneError> {
         for event in fetcher.poll() {
             self.deliver(event)?;
         }
@@ -434,7 +573,12 @@ impl Scene {
             in_flight: &self.in_flight,
             expected_bytes: Some(&self.expected_bytes),
         };
-        let decision = page::decide(&self.pager, &view);
+        // What the method holds for no tile in particular comes off the tiles' share.
+        let pager = PagerConfig {
+            memory_limit: self.pager.memory_limit.saturating_sub(self.shared_bytes()),
+            ..self.pager
+        };
+        let decision = page::decide(&pager, &view);
         fetcher.cancel(&decision.cancel);
         fetcher.cancel(&decision.evict);
         for &id in &decision.evict {
@@ -446,8 +590,9 @@ impl Scene {
             }
             self.base_bytes[i] = 0;
             if let Some(r) = &mut self.rendering {
-                r.renderer.remove_tile(id);
+                r.renderer.tiles.remove_tile(id);
                 r.method.tile_evicted(id);
+                r.data_pending.retain(|(tile, _)| *tile != id);
             }
         }
         for (rank, &id) in decision.fetch.iter().enumerate() {
@@ -456,12 +601,15 @@ impl Scene {
             let i = self.index(id);
             self.in_flight[i] = true;
         }
+        self.in_square.fill(false);
         for id in page::square_tiles(&self.pager, decision.current, decision.complete_belts) {
             let i = self.index(id);
+            self.in_square[i] = true;
             if let Some(tile) = &mut self.tiles[i] {
                 tile.used = true;
             }
         }
+        self.request_method_data(fetcher, frame);
         let texture_budget = self.share_textures(fetcher, frame);
         Ok(Update {
             decision,
@@ -469,7 +617,32 @@ impl Scene {
         })
     }
 
-    fn deliver(&mut self, event: FetchEvent) -> Result<(), FlightError> {
+    /// Bytes the method holds for no tile in particular.
+    fn shared_bytes(&self) -> u64 {
+        self.rendering
+            .as_ref()
+            .map_or(0, |r| r.method.shared_bytes().total())
+    }
+
+    /// Asks the fetcher for the data the method wants of resident tiles, once each.
+    fn request_method_data(&mut self, fetcher: &mut Fetcher, frame: u64) {
+        let Some(r) = &mut self.rendering else {
+            return;
+        };
+        for want in r.method.wants() {
+            let i = want.id.y as usize * self.manifest.grid.columns as usize + want.id.x as usize;
+            if self.tiles.get(i).is_none_or(Option::is_none)
+                || !r.data_pending.insert((want.id, want.key))
+            {
+                continue;
+            }
+            // After the tiles of this frame and the textures, in the order asked.
+            let priority = (frame << 20) | (1 << 19) | (1 << 18);
+            fetcher.request_data(want.id, want.key, want.path, want.hash, priority);
+        }
+    }
+
+    fn deliver(&mut self, event: FetchEvent) -> Result<(), SceneError> {
         match event {
             FetchEvent::Tile {
                 id,
@@ -487,18 +660,17 @@ impl Scene {
                 };
                 let mut uploaded_levels = 0;
                 if let Some(r) = &mut self.rendering {
-                    let record = &self.manifest.tiles[i];
-                    r.renderer
-                        .upload_tile(id, Arc::clone(&heights), f64::from(record.min_m));
-                    r.method.tile_resident(id, &heights);
+                    r.renderer.tiles.upload_tile(id, Arc::clone(&heights));
+                    let gpu = r.renderer.gpu().clone();
+                    r.method.tile_resident(&gpu, id, &heights);
                     if let Some(image) = decode_texture(&coarsest_texture, id, 0) {
-                        r.renderer.upload_texture(id, 0, &[image]);
+                        r.renderer.tiles.upload_texture(id, 0, &[image]);
                         uploaded_levels = 1;
                     }
-                    bytes.gpu = r.renderer.tile_bytes(id);
+                    bytes.gpu = r.renderer.tiles.tile_bytes(id);
+                    bytes.method = r.method.tile_bytes(id);
                 }
-                let base = bytes.total();
-                self.base_bytes[i] = base;
+                self.base_bytes[i] = bytes.total();
                 self.tiles[i] = Some(ResidentTile {
                     heights,
                     downloaded: heights_bytes + coarsest_texture.len() as u64,
@@ -523,14 +695,30 @@ impl Scene {
                     tile.textures.push(bytes);
                 }
             }
+            FetchEvent::Data { id, key, bytes } => {
+                let i = self.index(id);
+                if let (Some(r), Some(tile)) = (&mut self.rendering, &mut self.tiles[i])
+                    && r.data_pending.remove(&(id, key))
+                {
+                    tile.downloaded += bytes.len() as u64;
+                    let gpu = r.renderer.gpu().clone();
+                    r.method.data_arrived(&gpu, id, key, bytes);
+                    tile.bytes.method = r.method.tile_bytes(id);
+                    self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
+                }
+            }
             FetchEvent::Failed {
                 id, error, want, ..
             } => {
                 // A tile the server refuses (4xx) will never arrive: the flight cannot
                 // complete its square, so it stops with the server's reason. Corrupt or
                 // unreachable tiles are asked for again on a later frame.
+                if let (Want::Data(key), Some(r)) = (want, &mut self.rendering) {
+                    // Asked again on a later frame, if the method still wants it.
+                    r.data_pending.remove(&(id, key));
+                }
                 if want == Want::Tile && FailureKind::of(&error) == FailureKind::Permanent {
-                    return Err(FlightError::TileFailed {
+                    return Err(SceneError::TileFailed {
                         id,
                         message: error.to_string(),
                     });
@@ -555,7 +743,11 @@ impl Scene {
             .filter(|(f, _)| **f)
             .map(|(_, b)| b)
             .sum();
-        let budget = self.pager.memory_limit.saturating_sub(base + coming);
+        let shared = r.method.shared_bytes().total();
+        let budget = self
+            .pager
+            .memory_limit
+            .saturating_sub(base + coming + shared);
         let mut indices = Vec::new();
         let mut candidates = Vec::new();
         for (i, tile) in self.tiles.iter().enumerate() {
@@ -626,6 +818,7 @@ impl Scene {
             if changed {
                 // The kept levels are on the GPU already: copy them there.
                 r.renderer
+                    .tiles
                     .coarsen_texture(id, tile.textures.len().min(tile.uploaded_levels) as u32);
                 tile.uploaded_levels = tile.uploaded_levels.min(tile.textures.len());
             }
@@ -644,7 +837,7 @@ impl Scene {
                     tile.undecodable_from = Some(level);
                     break;
                 };
-                if !r.renderer.refine_texture(id, level as u32, &image) {
+                if !r.renderer.tiles.refine_texture(id, level as u32, &image) {
                     let images: Option<Vec<image::RgbaImage>> = tile.textures[..=level]
                         .iter()
                         .enumerate()
@@ -653,12 +846,12 @@ impl Scene {
                     let Some(images) = images else {
                         break;
                     };
-                    r.renderer.upload_texture(id, level as u32, &images);
+                    r.renderer.tiles.upload_texture(id, level as u32, &images);
                 }
                 tile.uploaded_levels = level + 1;
                 uploads += 1;
             }
-            tile.bytes.gpu = r.renderer.tile_bytes(id);
+            tile.bytes.gpu = r.renderer.tiles.tile_bytes(id);
         }
         budget
     }
@@ -674,29 +867,37 @@ impl Scene {
     ) -> Option<DrawReport> {
         let r = self.rendering.as_mut()?;
         let started = Instant::now();
-        let size = target.texture().size();
         let candidates: Vec<Candidate> = self
             .tiles
             .iter()
             .zip(&self.manifest.tiles)
             .zip(&self.error_minima)
-            .filter(|((t, _), _)| t.is_some())
-            .map(|((_, record), minima)| Candidate::new(record, minima))
+            .zip(&self.in_square)
+            .filter(|(((t, _), _), in_square)| {
+                t.is_some() && (**in_square || !r.config.square_only)
+            })
+            .map(|(((_, record), minima), _)| Candidate::new(record, minima))
             .collect();
         let input = MethodInput {
-            camera,
-            viewport: [size.width, size.height],
             layout: &self.layout,
             tiles: &candidates,
             budget: r.controller.budget(),
         };
-        let out = r.method.draw(&input, &mut r.renderer, target);
-        let (plan, stats, lod_ms) = (out.plan, out.stats, out.lod_ms);
+        let mut frame = r.renderer.begin_frame(target, camera);
+        let out = r.method.draw(&input, &mut frame);
+        let stats = frame.finish();
+        let (plan, lod_ms) = (out.plan, out.lod_ms);
         r.importance.fill(0.0);
         let columns = self.manifest.grid.columns as usize;
-        for (d, &imp) in plan.draws.iter().zip(&plan.importances) {
-            r.importance[d.id.y as usize * columns + d.id.x as usize] = imp;
+        for (id, importance) in out.importance {
+            if id.x < self.manifest.grid.columns && id.y < self.manifest.grid.rows {
+                r.importance[id.y as usize * columns + id.x as usize] = importance;
+            }
         }
+        // A method's index sets and buffers grow as frames need them: what they took past
+        // the limit comes off the textures at once.
+        self.shed_textures();
+        let r = self.rendering.as_mut()?;
         let draw_ms = started.elapsed().as_secs_f64() * 1e3;
         let frame_s = frame_started.elapsed().as_secs_f64();
         r.controller
@@ -709,6 +910,44 @@ impl Scene {
             lod_ms,
             draw_ms,
         })
+    }
+
+    /// Drops finer texture levels, least important tiles first, while the scene holds more
+    /// than its limit.
+    fn shed_textures(&mut self) {
+        let mut over = self
+            .resident_bytes()
+            .saturating_sub(self.pager.memory_limit);
+        let Some(r) = &mut self.rendering else {
+            return;
+        };
+        if over == 0 {
+            return;
+        }
+        let mut order: Vec<usize> = (0..self.tiles.len())
+            .filter(|&i| self.tiles[i].as_ref().is_some_and(|t| t.textures.len() > 1))
+            .collect();
+        order.sort_by(|&a, &b| r.importance[a].total_cmp(&r.importance[b]).then(b.cmp(&a)));
+        for i in order {
+            let Some(tile) = &mut self.tiles[i] else {
+                continue;
+            };
+            let id = self.manifest.tiles[i].id();
+            while over > 0 && tile.textures.len() > 1 {
+                let before = tile.bytes.total();
+                if let Some(dropped) = tile.textures.pop() {
+                    tile.bytes.textures -= dropped.len() as u64;
+                }
+                let keep = tile.textures.len().min(tile.uploaded_levels);
+                r.renderer.tiles.coarsen_texture(id, keep as u32);
+                tile.uploaded_levels = keep;
+                tile.bytes.gpu = r.renderer.tiles.tile_bytes(id);
+                over = over.saturating_sub(before.saturating_sub(tile.bytes.total()));
+            }
+            if over == 0 {
+                break;
+            }
+        }
     }
 
     /// Height of the nearest sample under `position`, if its tile is resident.
@@ -730,12 +969,59 @@ impl Scene {
     }
 }
 
+/// Builds `config`'s method for `renderer`'s device and targets.
+fn build_method(
+    renderer: &Renderer,
+    manifest: &Manifest,
+    config: &RenderConfig,
+) -> Box<dyn LodMethod> {
+    method::build(
+        &config.method_config(),
+        &method::Build {
+            gpu: renderer.gpu(),
+            format: renderer.format(),
+            frame_layout: renderer.frame_bind_group_layout(),
+            manifest,
+        },
+    )
+}
+
 impl Rendering {
+    /// What a tile holds once resident at its coarsest texture: [`expected_tile_bytes`]
+    /// with this configuration's texture copies, and what the method expects to hold for it.
+    fn expected_tile_bytes(
+        &self,
+        manifest: &Manifest,
+        tile: &terrain_shared::TileRecord,
+    ) -> TileBytes {
+        TileBytes {
+            method: self.method.expected_tile_bytes(tile),
+            ..expected_tile_bytes(manifest, tile, self.config.method_config().texture_copies())
+        }
+    }
+
+    /// What the pager counts for resident `tile`: its bytes at its coarsest texture (finer
+    /// levels are paid from the texture budget) and what the method holds for it.
+    fn base_bytes(&self, manifest: &Manifest, tile: &ResidentTile) -> u64 {
+        let copies = self.renderer.tiles.texture_copies();
+        let gpu_texture = if tile.uploaded_levels > 0 {
+            coarsest_rgba_bytes(manifest)
+        } else {
+            // The grey texel it draws with until a level decodes.
+            4
+        };
+        tile.bytes.decoded_heights
+            + tile.textures.first().map_or(0, |t| t.len() as u64)
+            + self.renderer.tiles.sample_buffer_bytes()
+            + copies * gpu_texture
+            + tile.bytes.method
+    }
+
     /// MapBlocks on or off as the method wants, and the texture costs that follow (a block
     /// texture copies its tiles' textures).
     fn set_texture_blocks(&mut self, manifest: &Manifest) {
-        let blocks = self.config.uses_texture_blocks();
-        self.renderer.set_texture_blocks(blocks.then(|| {
+        let blocks = self.config.method_config().uses_texture_blocks();
+        self.renderer.tiles.set_texture_blocks(blocks.then(|| {
             crate::render::blocks::BlockLayout::new(
                 [manifest.grid.columns, manifest.grid.rows],
                 manifest
@@ -743,10 +1029,10 @@ impl Rendering {
                     .level_size(manifest.texture.levels.saturating_sub(1)),
                 self.config
                     .texture_block_limit
-                    .unwrap_or(self.renderer.max_texture_side()),
+                    .unwrap_or(self.renderer.tiles.max_texture_side()),
             )
         }));
-        let copies = self.config.texture_copies();
+        let copies = self.config.method_config().texture_copies();
         self.texture_costs = manifest
             .tiles
             .iter()
@@ -781,7 +1067,7 @@ pub fn expected_tile_bytes(
     TileBytes {
         decoded_heights: samples * std::mem::size_of::<i32>() as u64,
         textures: tile.texture.first().map_or(0, |level| level.bytes),
-        vertices: 0,
+        method: 0,
         gpu: if gpu_texture_copies > 0 {
             samples * size_of::<terrain_shaders::Sample>() as u64
                 + gpu_texture_copies * coarsest_rgba_bytes(manifest)
@@ -794,4 +1080,180 @@ pub fn expected_tile_bytes(
 /// GPU bytes of a tile's coarsest texture level as RGBA.
 fn coarsest_rgba_bytes(manifest: &Manifest) -> u64 {
     u64::from(manifest.texture.level_size(0)).pow(2) * 4
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fetch::FetchError;
+    use terrain_shared::manifest::{
+        FORMAT, GridSize, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource, VERSION,
+    };
+    use terrain_shared::{Blob, Heights, TileRecord};
+
+    const SPACING: f64 = 10.0;
+
+    /// Two 3-sample tiles side by side (5 x 3 samples), 10 m apart, one 2-byte texture level.
+    fn manifest() -> Arc<Manifest> {
+        let tiles = (0..2)
+            .map(|x| TileRecord {
+                x,
+                y: 0,
+                valid: [3, 3],
+                min_m: 0.0,
+                max_m: 8.0,
+                roughness_m: 0.0,
+                mask_errors_m: vec![0.0; 2],
+                heights: Blob::of(b"heights"),
+                texture: vec![Blob::of(b"tx")],
+            })
+            .collect();
+        Arc::new(Manifest {
+            format: FORMAT.into(),
+            version: VERSION,
+            dataset: "test".into(),
+            content_version: "0".into(),
+            raster: RasterSize {
+                width: 5,
+                height: 3,
+            },
+            tile_size: 3,
+            grid: GridSize {
+                columns: 2,
+                rows: 1,
+            },
+            spacing_m: [SPACING, SPACING],
+            extent_m: [4.0 * SPACING, 2.0 * SPACING],
+            heights: HeightsInfo {
+                codec: "planar-zstd/1".into(),
+                quantum_m: 1.0,
+                offset_m: 0.0,
+                min_m: 0.0,
+                max_m: 8.0,
+                filled_voids: 0,
+            },
+            texture: TextureInfo {
+                format: ImageFormat::Png,
+                source: TextureSource::Generated,
+                size: 1,
+                levels: 1,
+            },
+            georeference: None,
+            mask_levels: 2,
+            tiles,
+        })
+    }
+
+    fn scene(limit: u64) -> Scene {
+        let manifest = manifest();
+        let pager = PagerConfig {
+            columns: 2,
+            rows: 1,
+            memory_limit: limit,
+            nearest_when_outside: true,
+        };
+        Scene::new(manifest, pager, None)
+    }
+
+    fn heights(codes: [i32; 9]) -> Heights {
+        Heights {
+            width: 3,
+            height: 3,
+            quantum_m: 1.0,
+            offset_m: 0.0,
+            codes: codes.to_vec(),
+        }
+    }
+
+    fn arrive(scene: &mut Scene, x: u32, codes: [i32; 9]) {
+        scene
+            .deliver(FetchEvent::Tile {
+                id: TileId::new(x, 0),
+                heights: heights(codes),
+                heights_bytes: 7,
+                coarsest_texture: bytes::Bytes::from_static(b"tx"),
+                attempts: 1,
+            })
+            .expect("delivered");
+    }
+
+    #[test]
+    fn the_true_surface_splits_each_cell_along_the_masks_diagonal() {
+        let mut scene = scene(1 << 20);
+        // Tile 0: zero but its centre sample (1, 1), at 8 m.
+        arrive(&mut scene, 0, [0, 0, 0, 0, 8, 0, 0, 0, 0]);
+        // Cell (0, 0): corners 0, 0, 0 and 8 at (1, 1), the south-east one. Split along the
+        // south-west/north-east diagonal, the north-west half is flat at 0 and the
+        // south-east half rises to 8: half way from the diagonal to the corner is 4 m. The
+        // other diagonal would put 4 m at the cell's centre instead of 0.
+        assert_eq!(scene.surface_height(5.0, 5.0), Some(0.0), "on the diagonal");
+        let h = scene.surface_height(7.5, 7.5).expect("resident");
+        assert!((h - 4.0).abs() < 1e-9, "{h}");
+        assert_eq!(
+            scene.surface_height(7.5, 7.5),
+            Some(terrain_shared::mask::cell_height(
+                0.0, 0.0, 0.0, 8.0, 0.75, 0.75
+            ))
+        );
+        assert_eq!(scene.surface_height(2.5, 2.5), Some(0.0), "the flat half");
+        // Off the terrain, or over a tile not resident: no surface.
+        assert_eq!(scene.surface_height(-1.0, 5.0), None);
+        assert_eq!(scene.surface_height(5.0, 25.0), None);
+        assert_eq!(scene.surface_height(25.0, 5.0), None, "tile 1 not resident");
+        assert_eq!(scene.ground_under([11.0, 9.0, 100.0]), Some(8.0));
+        assert_eq!(scene.ground_under([31.0, 9.0, 100.0]), None);
+    }
+
+    #[test]
+    fn without_rendering_a_tile_holds_its_heights_and_texture_and_nothing_on_the_gpu() {
+        let mut scene = scene(1 << 20);
+        assert_eq!(scene.resident_bytes(), 0);
+        arrive(&mut scene, 1, [1; 9]);
+        // Nine 32-bit codes and the two-byte coarsest texture level.
+        assert_eq!(scene.resident_bytes(), 9 * 4 + 2);
+        assert_eq!(scene.cpu_bytes(), scene.resident_bytes());
+        assert_eq!(scene.gpu_bytes(), 0);
+        assert_eq!(scene.resident_tiles(), 1);
+        let record = &scene.manifest().tiles[1];
+        assert_eq!(
+            expected_tile_bytes(scene.manifest(), record, 0).total(),
+            scene.resident_bytes(),
+            "the pager's expectation is what the tile holds"
+        );
+        // Rendering adds the GPU sample buffer (8 bytes a sample) and each texture copy.
+        let rendered = expected_tile_bytes(scene.manifest(), record, 2);
+        assert_eq!(rendered.gpu, 9 * 8 + 2 * 4);
+    }
+
+    #[test]
+    fn a_refused_tile_stops_the_scene_and_a_failed_request_does_not() {
+        let mut scene = scene(1 << 20);
+        let failed = |status: u16| FetchEvent::Failed {
+            id: TileId::new(0, 0),
+            want: Want::Tile,
+            error: FetchError::Http {
+                url: "http://test/heights".into(),
+                status: reqwest::StatusCode::from_u16(status).expect("status"),
+                body: String::new(),
+            },
+            attempts: 1,
+        };
+        assert!(scene.deliver(failed(503)).is_ok(), "asked again later");
+        let refused = scene.deliver(failed(404));
+        assert!(
+            matches!(refused, Err(SceneError::TileFailed { id, .. }) if id == TileId::new(0, 0)),
+            "{refused:?}"
+        );
+        // A texture level a tile does not have is dropped, not added.
+        arrive(&mut scene, 0, [0; 9]);
+        let before = scene.resident_bytes();
+        scene
+            .deliver(FetchEvent::TextureLevel {
+                id: TileId::new(0, 0),
+                level: 3,
+                bytes: bytes::Bytes::from_static(b"far too fine"),
+            })
+            .expect("delivered");
+        assert_eq!(scene.resident_bytes(), before);
+    }
 }

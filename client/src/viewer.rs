@@ -13,13 +13,11 @@
 //! A/D strafe, E or Space up, Q or Ctrl down, Shift five times faster, left mouse drag
 //! looks around, the mouse wheel changes the speed, Escape quits.
 
-use crate::fetch::{FetchError, TileClient};
-use crate::fetcher::Fetcher;
+use crate::fetch::FetchError;
 use crate::flight::{FlightError, RenderArgs, StreamArgs};
 use crate::memory::MemoryError;
-use crate::page::PagerConfig;
 use crate::render::{Camera, Gpu, GpuError};
-use crate::scene::{DrawReport, RenderConfig, Scene};
+use crate::scene::{Connection, DrawReport, RenderConfig, Scene, SceneError};
 use std::f64::consts::{FRAC_PI_2, TAU};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -116,6 +114,8 @@ pub enum ViewError {
     Gpu(#[from] GpuError),
     #[error(transparent)]
     Flight(#[from] FlightError),
+    #[error(transparent)]
+    Scene(#[from] SceneError),
 }
 
 /// Parses `X,Y,Z` (metres, finite).
@@ -404,20 +404,12 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         .thread_name("terrain-fetch")
         .build()
         .map_err(ViewError::Runtime)?;
-    let client = TileClient::new(&args.stream.server)?;
-    let manifest = Arc::new(runtime.block_on(client.manifest())?);
-    let fetcher = Fetcher::new(
-        client,
-        Arc::clone(&manifest),
+    let connection = runtime.block_on(Scene::connect(
+        &args.stream.server,
         args.stream.fetcher_config(),
         runtime.handle().clone(),
-    );
-    let pager = PagerConfig {
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
-        memory_limit: budget.limit_bytes(),
-        nearest_when_outside: true,
-    };
+    ))?;
+    let manifest = Arc::clone(&connection.manifest);
     let start = args.start.unwrap_or_else(|| default_start(&manifest));
     let speed = args.speed.unwrap_or_else(|| default_speed(&manifest));
     // Looking north by default.
@@ -430,7 +422,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         manifest.extent_m[0],
         manifest.extent_m[1],
         args.stream.server,
-        budget.limit_bytes() as f64 / 1048576.0,
+        budget.limit_bytes() as f64 / crate::memory::MIB,
         start[0],
         start[1],
         start[2],
@@ -440,8 +432,8 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
 
     let mut app = App {
         manifest,
-        fetcher,
-        pager,
+        connection,
+        memory_limit: budget.limit_bytes(),
         render_config,
         window_size: args.render.size,
         print_stats: args.print_stats,
@@ -479,13 +471,16 @@ struct View {
 impl View {
     fn open(
         event_loop: &ActiveEventLoop,
-        manifest: &Arc<Manifest>,
-        pager: PagerConfig,
+        connection: &Connection,
+        memory_limit: u64,
         render: RenderConfig,
         size: (u32, u32),
     ) -> Result<View, ViewError> {
         let attributes = Window::default_attributes()
-            .with_title(format!("terrain-client view — {}", manifest.dataset))
+            .with_title(format!(
+                "terrain-client view — {}",
+                connection.manifest.dataset
+            ))
             .with_inner_size(PhysicalSize::new(size.0, size.1));
         let window = Arc::new(
             event_loop
@@ -527,11 +522,7 @@ impl View {
             height = config.height,
             "window open"
         );
-        let scene = Scene::new(
-            Arc::clone(manifest),
-            pager,
-            Some((gpu.clone(), view_format, render)),
-        );
+        let scene = connection.scene(memory_limit, true, Some((gpu.clone(), view_format, render)));
         Ok(View {
             window,
             surface,
@@ -605,8 +596,9 @@ impl WindowStats {
 #[derive(Debug)]
 struct App {
     manifest: Arc<Manifest>,
-    fetcher: Fetcher,
-    pager: PagerConfig,
+    /// The manifest and the fetcher streaming its tiles.
+    connection: Connection,
+    memory_limit: u64,
     render_config: RenderConfig,
     window_size: (u32, u32),
     print_stats: bool,
@@ -646,8 +638,11 @@ impl App {
         let ground = view.scene.ground_under(self.camera.position);
         self.camera
             .keep_above(Some(ground.unwrap_or(self.manifest.heights.min_m)));
-        view.scene
-            .update(&mut self.fetcher, self.frame, self.camera.position)?;
+        view.scene.update(
+            &mut self.connection.fetcher,
+            self.frame,
+            self.camera.position,
+        )?;
         self.frame += 1;
         if let Some((texture, suboptimal)) = texture {
             let target = texture.texture.create_view(&wgpu::TextureViewDescriptor {
@@ -721,8 +716,8 @@ impl ApplicationHandler for App {
         }
         match View::open(
             event_loop,
-            &self.manifest,
-            self.pager,
+            &self.connection,
+            self.memory_limit,
             self.render_config,
             self.window_size,
         ) {

@@ -43,6 +43,9 @@ pub struct FrameUniform {
     pub params: [f32; 4],
     /// The camera relative to its anchor sample: east, height, south (metres).
     pub camera: [f32; 4],
+    /// The terrain's edge in render space: west `x`, north `z`, east `x`, south `z`;
+    /// fragments past it are discarded (the padding of the last tiles never shows).
+    pub clip: [f32; 4],
 }
 
 /// `Tile`, bind group 1: one per drawn tile and frame, at a dynamic offset.
@@ -53,9 +56,10 @@ pub struct TileUniform {
     pub origin: [f32; 4],
     /// Metres between samples east and south, samples per side, skirt bottom (metres).
     pub spacing: [f32; 4],
-    /// The planar shadow's corners (north-west, south-west, north-east, south-east), render
-    /// space, projected onto the shadow plane; `w` unused.
-    pub shadow: [[f32; 4]; 4],
+    /// Four points in render space (north-west, south-west, north-east, south-east) that
+    /// the indices past the skirts place: the planar shadow's corners, projected onto the
+    /// shadow plane by the method; `w` unused.
+    pub points: [[f32; 4]; 4],
     /// Where the tile lies in the texture bound with it: `uv = (x, y) + (column, row) /
     /// cells * (z, w)`; `[0, 0, 1, 1]` for its own texture, a part of a MapBlock's otherwise.
     pub uv: [f32; 4],

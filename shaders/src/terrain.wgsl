@@ -15,19 +15,23 @@ struct Frame {
     // (sample index relative to the anchor) * spacing - this, so two tiles compute a
     // shared border sample from the same integers and place it bit for bit identically.
     camera: vec4<f32>,
+    // The terrain's edge in render space (west x, north z, east x, south z): the real
+    // samples end there, and what lies past it (the padding of the last tiles, anything a
+    // method draws beyond) is discarded.
+    clip: vec4<f32>,
 };
 
 struct Tile {
     // Sample (0, 0) of the tile as sample indices relative to the camera's anchor sample:
     // (east, 0, south). Whole numbers, exact in f32 up to 2^24.
     origin: vec4<f32>,
-    // x, y: metres between samples east and south; z: samples per side; w: skirt bottom,
-    // metres above the datum.
+    // x, y: metres between samples east and south; z: samples per side; w: skirt bottom
+    // (the method's floor below the tile), metres above the datum.
     spacing: vec4<f32>,
     // The planar shadow's corners (north-west, south-west, north-east, south-east) in
     // render space, already projected from the viewpoint onto the plane below the tile
-    // (on the CPU: four points a tile, see the renderer's `shadow_corner`).
-    shadow: array<vec4<f32>, 4>,
+    // (on the CPU: four points a tile, see the strip-mask method's `shadow_corner`).
+    points: array<vec4<f32>, 4>,
     // Where the tile lies in the texture bound with it: uv = xy + (column, row) / cells * zw.
     // (0, 0, 1, 1) for a tile's own texture; a part of a MapBlock's texture otherwise.
     uv: vec4<f32>,
@@ -51,6 +55,8 @@ struct Varyings {
     @builtin(position) clip: vec4<f32>,
     @location(0) uv: vec2<f32>,
     @location(1) normal: vec3<f32>,
+    // Render-space position, for the clip at the terrain's edge.
+    @location(2) position: vec3<f32>,
 };
 
 // Render-space position of sample (column, row) at `height`.
@@ -68,6 +74,7 @@ fn place(column: u32, row: u32, height: f32) -> Varyings {
     let position = position_of(column, row, height);
     var out: Varyings;
     out.clip = frame.view_proj * vec4<f32>(position, 1.0);
+    out.position = position;
     out.uv = tile.uv.xy + vec2<f32>(f32(column), f32(row)) / cells * tile.uv.zw;
     out.normal = vec3<f32>(0.0, 1.0, 0.0);
     return out;
@@ -110,13 +117,22 @@ fn shadow_corner(corner: u32) -> Varyings {
     let column = (corner / 2u) * (n - 1u);
     let row = (corner % 2u) * (n - 1u);
     var out = place(column, row, 0.0);
-    out.clip = frame.view_proj * vec4<f32>(tile.shadow[corner].xyz, 1.0);
+    out.clip = frame.view_proj * vec4<f32>(tile.points[corner].xyz, 1.0);
+    out.position = tile.points[corner].xyz;
     out.normal = unpack4x8snorm(samples[row * n + column].normal).xyz;
     return out;
 }
 
+// Whether render-space `p` lies past the terrain's edge.
+fn past_the_edge(p: vec3<f32>) -> bool {
+    return p.x < frame.clip.x || p.z < frame.clip.y || p.x > frame.clip.z || p.z > frame.clip.w;
+}
+
 @fragment
 fn fs_main(in: Varyings) -> @location(0) vec4<f32> {
+    if past_the_edge(in.position) {
+        discard;
+    }
     let albedo = textureSample(tile_texture, tile_sampler, in.uv).rgb;
     let lambert = max(dot(normalize(in.normal), frame.light_dir.xyz), 0.0);
     let ambient = frame.params.x;

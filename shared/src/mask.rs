@@ -38,6 +38,37 @@ pub fn triangle_count(tile_size: u32, level: u32) -> u32 {
     2 * cells * cells
 }
 
+/// A number a cell's height is interpolated in (`f32` for the builder's tables, `f64` for
+/// the client's true surface): the same arithmetic either way.
+pub trait Height:
+    Copy
+    + PartialOrd
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+{
+    const ONE: Self;
+}
+
+impl Height for f32 {
+    const ONE: f32 = 1.0;
+}
+
+impl Height for f64 {
+    const ONE: f64 = 1.0;
+}
+
+/// Height at `(u, v)` (each in `[0, 1]`, east and south) of a cell whose corners are `h00`
+/// (north-west), `h10` (north-east), `h01` (south-west) and `h11` (south-east), split along
+/// the diagonal from `(c0, r1)` to `(c1, r0)` (`u + v = 1`) as every mask draws it.
+pub fn cell_height<T: Height>(h00: T, h10: T, h01: T, h11: T, u: T, v: T) -> T {
+    if u + v <= T::ONE {
+        h00 + u * (h10 - h00) + v * (h01 - h00)
+    } else {
+        h11 + (T::ONE - u) * (h01 - h11) + (T::ONE - v) * (h10 - h11)
+    }
+}
+
 /// Largest vertical distance, in the units of `samples`, between the full tile and mask
 /// `level`, over every sample of the tile. `samples` is row-major `tile_size^2`.
 ///
@@ -61,12 +92,7 @@ pub fn max_vertical_error(samples: &[f32], tile_size: u32, level: u32) -> f32 {
                 let v = (y - r0) as f32 / dv;
                 for x in c0..=c1 {
                     let u = (x - c0) as f32 / du;
-                    // The diagonal (c0, r1)-(c1, r0) is u + v = 1.
-                    let surface = if u + v <= 1.0 {
-                        h00 + u * (h10 - h00) + v * (h01 - h00)
-                    } else {
-                        h11 + (1.0 - u) * (h01 - h11) + (1.0 - v) * (h10 - h11)
-                    };
+                    let surface = cell_height(h00, h10, h01, h11, u, v);
                     worst = worst.max((at(x, y) - surface).abs());
                 }
             }

@@ -116,7 +116,7 @@ fn main() {
                     match event {
                         FetchEvent::Tile { .. } => delivered += 1,
                         FetchEvent::Failed { id, error, .. } => panic!("tile {id}: {error}"),
-                        FetchEvent::TextureLevel { .. } => {}
+                        FetchEvent::TextureLevel { .. } | FetchEvent::Data { .. } => {}
                     }
                 }
                 tokio::time::sleep(Duration::from_millis(1)).await;

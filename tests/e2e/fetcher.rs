@@ -530,6 +530,9 @@ impl Reference {
                     );
                     assert!(delivered.levels.insert((*id, *level)), "{id} {level} twice");
                 }
+                FetchEvent::Data { id, key, .. } => {
+                    panic!("data {key} of tile {id} delivered though never asked for")
+                }
                 FetchEvent::Failed { id, .. } => delivered.failed.push(*id),
             }
         }

@@ -5,5 +5,6 @@ mod build;
 mod fetcher;
 mod flight;
 mod http;
+mod methods;
 mod render;
 mod round_trip;

@@ -17,9 +17,11 @@ use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
 use crate::flight::{ErrorCapArgs, FlightError, heading, parse_size};
 use crate::lod::budget::BudgetMode;
+use crate::lod::plan::LodSettings;
+use crate::method::CrackFiller;
 use crate::method::MethodKind;
 use crate::path::CameraPath;
-use crate::render::{Camera, CrackFiller, LodSettings};
+use crate::render::Camera;
 use crate::scene::RenderConfig;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -466,8 +468,8 @@ impl std::fmt::Display for AccuracyReport {
             self.size.0,
             self.size.1,
             self.tiles,
-            self.resident_bytes as f64 / 1048576.0,
-            self.downloaded_bytes as f64 / 1048576.0,
+            self.resident_bytes as f64 / crate::memory::MIB,
+            self.downloaded_bytes as f64 / crate::memory::MIB,
             self.threshold_px
         )?;
         writeln!(f, "adapter {}", self.adapter)?;

@@ -8,8 +8,7 @@ pub mod metrics;
 pub mod session;
 pub mod stability;
 
-use crate::method::MethodKind;
-use crate::render::CrackFiller;
+use crate::method::{CrackFiller, MethodKind};
 
 /// The methods and crack fillers a benchmark runs: shared by `bench accuracy` and
 /// `bench stability`.
@@ -57,10 +56,6 @@ impl Variants {
 
     /// `method/filler`, or the method alone when it uses no filler.
     pub fn name(method: MethodKind, filler: CrackFiller) -> String {
-        if method.uses_filler() {
-            format!("{}/{}", method.name(), filler.name())
-        } else {
-            method.name().to_string()
-        }
+        method.name_with(filler)
     }
 }

@@ -3,14 +3,13 @@
 //! camera. The accuracy sweep and the stability matrix both run on it.
 
 use super::frame::{Capture, FrameMeasures, measure};
-use crate::fetch::TileClient;
 use crate::fetcher::{Fetcher, FetcherConfig};
 use crate::flight::FlightError;
 use crate::lod::budget::BudgetMode;
+use crate::method::CrackFiller;
 use crate::method::MethodKind;
-use crate::page::PagerConfig;
 use crate::render::textures::extra_costs;
-use crate::render::{Camera, CrackFiller, Gpu, Offscreen};
+use crate::render::{Camera, Gpu, Offscreen};
 use crate::scene::{DrawReport, RenderConfig, Scene, Update, expected_tile_bytes};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -67,21 +66,20 @@ impl Session {
         config: RenderConfig,
         size: (u32, u32),
     ) -> Result<Session, FlightError> {
-        let client = TileClient::new(server)?;
-        let manifest = Arc::new(client.manifest().await?);
+        let connection = Scene::connect(
+            server,
+            FetcherConfig::default(),
+            tokio::runtime::Handle::current(),
+        )
+        .await?;
+        let manifest = Arc::clone(&connection.manifest);
         let gpu = Gpu::headless()?;
         let target = Offscreen::new(&gpu, size.0, size.1);
         let limit =
             memory_limit.unwrap_or_else(|| whole_database_bytes(&manifest) / 10 * 11 + (1 << 20));
-        let pager = PagerConfig {
-            columns: manifest.grid.columns,
-            rows: manifest.grid.rows,
-            memory_limit: limit,
-            nearest_when_outside: true,
-        };
-        let mut scene = Scene::new(
-            Arc::clone(&manifest),
-            pager,
+        let mut scene = connection.scene(
+            limit,
+            true,
             Some((
                 gpu.clone(),
                 crate::render::offscreen::OFFSCREEN_FORMAT,
@@ -89,12 +87,7 @@ impl Session {
             )),
         );
         scene.keep_depth(true);
-        let fetcher = Fetcher::new(
-            client,
-            Arc::clone(&manifest),
-            FetcherConfig::default(),
-            tokio::runtime::Handle::current(),
-        );
+        let fetcher = connection.fetcher;
         Ok(Session {
             manifest,
             scene,

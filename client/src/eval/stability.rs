@@ -15,8 +15,9 @@ use super::session::{Session, median, whole_database_bytes};
 use crate::flight::{FlightError, parse_size};
 use crate::lod::budget::BudgetMode;
 use crate::memory::MemorySize;
+use crate::method::CrackFiller;
 use crate::method::MethodKind;
-use crate::render::{Camera, CrackFiller};
+use crate::render::Camera;
 use crate::scene::{RenderConfig, expected_tile_bytes};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -213,8 +214,16 @@ pub struct RunResult {
     pub frame_ms_median: f64,
     pub frame_ms_p95: f64,
     pub frame_ms_max: f64,
+    /// The most the scene counted against the limit in any frame
+    /// ([`crate::scene::Scene::resident_bytes`]).
     pub peak_resident_bytes: u64,
+    /// The most it really held in any frame: CPU bytes plus the GPU allocations made for
+    /// the terrain ([`crate::scene::Scene::cpu_bytes`] + [`crate::scene::Scene::gpu_bytes`]).
+    pub peak_held_bytes: u64,
     pub memory_limit_bytes: u64,
+    /// What the whole database would take with every texture level: a limit below it
+    /// binds (the scene cannot hold everything).
+    pub database_bytes: u64,
     /// Flat (zero-error) tiles drawn in the measured frame, and how many at the coarsest mask.
     pub flat_tiles: (u32, u32),
     /// Triangles used and needed in the measured frame.
@@ -226,8 +235,15 @@ pub struct RunResult {
 }
 
 impl RunResult {
+    /// Whether the scene kept within the limit in every frame, as counted and as held.
     pub fn within_memory(&self) -> bool {
         self.peak_resident_bytes <= self.memory_limit_bytes
+            && self.peak_held_bytes <= self.memory_limit_bytes
+    }
+
+    /// Whether the limit kept the scene from holding the whole database.
+    pub fn limit_binds(&self) -> bool {
+        self.memory_limit_bytes < self.database_bytes
     }
 }
 
@@ -326,7 +342,9 @@ fn failed(s: &Scenario, method: MethodKind, filler: CrackFiller, why: String) ->
         frame_ms_p95: 0.0,
         frame_ms_max: 0.0,
         peak_resident_bytes: 0,
+        peak_held_bytes: 0,
         memory_limit_bytes: 0,
+        database_bytes: 0,
         flat_tiles: (0, 0),
         triangles: (0, 0),
         failure: Some(why),
@@ -455,33 +473,41 @@ async fn run_one(
     };
     let client = crate::fetch::TileClient::new(server)?;
     let manifest = client.manifest().await?;
+    let database = whole_database_bytes(&manifest);
     let limit = if scenario.kind == Kind::MemoryBelowOneBelt {
         let one = manifest
             .tiles
             .iter()
-            .map(|t| expected_tile_bytes(&manifest, t, config.texture_copies()).total())
+            .map(|t| {
+                expected_tile_bytes(&manifest, t, config.method_config().texture_copies()).total()
+            })
             .max()
             .unwrap_or(0);
         3 * one
     } else {
-        args.memory.0.min(whole_database_bytes(&manifest) * 2)
+        // Three quarters of the whole database at most, so that the limit binds in every
+        // scenario: the pager has to choose what to hold.
+        args.memory.0.min(database / 4 * 3)
     };
     let mut session = Session::open(server, Some(limit), config, args.size).await?;
     let cams = cameras(scenario.kind, &session.manifest, args.frames);
     let mut times = Vec::new();
-    let mut peak = 0;
+    let (mut peak, mut held) = (0, 0);
+    let held_now = |scene: &crate::scene::Scene| scene.cpu_bytes() + scene.gpu_bytes();
     for camera in &cams {
         let started = Instant::now();
         session.update(camera.position).await?;
         session.scene.draw(&session.target.view, camera, started);
         times.push(started.elapsed().as_secs_f64() * 1e3);
         peak = peak.max(session.scene.resident_bytes());
+        held = held.max(held_now(&session.scene));
     }
     let last = *cams.last().expect("at least one frame");
     session
         .settle(last.position, &last, Duration::from_secs(20))
         .await?;
     peak = peak.max(session.scene.resident_bytes());
+    held = held.max(held_now(&session.scene));
     // The measured frame keeps the budget the controller had reached (the reference's
     // drawing must not reset it).
     let frozen = RenderConfig {
@@ -491,12 +517,10 @@ async fn run_one(
     let (reference, _) = session.reference(&last)?;
     let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
     peak = peak.max(session.scene.resident_bytes());
+    held = held.max(held_now(&session.scene));
     let plan = &measured.report.plan;
     let n = session.manifest.tile_size;
-    let coarsest = |d: &crate::render::Draw| match d.stitch {
-        Some(_) => crate::lod::geomipmap::level_count(n) - 1,
-        None => terrain_shared::mask::level_count(n) - 1,
-    };
+    let coarsest = |_: &crate::lod::plan::Draw| method.coarsest_level(n);
     let mut flat = (0, 0);
     for d in &plan.draws {
         if let Some(t) = session.manifest.tile(d.id)
@@ -527,7 +551,9 @@ async fn run_one(
             frame_ms_p95: p95,
             frame_ms_max: sorted.last().copied().unwrap_or(0.0),
             peak_resident_bytes: peak,
+            peak_held_bytes: held,
             memory_limit_bytes: limit,
+            database_bytes: database,
             flat_tiles: flat,
             triangles: (
                 measured.report.stats.triangles,
@@ -563,7 +589,7 @@ pub fn markdown(report: &StabilityReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scenario | method | crack px (% of terrain) | holes px | max error (px) | > 1 px (%) | frame ms median / p95 / max | peak memory / limit (MiB) | flat tiles at coarsest | triangles used / needed | result |"
+        "| scenario | method | crack px (% of terrain) | holes px | max error (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
     );
     let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
     for r in &report.runs {
@@ -580,7 +606,7 @@ pub fn markdown(report: &StabilityReport) -> String {
         let pct = 100.0 * r.crack_pixels as f64 / (r.reference_terrain_pixels as f64).max(1.0);
         let _ = writeln!(
             s,
-            "| {} | {} | {} ({:.2}%) | {} | {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} {} | {} | {} / {} | ok |",
+            "| {} | {} | {} ({:.2}%) | {} | {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} of {:.1} {} | {} | {} / {} | ok |",
             r.scenario,
             r.method,
             r.crack_pixels,
@@ -592,7 +618,9 @@ pub fn markdown(report: &StabilityReport) -> String {
             r.frame_ms_p95,
             r.frame_ms_max,
             mib(r.peak_resident_bytes),
+            mib(r.peak_held_bytes),
             mib(r.memory_limit_bytes),
+            mib(r.database_bytes),
             if r.within_memory() {
                 "(within)"
             } else {
@@ -665,12 +693,12 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
     let md_path = out.join("stability.md");
     std::fs::write(&md_path, &md).map_err(write_err(&md_path))?;
     let mut csv = String::from(
-        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,memory_limit_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed\n",
+        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed\n",
     );
     for r in &report.runs {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{}",
             r.scenario,
             r.method,
             r.failure.as_deref().unwrap_or("").replace([',', '\n'], ";"),
@@ -683,7 +711,9 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
             r.frame_ms_p95,
             r.frame_ms_max,
             r.peak_resident_bytes,
+            r.peak_held_bytes,
             r.memory_limit_bytes,
+            r.database_bytes,
             r.flat_tiles.0,
             r.flat_tiles.1,
             r.triangles.0,

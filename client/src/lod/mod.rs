@@ -12,15 +12,17 @@
 //!    lazily, and the choice of the finest mask that fits a tile's budget (section 5.1).
 //!
 //! Beside them, [`needed`] measures a frame against what it needs: per tile, the coarsest
-//! mask whose projected error stays within a pixel threshold.
+//! mask whose projected error stays within a pixel threshold; [`geomipmap`] makes the
+//! GeoMipMaps' stitched index sets and their level errors; [`plan`] culls a frame's tiles,
+//! ranks them and makes the strip-mask plan (steps 1 to 3 together).
 //!
-//! The module owns these decisions and nothing else. Which tiles are visible, their
-//! distances and the measured frame times come from the caller; uploading the strips and
-//! drawing them is the renderer's. Nothing here reads a clock, does IO or touches the GPU:
+//! The module owns these decisions and nothing else. The methods ([`crate::method`]) call
+//! them; uploading index sets and drawing them is the methods', through the renderer. Nothing here reads a clock, does IO or touches the GPU:
 //! time is passed in, so every rule is tested with plain data (benches/lod.rs times a frame).
 
 pub mod budget;
 pub mod geomipmap;
 pub mod importance;
 pub mod needed;
+pub mod plan;
 pub mod strips;

@@ -91,6 +91,15 @@ impl MaskSet {
         self.strips[level as usize].get_or_init(|| build_strip(self.tile_size, level))
     }
 
+    /// The strip of `level`, built now and not kept (for a caller that uploads it and needs
+    /// no CPU copy).
+    ///
+    /// Panics if `level >= level_count()`.
+    pub fn build(&self, level: u32) -> Vec<u32> {
+        assert!(level < self.level_count(), "no mask level {level}");
+        build_strip(self.tile_size, level)
+    }
+
     /// Triangles `level` draws, strip joins not counted: `terrain_shared::mask::triangle_count`.
     pub fn triangle_count(&self, level: u32) -> u32 {
         self.triangles[level as usize]
@@ -101,6 +110,16 @@ impl MaskSet {
         let kept = mask::kept_indices(self.tile_size, level).len();
         let pairs = kept - 1;
         pairs * 2 * kept + 2 * self.join_count(level) as usize
+    }
+
+    /// Bytes held: the strips built so far and the tables.
+    pub fn bytes(&self) -> u64 {
+        let strips: usize = self
+            .strips
+            .iter()
+            .filter_map(|s| s.get().map(|s| 4 * s.len()))
+            .sum();
+        (strips + 4 * self.triangles.len() + 8 * self.selectable.len()) as u64
     }
 
     /// Joins between row pairs in the strip of `level`: each adds

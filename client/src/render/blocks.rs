@@ -7,13 +7,20 @@
 //! assembled on the GPU by copying its resident tiles' textures (every mip) side by side, at
 //! the finest level all of them hold, and assembled again when one of them changes. A tile
 //! finds its part of the block texture through its uniforms (`TileUniform::uv`). This module
-//! is the pure part: which tiles make a block, and where each lies in the block's texture.
+//! holds which tiles make a block, where each lies in the block's texture, and the blocks
+//! assembled so far ([`Blocks`]); [`super::tiles`] assembles them on the GPU.
+//!
+//! A block is assembled only from a full rectangle of its tiles at one texture level, and
+//! dropped as soon as any of its tiles changes texture or leaves: its texture never holds a
+//! texel that is not a copy of a texture its tile holds now, so it costs at most as much as
+//! those textures.
 
+use std::collections::{HashMap, HashSet};
 use terrain_shared::TileId;
 
 /// Copies of a tile's GPU texture held while MapBlocks are on: its own, and its part of the
-/// block texture (at most as fine). Memory budgets charge a tile's GPU texture this many
-/// times.
+/// block texture (at most as fine, and no holes: see the module documentation). Memory
+/// budgets charge a tile's GPU texture this many times.
 pub const TEXTURE_COPIES: u64 = 2;
 
 /// How the tile grid is cut into blocks.
@@ -105,6 +112,92 @@ impl BlockRect {
             1.0 / w,
             1.0 / h,
         ]
+    }
+}
+
+/// An assembled block texture.
+#[derive(Debug)]
+pub(super) struct Block {
+    /// Its resident tiles and their texture versions when it was assembled.
+    members: Vec<(TileId, u64)>,
+    /// The tiles drawn with it: those whose texture is at the block's level (the others,
+    /// still coarser, are drawn with their own until they catch up).
+    holds: HashSet<TileId>,
+    pub(super) rect: BlockRect,
+    pub(super) group: wgpu::BindGroup,
+    bytes: u64,
+}
+
+/// MapBlocks: the layout and the blocks assembled so far.
+#[derive(Debug)]
+pub(super) struct Blocks {
+    pub(super) layout: BlockLayout,
+    pub(super) assembled: HashMap<[u32; 2], Block>,
+    /// Blocks whose tiles could not make one (holes), with the members' versions then: not
+    /// tried again until one of them changes.
+    unassembled: HashMap<[u32; 2], Vec<(TileId, u64)>>,
+}
+
+impl Blocks {
+    pub(super) fn new(layout: BlockLayout) -> Blocks {
+        Blocks {
+            layout,
+            assembled: HashMap::new(),
+            unassembled: HashMap::new(),
+        }
+    }
+
+    /// GPU bytes of the assembled block textures.
+    pub(super) fn bytes(&self) -> u64 {
+        self.assembled.values().map(|b| b.bytes).sum()
+    }
+
+    /// Drops the block of `id` (its texture changed, or it left).
+    pub(super) fn forget(&mut self, id: TileId) {
+        let key = self.layout.block_of(id);
+        self.assembled.remove(&key);
+        self.unassembled.remove(&key);
+    }
+
+    /// Whether block `key` was made (or found unmakeable) from exactly `members`.
+    pub(super) fn is_current(&self, key: [u32; 2], members: &[(TileId, u64)]) -> bool {
+        self.assembled
+            .get(&key)
+            .is_some_and(|b| b.members == members)
+            || self.unassembled.get(&key).is_some_and(|m| m == members)
+    }
+
+    /// Whether block `key` is assembled and draws `id`.
+    pub(super) fn holds(&self, key: [u32; 2], id: TileId) -> bool {
+        self.assembled
+            .get(&key)
+            .is_some_and(|b| b.holds.contains(&id))
+    }
+
+    pub(super) fn remember_unassembled(&mut self, key: [u32; 2], members: Vec<(TileId, u64)>) {
+        self.unassembled.insert(key, members);
+    }
+
+    pub(super) fn insert(
+        &mut self,
+        key: [u32; 2],
+        members: Vec<(TileId, u64)>,
+        holds: Vec<TileId>,
+        rect: BlockRect,
+        group: wgpu::BindGroup,
+        bytes: u64,
+    ) {
+        self.unassembled.remove(&key);
+        self.assembled.insert(
+            key,
+            Block {
+                members,
+                holds: holds.into_iter().collect(),
+                rect,
+                group,
+                bytes,
+            },
+        );
     }
 }
 

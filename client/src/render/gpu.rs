@@ -45,15 +45,24 @@ pub fn gpu_required() -> bool {
 impl Gpu {
     /// A device for offscreen rendering.
     pub fn headless() -> Result<Gpu, GpuError> {
-        let instance = Self::instance();
-        Self::with_instance(instance, None)
+        Self::headless_with(gpu_required())
+    }
+
+    /// A device for offscreen rendering; with `require_vulkan`, a Vulkan one or an error
+    /// (what `REQUIRE_GPU=1` asks for).
+    pub fn headless_with(require_vulkan: bool) -> Result<Gpu, GpuError> {
+        Self::open(Self::instance_with(require_vulkan), None, require_vulkan)
     }
 
     /// The instance every device of this program comes from: backends from `WGPU_BACKEND`,
     /// Vulkan only when `REQUIRE_GPU=1`.
     pub fn instance() -> wgpu::Instance {
+        Self::instance_with(gpu_required())
+    }
+
+    fn instance_with(require_vulkan: bool) -> wgpu::Instance {
         let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
-        if gpu_required() {
+        if require_vulkan {
             descriptor.backends = wgpu::Backends::VULKAN;
         }
         wgpu::Instance::new(descriptor)
@@ -64,6 +73,14 @@ impl Gpu {
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
     ) -> Result<Gpu, GpuError> {
+        Self::open(instance, surface, gpu_required())
+    }
+
+    fn open(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+        require_vulkan: bool,
+    ) -> Result<Gpu, GpuError> {
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             force_fallback_adapter: false,
@@ -72,7 +89,7 @@ impl Gpu {
         }))
         .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
-        if gpu_required() && info.backend != wgpu::Backend::Vulkan {
+        if require_vulkan && info.backend != wgpu::Backend::Vulkan {
             return Err(GpuError::NotVulkan(describe(&info)));
         }
         // Timestamps measure the GPU's share of a frame; adapters without them still render.

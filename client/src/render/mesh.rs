@@ -1,8 +1,8 @@
-//! What a tile's GPU buffers hold, computed on the CPU once per tile: its samples with
-//! normals, and the skirt strips of each mask level.
+//! What a tile's sample buffer holds, computed on the CPU once per tile: its samples with
+//! normals.
 
 use terrain_shaders::{Sample, pack_normal};
-use terrain_shared::{Heights, mask};
+use terrain_shared::Heights;
 
 /// The samples of a tile in its storage buffer: height in metres and a unit normal in
 /// render space (x east, y up, z south), computed once at the finest level by central
@@ -27,48 +27,6 @@ pub fn tile_samples(heights: &Heights, spacing_m: [f64; 2]) -> Vec<Sample> {
         }
     }
     out
-}
-
-/// The skirts of mask `level` as one triangle strip: along each edge of the tile, a
-/// vertical band from each kept border sample (index `i`) down to its foot (index
-/// `tile_size^2 + i`, which the shader places at the skirt's bottom). Edges are joined by
-/// repeated indices, like the mask strips. The strip-mask paper's "filleting" (section 5.4).
-pub fn skirt_strip(tile_size: u32, level: u32) -> Vec<u32> {
-    let kept = mask::kept_indices(tile_size, level);
-    let n = tile_size;
-    let last = n - 1;
-    let feet = terrain_shaders::skirt_base(n);
-    // Each edge walks its kept samples in order round the tile (north west to east, east
-    // north to south, south east to west, west south to north); `kept` is not symmetric,
-    // so the last two walk it backwards.
-    let forward: Vec<u32> = kept.clone();
-    let backward: Vec<u32> = kept.iter().rev().copied().collect();
-    let edges: [(Vec<u32>, u32, u32); 4] = [
-        (forward.clone(), 0, 1),         // north: k
-        (forward, last, n),              // east: k * n + last
-        (backward.clone(), last * n, 1), // south: last * n + k
-        (backward, 0, n),                // west: k * n
-    ];
-    let mut strip: Vec<u32> = Vec::with_capacity(4 * (2 * kept.len() + 2));
-    for (ks, first, step) in &edges {
-        let at = |k: u32| first + k * step;
-        if let Some(&previous) = strip.last() {
-            strip.push(previous);
-            strip.push(at(ks[0]));
-        }
-        for &k in ks {
-            let i = at(k);
-            strip.push(i);
-            strip.push(feet + i);
-        }
-    }
-    strip
-}
-
-/// Triangles a skirt strip draws (joins not counted): two per kept border cell, four edges.
-pub fn skirt_triangles(tile_size: u32, level: u32) -> u32 {
-    let kept = mask::kept_indices(tile_size, level).len() as u32;
-    8 * (kept - 1)
 }
 
 #[cfg(test)]
@@ -111,41 +69,5 @@ mod tests {
         // Rising southwards: leans north (negative z in render space).
         let s = tile_samples(&plane(5, 0.0, 0.5, 10.0), [10.0, 10.0])[12];
         assert!(unpack(s.normal)[2] < -0.3);
-    }
-
-    #[test]
-    fn skirts_hang_from_every_kept_border_sample_and_only_those() {
-        for (n, level) in [(5, 0), (9, 2), (129, 5), (129, 127)] {
-            let strip = skirt_strip(n, level);
-            let kept = mask::kept_indices(n, level);
-            let mut border: Vec<u32> = strip.iter().copied().filter(|&i| i < n * n).collect();
-            border.sort_unstable();
-            border.dedup();
-            let last = n - 1;
-            let mut expected: Vec<u32> = Vec::new();
-            for &a in &kept {
-                for &b in &kept {
-                    if a == 0 || a == last || b == 0 || b == last {
-                        expected.push(b * n + a);
-                    }
-                }
-            }
-            expected.sort_unstable();
-            expected.dedup();
-            assert_eq!(border, expected, "tile {n} level {level}");
-            // Every foot sits under a border sample.
-            assert!(
-                strip
-                    .iter()
-                    .all(|&i| i < n * n || expected.contains(&(i - n * n)))
-            );
-            // Drawn (non-degenerate) triangles: each has two distinct samples and a foot, or
-            // two feet and a sample.
-            let drawn = strip
-                .windows(3)
-                .filter(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2])
-                .count() as u32;
-            assert_eq!(drawn, skirt_triangles(n, level), "tile {n} level {level}");
-        }
     }
 }

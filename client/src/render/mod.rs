@@ -1,29 +1,33 @@
-//! Rendering: the wgpu terrain renderer and what feeds it.
+//! Rendering: what every level-of-detail method shares on the GPU. Nothing here knows a
+//! method; the methods ([`crate::method`]) record their frames through [`Frame`].
 //!
 //! - [`gpu`]: the adapter and device (headless or for a window; `REQUIRE_GPU=1` insists on
 //!   Vulkan).
 //! - [`camera`]: position, orientation, projection (reversed depth) and frustum.
-//! - [`plan`]: per frame, which resident tiles are visible and which strip mask each draws
-//!   (culling, then [`crate::lod`]'s importance and budget sharing).
+//! - [`layout`]: where the tiles lie and where the terrain ends.
+//! - [`frame`]: the [`Renderer`] (frame uniforms, depth and its read-back, timestamps, the
+//!   tile pipeline) and one frame's recording ([`Frame`], [`FramePass`]).
+//! - [`tiles`]: the resident tiles' sample buffers and textures ([`TileStore`]).
 //! - [`textures`]: the texture budget, how fine each tile's texture goes.
-//! - [`mesh`]: a tile's samples and normals, and the skirt strips.
-//! - [`terrain`]: GPU resources and the render pass, with the crack fillers.
+//! - [`mesh`]: a tile's samples and normals.
 //! - [`pool`]: the least-recently-used pool of sample buffers (the GeoMipMaps VBO manager).
 //! - [`blocks`]: MapBlocks, textures of `n x m` tiles bound once per block.
 //! - [`offscreen`]: a colour target read back into an image (headless flights, tests).
 
 pub mod blocks;
 pub mod camera;
+pub mod frame;
 pub mod gpu;
+pub mod layout;
 pub mod mesh;
 pub mod offscreen;
-pub mod plan;
 pub mod pool;
-pub mod terrain;
 pub mod textures;
+pub mod tiles;
 
 pub use camera::Camera;
+pub use frame::{Frame, FramePass, IndexSet, RenderStats, Renderer, SKY, TileExtras};
 pub use gpu::{Gpu, GpuError};
+pub use layout::Layout;
 pub use offscreen::Offscreen;
-pub use plan::{Draw, FramePlan, Layout, LodSettings};
-pub use terrain::{CrackFiller, GpuResidency, RenderStats, TerrainRenderer};
+pub use tiles::{GpuResidency, TileStore};

@@ -1,0 +1,234 @@
+//! The seam between the scene and a level-of-detail method, and the methods.
+//!
+//! A method is built with the GPU ([`Build`]) and keeps whatever it draws with: its index
+//! sets, pipelines and buffers of its own, its own copy of the terrain, data of its own it
+//! asks the scene to fetch ([`LodMethod::wants`]). Each frame the scene hands it what it
+//! knows (the camera, the viewport, the resident tiles as the manifest describes them, the
+//! frame's triangle budget) and a [`Frame`] to record into; the method decides, draws, and
+//! says what it drew and how much each tile matters ([`MethodOutput::importance`], which
+//! ranks the tiles' textures). The scene does not know how.
+//!
+//! - [`strip_masks`]: the strip-mask paper's method (a global budget shared by importance,
+//!   one precomputed strip per mask level, [`fillers`] for the cracks), and the
+//!   full-resolution reference of the accuracy measures ([`crate::eval`]).
+//! - [`geomipmap`]: GeoMipMaps, each side stitched to its neighbour's level.
+//!
+//! **Memory.** Every byte a method holds, CPU or GPU, is counted: per resident tile
+//! ([`LodMethod::tile_bytes`], expected before it arrives: [`LodMethod::expected_tile_bytes`])
+//! and for no tile in particular ([`LodMethod::shared_bytes`]). The scene adds them to what
+//! the pager and the texture budget see, so they stay inside the memory limit.
+
+pub mod fillers;
+pub mod geomipmap;
+pub mod strip_masks;
+
+pub use fillers::CrackFiller;
+
+use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
+use crate::render::{Frame, Gpu};
+use bytes::Bytes;
+use terrain_shared::{Heights, Manifest, TileId, TileRecord};
+
+/// What a method is told about the frame.
+#[derive(Debug, Clone, Copy)]
+pub struct MethodInput<'a> {
+    pub layout: &'a Layout,
+    /// The resident tiles.
+    pub tiles: &'a [Candidate<'a>],
+    /// The frame's triangle budget: the frame-rate controller's, or a fixed one.
+    pub budget: u32,
+}
+
+/// What a method drew.
+#[derive(Debug, Clone, Default)]
+pub struct MethodOutput {
+    /// Its decisions: the tiles it drew per level (empty for a method without per-tile
+    /// draws), the triangles it drew and needed.
+    pub plan: FramePlan,
+    /// How much each tile it saw matters this frame (summing to about 1 over the visible
+    /// tiles): what ranks the tiles' textures, whatever the method draws.
+    pub importance: Vec<(TileId, f64)>,
+    /// CPU time of the method's decisions (culling, error and budget), milliseconds.
+    pub lod_ms: f64,
+}
+
+/// Bytes a method holds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MethodBytes {
+    pub cpu: u64,
+    pub gpu: u64,
+}
+
+impl MethodBytes {
+    pub fn total(&self) -> u64 {
+        self.cpu + self.gpu
+    }
+}
+
+/// Data of its own a method wants for a resident tile, fetched by the scene's fetcher
+/// (bounded, prioritised, retried, hash-checked like the tiles) and handed back with
+/// [`LodMethod::data_arrived`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DataWant {
+    pub id: TileId,
+    /// The method's own number for the piece (a level, a patch).
+    pub key: u32,
+    /// The server path, as [`terrain_shared::routes`] makes them.
+    pub path: String,
+    /// The BLAKE3 hash the body must have (first 128 bits, hex), when known.
+    pub hash: Option<String>,
+}
+
+/// The settings a method is built and configured with; each takes what applies to it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MethodConfig {
+    pub kind: MethodKind,
+    pub lod: LodSettings,
+    /// The crack filler, for methods with cracks to fill.
+    pub filler: CrackFiller,
+    /// Whether methods that draw with MapBlock textures use them (`false`: every tile with
+    /// its own texture, for comparison).
+    pub texture_blocks: bool,
+}
+
+impl MethodConfig {
+    /// Whether tiles are bound block by block with MapBlock textures
+    /// ([`crate::render::blocks`]), as the GeoMipMaps paper draws them.
+    pub fn uses_texture_blocks(&self) -> bool {
+        self.kind == MethodKind::Geomipmap && self.texture_blocks
+    }
+
+    /// Copies of each tile's GPU texture this configuration holds (see
+    /// [`crate::render::blocks::TEXTURE_COPIES`]).
+    pub fn texture_copies(&self) -> u64 {
+        if self.uses_texture_blocks() {
+            crate::render::blocks::TEXTURE_COPIES
+        } else {
+            1
+        }
+    }
+}
+
+/// What a method is built with.
+#[derive(Debug, Clone, Copy)]
+pub struct Build<'a> {
+    pub gpu: &'a Gpu,
+    /// The format of the targets it draws into.
+    pub format: wgpu::TextureFormat,
+    /// The layout of bind group 0 (the frame's uniforms) of every pass, for pipelines of
+    /// its own ([`crate::render::Renderer::frame_bind_group_layout`]).
+    pub frame_layout: &'a wgpu::BindGroupLayout,
+    pub manifest: &'a Manifest,
+}
+
+/// A level-of-detail method (see the module documentation).
+pub trait LodMethod: std::fmt::Debug + Send {
+    /// Its name in tables and charts, e.g. `strip-masks/planar-shadow`.
+    fn name(&self) -> String;
+
+    /// Decides and draws one frame into `frame` (its first pass clears the target).
+    fn draw(&mut self, input: &MethodInput<'_>, frame: &mut Frame<'_>) -> MethodOutput;
+
+    /// Draws later frames with these settings (the method stays the same kind).
+    fn configure(&mut self, config: &MethodConfig);
+
+    /// A tile became resident (for methods keeping their own copy of the terrain).
+    fn tile_resident(&mut self, _gpu: &Gpu, _id: TileId, _heights: &Heights) {}
+
+    /// A tile was evicted: the method drops what it holds for it.
+    fn tile_evicted(&mut self, _id: TileId) {}
+
+    /// Data of its own the method wants now (asked for once each until it arrives or its
+    /// tile leaves; the scene fetches it for resident tiles only).
+    fn wants(&mut self) -> Vec<DataWant> {
+        Vec::new()
+    }
+
+    /// A piece of data it wanted arrived, hash-checked.
+    fn data_arrived(&mut self, _gpu: &Gpu, _id: TileId, _key: u32, _bytes: Bytes) {}
+
+    /// Bytes it holds for resident tile `id`, CPU and GPU.
+    fn tile_bytes(&self, _id: TileId) -> u64 {
+        0
+    }
+
+    /// Bytes it will hold for `tile` once resident (the pager's expectation, from the
+    /// manifest alone).
+    fn expected_tile_bytes(&self, _tile: &TileRecord) -> u64 {
+        0
+    }
+
+    /// Bytes it holds for no tile in particular (index sets, grids, pipelines' buffers).
+    fn shared_bytes(&self) -> MethodBytes {
+        MethodBytes::default()
+    }
+
+    /// Of [`LodMethod::tile_bytes`] over the resident tiles and [`LodMethod::shared_bytes`],
+    /// the GPU part.
+    fn gpu_bytes(&self) -> u64 {
+        self.shared_bytes().gpu
+    }
+}
+
+/// The methods a flight or a benchmark can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum MethodKind {
+    /// Strip masks: a global triangle budget shared by importance, one precomputed strip
+    /// per mask level, cracks filled by the crack filler.
+    #[default]
+    StripMasks,
+    /// Every visible tile at full resolution: no budget, no filler. What the accuracy
+    /// measures compare against.
+    Reference,
+    /// GeoMipMaps (Brodersen 2005): per tile the coarsest level (every 2^k-th sample)
+    /// whose projected error is within `--max-error-px`, borders stitched by adding the
+    /// finer neighbour's vertices: crack-free, no budget, no filler.
+    Geomipmap,
+}
+
+impl MethodKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            MethodKind::StripMasks => "strip-masks",
+            MethodKind::Reference => "reference",
+            MethodKind::Geomipmap => "geomipmap",
+        }
+    }
+
+    /// Whether the method fills cracks with a [`CrackFiller`] (the others are crack-free
+    /// by construction, or have no tiles).
+    pub fn uses_filler(self) -> bool {
+        matches!(self, MethodKind::StripMasks)
+    }
+
+    /// The coarsest level it draws a tile of `tile_size` samples a side at.
+    pub fn coarsest_level(self, tile_size: u32) -> u32 {
+        match self {
+            MethodKind::Geomipmap => crate::lod::geomipmap::level_count(tile_size) - 1,
+            MethodKind::StripMasks | MethodKind::Reference => {
+                terrain_shared::mask::level_count(tile_size) - 1
+            }
+        }
+    }
+
+    /// Its name with `filler` where it has one, e.g. `strip-masks/skirts`: the name the
+    /// method gives itself ([`LodMethod::name`]), known before it is built.
+    pub fn name_with(self, filler: CrackFiller) -> String {
+        if self.uses_filler() {
+            format!("{}/{}", self.name(), filler.name())
+        } else {
+            self.name().to_string()
+        }
+    }
+}
+
+/// Builds the method `config.kind`.
+pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
+    match config.kind {
+        MethodKind::StripMasks | MethodKind::Reference => Box::new(strip_masks::StripMasks::new(
+            config,
+            with.manifest.tile_size,
+        )),
+        MethodKind::Geomipmap => Box::new(geomipmap::GeoMipMaps::new(config, with)),
+    }
+}

@@ -1,0 +1,716 @@
+//! The renderer every method draws through, and one frame's recording.
+//!
+//! [`Renderer`] holds what every method shares: the device and queue, the frame's uniforms,
+//! the depth buffer (and its read-back), GPU timestamps, the resident tiles
+//! ([`super::tiles::TileStore`]) and the tile pipeline: the shader that turns a tile's sample
+//! indices into positions, for methods that draw tiles with index sets of their own.
+//!
+//! A method records a frame through [`Frame`]: it prepares the tiles it draws
+//! ([`Frame::prepare_tiles`]: a sample buffer each, MapBlock textures, per-tile uniforms),
+//! then opens render passes on the target ([`Frame::pass`]: the first clears it to [`SKY`]),
+//! binds tiles and draws its index sets ([`FramePass::bind_tile`], [`FramePass::draw`]), or
+//! sets a pipeline of its own ([`FramePass::raw`]); [`Frame::finish`] submits and waits.
+//!
+//! Nothing past the terrain's edge ([`Layout::extent_m`]) is drawn: the fragment shader
+//! discards it, so the padding of the last tiles never shows.
+
+use super::camera::Camera;
+use super::gpu::Gpu;
+use super::layout::Layout;
+use super::tiles::TileStore;
+use std::time::Instant;
+use terrain_shaders::{FrameUniform, TileUniform};
+use terrain_shared::TileId;
+
+/// Background colour: what a crack shows when nothing fills it.
+pub const SKY: [f64; 3] = [0.55, 0.71, 0.88];
+/// Depth format of the renderer's depth buffer (reversed: cleared to 0, nearer is greater).
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// Share of the light that is ambient.
+pub const AMBIENT: f32 = 0.45;
+
+/// What one frame drew.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderStats {
+    /// Triangles of the terrain's surface (strip joins not counted).
+    pub triangles: u64,
+    /// Triangles drawn to fill cracks.
+    pub filler_triangles: u64,
+    pub draw_calls: u32,
+    /// Texture bind groups set: one per tile, or one per MapBlock with blocks on.
+    pub texture_binds: u32,
+    /// Tiles whose samples were uploaded to a pooled buffer this frame (they had none).
+    pub sample_uploads: u32,
+    /// CPU time of uniforms, command encoding and submission.
+    pub encode_ms: f64,
+    /// GPU time of the render passes, when the adapter has timestamp queries.
+    pub gpu_ms: Option<f64>,
+}
+
+/// An index buffer a method draws tiles with (through the tile pipeline: indices below
+/// `n * n` are samples, see `terrain.wgsl` for the others).
+#[derive(Debug)]
+pub struct IndexSet {
+    pub buffer: wgpu::Buffer,
+    /// Indices.
+    pub len: u32,
+    /// Triangles it draws (strip joins not counted).
+    pub triangles: u32,
+}
+
+impl IndexSet {
+    /// Uploads `indices` (a strip) drawing `triangles` triangles. Labelled as terrain
+    /// memory ([`super::tiles::TERRAIN_LABEL`]).
+    pub fn new(gpu: &Gpu, indices: &[u32], triangles: u32) -> IndexSet {
+        let bytes: &[u8] = bytemuck::cast_slice(indices);
+        let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("terrain/index set"),
+            size: (bytes.len() as u64).max(4),
+            usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        gpu.queue.write_buffer(&buffer, 0, bytes);
+        IndexSet {
+            buffer,
+            len: indices.len() as u32,
+            triangles,
+        }
+    }
+
+    /// GPU bytes.
+    pub fn bytes(&self) -> u64 {
+        self.buffer.size()
+    }
+}
+
+/// What a method gives for each tile it draws through the tile pipeline, beyond what the
+/// renderer knows: a height below the tile (metres above the datum) and four points in
+/// render space (north-west, south-west, north-east, south-east), which the shader's
+/// indices past the samples use (`terrain.wgsl`); zero when unused.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TileExtras {
+    pub floor_m: f32,
+    pub points: [[f32; 4]; 4],
+}
+
+#[derive(Debug)]
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    period_ns: f32,
+}
+
+/// The shared renderer. See the module documentation.
+#[derive(Debug)]
+pub struct Renderer {
+    gpu: Gpu,
+    format: wgpu::TextureFormat,
+    layout: Layout,
+    frame_layout: wgpu::BindGroupLayout,
+    frame_buffer: wgpu::Buffer,
+    frame_group: wgpu::BindGroup,
+    uniform_layout: wgpu::BindGroupLayout,
+    tile_uniforms: wgpu::Buffer,
+    tile_uniform_group: wgpu::BindGroup,
+    uniform_capacity: u64,
+    uniform_stride: u64,
+    tile_pipeline: wgpu::RenderPipeline,
+    depth: Option<(wgpu::Texture, wgpu::TextureView)>,
+    /// Whether the depth buffer is kept after a frame, for [`Renderer::read_depth`].
+    keep_depth: bool,
+    timestamps: Option<Timestamps>,
+    /// The resident tiles' GPU resources.
+    pub tiles: TileStore,
+}
+
+impl Renderer {
+    /// A renderer drawing into targets of `format`, for tiles laid out as `layout`.
+    pub fn new(gpu: &Gpu, format: wgpu::TextureFormat, layout: Layout) -> Renderer {
+        let device = &gpu.device;
+        let tiles = TileStore::new(gpu, layout);
+        let uniform_entry = |dynamic: bool, size: u64| wgpu::BindGroupLayoutEntry {
+            binding: 0,
+            visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: dynamic,
+                min_binding_size: wgpu::BufferSize::new(size),
+            },
+            count: None,
+        };
+        let frame_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("frame"),
+            entries: &[uniform_entry(false, size_of::<FrameUniform>() as u64)],
+        });
+        let uniform_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tile uniforms"),
+            entries: &[uniform_entry(true, size_of::<TileUniform>() as u64)],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("tiles"),
+            bind_group_layouts: &[
+                Some(&frame_layout),
+                Some(&uniform_layout),
+                Some(&tiles.bindings().samples),
+                Some(&tiles.bindings().texture),
+            ],
+            immediate_size: 0,
+        });
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("terrain"),
+            source: wgpu::ShaderSource::Wgsl(terrain_shaders::TERRAIN.into()),
+        });
+        let tile_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("tiles"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some(terrain_shaders::entry::SURFACE),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState {
+                topology: wgpu::PrimitiveTopology::TriangleStrip,
+                strip_index_format: Some(wgpu::IndexFormat::Uint32),
+                // Terrain is seen from below too (a camera under the surface): two-sided.
+                cull_mode: None,
+                ..Default::default()
+            },
+            depth_stencil: Some(depth_state()),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some(terrain_shaders::entry::FRAGMENT),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let frame_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("frame"),
+            size: size_of::<FrameUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let frame_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame"),
+            layout: &frame_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: frame_buffer.as_entire_binding(),
+            }],
+        });
+        let uniform_stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
+            .max(size_of::<TileUniform>() as u64);
+        let (tile_uniforms, tile_uniform_group) =
+            uniform_buffer(device, &uniform_layout, 64, uniform_stride);
+        let timestamps = gpu.has_timestamps().then(|| Timestamps {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("frame time"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps"),
+                size: 16,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            readback: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps readback"),
+                size: 16,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            period_ns: gpu.queue.get_timestamp_period(),
+        });
+        Renderer {
+            gpu: gpu.clone(),
+            format,
+            layout,
+            frame_layout,
+            frame_buffer,
+            frame_group,
+            uniform_layout,
+            tile_uniforms,
+            tile_uniform_group,
+            uniform_capacity: 64,
+            uniform_stride,
+            tile_pipeline,
+            depth: None,
+            keep_depth: false,
+            timestamps,
+            tiles,
+        }
+    }
+
+    /// The device and queue.
+    pub fn gpu(&self) -> &Gpu {
+        &self.gpu
+    }
+
+    /// The format of the targets it draws into.
+    pub fn format(&self) -> wgpu::TextureFormat {
+        self.format
+    }
+
+    /// The tiles' layout.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// The layout of bind group 0, the frame's uniforms (`FrameUniform`), which every pass
+    /// has bound: a method's own pipeline puts it first.
+    pub fn frame_bind_group_layout(&self) -> &wgpu::BindGroupLayout {
+        &self.frame_layout
+    }
+
+    /// The depth-stencil state every pass's depth buffer takes (reversed depth).
+    pub fn depth_state(&self) -> wgpu::DepthStencilState {
+        depth_state()
+    }
+
+    /// Keeps the depth buffer of every later frame for [`Renderer::read_depth`] (stored and
+    /// copyable, which costs some speed; off by default).
+    pub fn keep_depth(&mut self, keep: bool) {
+        if keep != self.keep_depth {
+            self.keep_depth = keep;
+            self.depth = None;
+        }
+    }
+
+    /// The last frame's depth buffer, row-major from the top left: reversed depth, 0 where
+    /// nothing was drawn (the background). Needs [`Renderer::keep_depth`].
+    pub fn read_depth(&self) -> Result<Vec<f32>, super::GpuError> {
+        let (Some((texture, _)), true) = (&self.depth, self.keep_depth) else {
+            return Err(super::GpuError::Readback(
+                "no depth kept: call keep_depth(true) before rendering".into(),
+            ));
+        };
+        let bytes = super::offscreen::read_texture(&self.gpu.device, &self.gpu.queue, texture, 4)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+
+    /// Starts a frame seen from `camera` into `target`: the frame's uniforms are written;
+    /// the first pass clears the target and the depth buffer.
+    pub fn begin_frame<'f>(
+        &'f mut self,
+        target: &'f wgpu::TextureView,
+        camera: &'f Camera,
+    ) -> Frame<'f> {
+        let started = Instant::now();
+        let size = target.texture().size();
+        self.ensure_depth(size.width, size.height);
+        let aspect = f64::from(size.width) / f64::from(size.height.max(1));
+        let light = Camera::to_render(glam::DVec3::new(
+            -0.5,
+            -0.5,
+            std::f64::consts::FRAC_1_SQRT_2,
+        ))
+        .normalize();
+        // The anchor: the sample nearest the camera. Positions are built from sample
+        // indices relative to it (see the shader), exact in f32.
+        let spacing = self.layout.spacing_m;
+        let anchor = [
+            (camera.position[0] / spacing[0]).round(),
+            (camera.position[1] / spacing[1]).round(),
+        ];
+        let p = camera.position;
+        let frame = FrameUniform {
+            view_proj: camera.view_proj_f32(aspect).to_cols_array_2d(),
+            light_dir: [light.x as f32, light.y as f32, light.z as f32, 0.0],
+            params: [AMBIENT, 0.0, 0.0, 0.0],
+            camera: [
+                (p[0] - anchor[0] * spacing[0]) as f32,
+                p[2] as f32,
+                (p[1] - anchor[1] * spacing[1]) as f32,
+                0.0,
+            ],
+            // The terrain's edge in render space: west, north, east, south.
+            clip: [
+                -p[0] as f32,
+                -p[1] as f32,
+                (self.layout.extent_m[0] - p[0]) as f32,
+                (self.layout.extent_m[1] - p[1]) as f32,
+            ],
+        };
+        self.gpu
+            .queue
+            .write_buffer(&self.frame_buffer, 0, bytemuck::bytes_of(&frame));
+        let encoder = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        Frame {
+            renderer: self,
+            target,
+            camera,
+            anchor,
+            encoder,
+            passes: 0,
+            prepared: Prepared::default(),
+            stats: RenderStats::default(),
+            started,
+        }
+    }
+
+    fn ensure_depth(&mut self, width: u32, height: u32) {
+        if let Some((texture, _)) = &self.depth
+            && texture.width() == width
+            && texture.height() == height
+        {
+            return;
+        }
+        let texture = self.gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("depth"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: DEPTH_FORMAT,
+            usage: if self.keep_depth {
+                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC
+            } else {
+                wgpu::TextureUsages::RENDER_ATTACHMENT
+            },
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        self.depth = Some((texture, view));
+    }
+
+    fn ensure_uniform_capacity(&mut self, slots: u64) {
+        if slots <= self.uniform_capacity {
+            return;
+        }
+        let capacity = slots.next_power_of_two();
+        let (buffer, group) = uniform_buffer(
+            &self.gpu.device,
+            &self.uniform_layout,
+            capacity,
+            self.uniform_stride,
+        );
+        self.tile_uniforms = buffer;
+        self.tile_uniform_group = group;
+        self.uniform_capacity = capacity;
+    }
+}
+
+fn depth_state() -> wgpu::DepthStencilState {
+    wgpu::DepthStencilState {
+        format: DEPTH_FORMAT,
+        depth_write_enabled: Some(true),
+        depth_compare: Some(wgpu::CompareFunction::Greater),
+        stencil: Default::default(),
+        bias: Default::default(),
+    }
+}
+
+/// The tiles a frame prepared, by slot.
+#[derive(Debug, Default)]
+struct Prepared {
+    ids: Vec<TileId>,
+    samples: Vec<usize>,
+    blocks: Vec<Option<[u32; 2]>>,
+}
+
+/// One frame being recorded. See the module documentation.
+#[derive(Debug)]
+pub struct Frame<'f> {
+    renderer: &'f mut Renderer,
+    target: &'f wgpu::TextureView,
+    camera: &'f Camera,
+    anchor: [f64; 2],
+    encoder: wgpu::CommandEncoder,
+    passes: u32,
+    prepared: Prepared,
+    stats: RenderStats,
+    started: Instant,
+}
+
+impl<'f> Frame<'f> {
+    pub fn camera(&self) -> &Camera {
+        self.camera
+    }
+
+    /// Width and height of the target, pixels.
+    pub fn viewport(&self) -> [u32; 2] {
+        let size = self.target.texture().size();
+        [size.width, size.height]
+    }
+
+    pub fn gpu(&self) -> &Gpu {
+        &self.renderer.gpu
+    }
+
+    /// The resident tiles.
+    pub fn tiles(&self) -> &TileStore {
+        &self.renderer.tiles
+    }
+
+    /// The stats so far; a method adds what it alone knows (triangles, fillers).
+    pub fn stats_mut(&mut self) -> &mut RenderStats {
+        &mut self.stats
+    }
+
+    /// Prepares `tiles` (those resident; the others are left out) for the tile pipeline:
+    /// a sample buffer each from the pool, their textures (MapBlocks assembled), their
+    /// uniforms. Returns each tile's slot for [`FramePass::bind_tile`] (`None`: not
+    /// resident), and, in [`Frame::draw_order`], the order that binds each block once.
+    /// Call it once a frame.
+    pub fn prepare_tiles(&mut self, tiles: &[(TileId, TileExtras)]) -> Vec<Option<usize>> {
+        let r = &mut *self.renderer;
+        let mut slots = Vec::with_capacity(tiles.len());
+        let mut ids = Vec::with_capacity(tiles.len());
+        let mut extras = Vec::with_capacity(tiles.len());
+        for (id, extra) in tiles {
+            if r.tiles.contains(*id) {
+                slots.push(Some(ids.len()));
+                ids.push(*id);
+                extras.push(*extra);
+            } else {
+                slots.push(None);
+            }
+        }
+        r.ensure_uniform_capacity(ids.len() as u64);
+        let (samples, uploads) = r.tiles.pool_samples(&ids);
+        let blocks = r.tiles.frame_blocks(&ids);
+        self.stats.sample_uploads += uploads;
+        let n = r.layout.tile_size;
+        let cells = f64::from(n - 1);
+        let mut uniforms = vec![0u8; (r.uniform_stride * ids.len() as u64) as usize];
+        for (slot, (&id, extra)) in ids.iter().zip(&extras).enumerate() {
+            let (_, uv) = r.tiles.binding_of(id, blocks[slot]);
+            let u = TileUniform {
+                origin: [
+                    (f64::from(id.x) * cells - self.anchor[0]) as f32,
+                    0.0,
+                    (f64::from(id.y) * cells - self.anchor[1]) as f32,
+                    0.0,
+                ],
+                spacing: [
+                    r.layout.spacing_m[0] as f32,
+                    r.layout.spacing_m[1] as f32,
+                    n as f32,
+                    extra.floor_m,
+                ],
+                points: extra.points,
+                uv,
+            };
+            let at = slot * r.uniform_stride as usize;
+            uniforms[at..at + size_of::<TileUniform>()].copy_from_slice(bytemuck::bytes_of(&u));
+        }
+        if !uniforms.is_empty() {
+            r.gpu.queue.write_buffer(&r.tile_uniforms, 0, &uniforms);
+        }
+        self.prepared = Prepared {
+            ids,
+            samples,
+            blocks,
+        };
+        slots
+    }
+
+    /// The prepared slots in the order that binds each MapBlock's texture once: block by
+    /// block, then the tiles drawn with their own textures, in preparation order within each.
+    pub fn draw_order(&self) -> Vec<usize> {
+        let blocks = &self.prepared.blocks;
+        let mut order: Vec<usize> = (0..blocks.len()).collect();
+        order.sort_by_key(|&slot| (blocks[slot].is_none(), blocks[slot]));
+        order
+    }
+
+    /// Opens a render pass on the target and the depth buffer, the frame's uniforms bound
+    /// at group 0 and the tile pipeline set. The frame's first pass clears both.
+    pub fn pass(&mut self) -> FramePass<'_> {
+        let first = self.passes == 0;
+        self.passes += 1;
+        let r = &*self.renderer;
+        let depth = &r.depth.as_ref().expect("made in begin_frame").1;
+        let mut pass = self
+            .encoder
+            .begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("terrain"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: self.target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: if first {
+                            wgpu::LoadOp::Clear(wgpu::Color {
+                                r: SKY[0],
+                                g: SKY[1],
+                                b: SKY[2],
+                                a: 1.0,
+                            })
+                        } else {
+                            wgpu::LoadOp::Load
+                        },
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth,
+                    depth_ops: Some(wgpu::Operations {
+                        load: if first {
+                            wgpu::LoadOp::Clear(0.0)
+                        } else {
+                            wgpu::LoadOp::Load
+                        },
+                        store: wgpu::StoreOp::Store,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: r.timestamps.as_ref().filter(|_| first).map(|t| {
+                    wgpu::RenderPassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: Some(0),
+                        end_of_pass_write_index: Some(1),
+                    }
+                }),
+                occlusion_query_set: None,
+                multiview_mask: None,
+            })
+            .forget_lifetime();
+        pass.set_bind_group(0, &r.frame_group, &[]);
+        pass.set_pipeline(&r.tile_pipeline);
+        FramePass {
+            pass,
+            renderer: r,
+            prepared: &self.prepared,
+            stats: &mut self.stats,
+            bound: None,
+        }
+    }
+
+    /// Submits the frame and waits for the GPU to finish it. Returns what it drew.
+    pub fn finish(self) -> RenderStats {
+        let Frame {
+            renderer: r,
+            mut encoder,
+            mut stats,
+            started,
+            passes,
+            ..
+        } = self;
+        let timed = passes > 0;
+        if let (Some(t), true) = (&r.timestamps, timed) {
+            encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, 16);
+        }
+        r.gpu.queue.submit([encoder.finish()]);
+        stats.encode_ms = started.elapsed().as_secs_f64() * 1e3;
+        match (&r.timestamps, timed) {
+            (Some(t), true) => {
+                let slice = t.readback.slice(..);
+                slice.map_async(wgpu::MapMode::Read, |_| {});
+                let _ = r.gpu.device.poll(wgpu::PollType::wait_indefinitely());
+                if let Ok(data) = slice.get_mapped_range() {
+                    let stamps: &[u64] = bytemuck::cast_slice(&data);
+                    let ticks = stamps[1].saturating_sub(stamps[0]);
+                    stats.gpu_ms = Some(ticks as f64 * f64::from(t.period_ns) / 1.0e6);
+                }
+                t.readback.unmap();
+            }
+            _ => {
+                let _ = r.gpu.device.poll(wgpu::PollType::wait_indefinitely());
+            }
+        }
+        stats
+    }
+}
+
+/// A render pass of a frame. See the module documentation.
+#[derive(Debug)]
+pub struct FramePass<'p> {
+    pass: wgpu::RenderPass<'static>,
+    renderer: &'p Renderer,
+    prepared: &'p Prepared,
+    stats: &'p mut RenderStats,
+    /// The MapBlock whose texture is bound.
+    bound: Option<[u32; 2]>,
+}
+
+impl FramePass<'_> {
+    /// The pass itself, for a method's own pipeline (set it, draw, then
+    /// [`FramePass::use_tile_pipeline`] before binding tiles again).
+    pub fn raw(&mut self) -> &mut wgpu::RenderPass<'static> {
+        &mut self.pass
+    }
+
+    /// Sets the tile pipeline again (after a pipeline of the method's own).
+    pub fn use_tile_pipeline(&mut self) {
+        self.pass.set_pipeline(&self.renderer.tile_pipeline);
+        self.bound = None;
+    }
+
+    /// Binds prepared tile `slot`'s uniforms, samples and texture (a MapBlock's only when
+    /// the block changes).
+    pub fn bind_tile(&mut self, slot: usize) {
+        let r = self.renderer;
+        let offset = (slot as u64 * r.uniform_stride) as u32;
+        self.pass
+            .set_bind_group(1, &r.tile_uniform_group, &[offset]);
+        let samples = &r.tiles.pool.get(self.prepared.samples[slot]).group;
+        self.pass.set_bind_group(2, samples, &[]);
+        let block = self.prepared.blocks[slot];
+        if block.is_none() || block != self.bound {
+            let (group, _) = r.tiles.binding_of(self.prepared.ids[slot], block);
+            self.pass.set_bind_group(3, group, &[]);
+            self.stats.texture_binds += 1;
+            self.bound = block;
+        }
+    }
+
+    /// Draws `set` for the tile bound last; counts a draw call.
+    pub fn draw(&mut self, set: &IndexSet) {
+        self.pass
+            .set_index_buffer(set.buffer.slice(..), wgpu::IndexFormat::Uint32);
+        self.pass.draw_indexed(0..set.len, 0, 0..1);
+        self.stats.draw_calls += 1;
+    }
+
+    /// The frame's stats, for what a method counts itself.
+    pub fn stats_mut(&mut self) -> &mut RenderStats {
+        self.stats
+    }
+}
+
+fn uniform_buffer(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    slots: u64,
+    stride: u64,
+) -> (wgpu::Buffer, wgpu::BindGroup) {
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("tile uniforms"),
+        size: slots * stride,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("tile uniforms"),
+        layout,
+        entries: &[wgpu::BindGroupEntry {
+            binding: 0,
+            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer: &buffer,
+                offset: 0,
+                size: wgpu::BufferSize::new(size_of::<TileUniform>() as u64),
+            }),
+        }],
+    });
+    (buffer, group)
+}
