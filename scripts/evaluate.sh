@@ -148,8 +148,10 @@ EOF
   echo
   echo "Each run streams its own scene along the scenario's cameras (paging, fetching, textures"
   echo "and the frame-rate controller at 60 fps, as \`fly\` does), lets the last view settle and"
-  echo "measures it against the reference at that camera. Memory is the peak of resident tile"
-  echo "bytes against the limit; frame times are of the streamed frames."
+  echo "measures it against the reference at that camera. Memory is the peak the scene counted"
+  echo "against the limit and the peak it held (CPU bytes plus every GPU allocation made for the"
+  echo "terrain), against a limit of at most three quarters of the whole database, so that it binds"
+  echo "in every scenario; frame times are of the streamed frames."
   echo
   sed 's|(images/|(evaluation/stability/images/|g' "$docs/stability/stability.md"
   echo

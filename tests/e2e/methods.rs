@@ -499,10 +499,6 @@ fn fly(
     }
 }
 
-fn overview() -> Camera {
-    Camera::looking_at([-4000.0, 38000.0, 9000.0], [15000.0, 15000.0, 500.0])
-}
-
 #[test]
 fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_counted() {
     let test = "methods::a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_counted";
@@ -514,10 +510,11 @@ fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_
     let server = TestServer::start(&report.out);
     let runtime = tokio::runtime::Runtime::new().expect("runtime");
     let _guard = runtime.enter();
-    let (mut scene, mut fetcher) = scene(&server, &gpu, 256 << 20, RenderConfig::default());
+    let limit = competing_limit(&server, 2 * OwnMesh::grid_bytes());
+    let (mut scene, mut fetcher) = scene(&server, &gpu, limit, RenderConfig::default());
     scene.use_method(|with| Box::new(OwnMesh::new(with)));
     let target = Offscreen::new(&gpu, W, H);
-    let camera = overview();
+    let camera = close();
     let mut frame = 0;
     while !scene.settled() || frame < 5 {
         fly(
@@ -548,9 +545,9 @@ fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_
     // Its pipeline drew the terrain: a large part of the frame, all of it in its colour.
     assert!(magenta > (W * H / 10) as usize, "{magenta} pixels drawn");
     assert_eq!(magenta, terrain, "every terrain pixel is the mesh's");
-    // Textures refined from its importances, though it drew no tile.
-    let refined = report_textures(&scene, &server);
-    assert!(refined > 0, "some tile's texture refined past the coarsest");
+    // Textures ranked by its importances, though it drew no tile.
+    textures_follow_importance(&scene, &camera);
+    assert!(scene.resident_bytes() <= scene.memory_limit());
     // Its bytes are in the resident figure: the mesh on the GPU, counted per tile.
     let tiles = scene.resident_tiles();
     let geometry = scene.geometry_memory();
@@ -571,12 +568,83 @@ fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_
     }
 }
 
-/// Tiles whose texture on the GPU is finer than the coarsest level.
-fn report_textures(scene: &Scene, _server: &TestServer) -> usize {
-    (0..64)
-        .flat_map(|y| (0..64).map(move |x| TileId::new(x, y)))
-        .filter(|&id| scene.texture_level(id).is_some_and(|l| l > 0))
-        .count()
+/// Checks that the method's importances, not per-tile draws, ranked the textures: with a
+/// limit that cannot refine every texture, the tiles in view hold finer textures than the
+/// resident tiles out of view, and some tile is finer than its coarsest level. Returns the
+/// mean levels (in view, out of view).
+fn textures_follow_importance(scene: &Scene, camera: &Camera) -> (f64, f64) {
+    let manifest = scene.manifest();
+    let layout = plan::Layout::of(manifest);
+    let minima = vec![Vec::new(); manifest.tiles.len()];
+    let candidates: Vec<plan::Candidate> = manifest
+        .tiles
+        .iter()
+        .zip(&minima)
+        .map(|(t, m)| plan::Candidate::new(t, m))
+        .collect();
+    let visible: HashSet<TileId> =
+        plan::visible_tiles(camera, f64::from(W) / f64::from(H), &layout, &candidates)
+            .into_iter()
+            .map(|i| candidates[i].id)
+            .collect();
+    let (mut seen, mut unseen) = (Vec::new(), Vec::new());
+    for t in &manifest.tiles {
+        if let Some(level) = scene.texture_level(t.id()) {
+            let list = if visible.contains(&t.id()) {
+                &mut seen
+            } else {
+                &mut unseen
+            };
+            list.push(f64::from(level));
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let (seen_mean, unseen_mean) = (mean(&seen), mean(&unseen));
+    eprintln!(
+        "texture levels: {} tiles in view at {seen_mean:.2} on average, {} out of view at {unseen_mean:.2}",
+        seen.len(),
+        unseen.len()
+    );
+    assert!(
+        !seen.is_empty() && !unseen.is_empty(),
+        "tiles in and out of view"
+    );
+    assert!(
+        seen.iter().any(|&l| l > 0.0),
+        "some texture refined past the coarsest"
+    );
+    assert!(
+        seen_mean > unseen_mean,
+        "the tiles in view hold finer textures: {seen_mean:.2} against {unseen_mean:.2}"
+    );
+    (seen_mean, unseen_mean)
+}
+
+/// A limit holding every tile at its coarsest texture, what the method expects to hold for
+/// each, and a quarter of what their finer levels would take: textures compete.
+fn competing_limit(server: &TestServer, per_tile: u64) -> u64 {
+    let manifest = tokio::runtime::Handle::current()
+        .block_on(
+            terrain_client::fetch::TileClient::new(server.base_url())
+                .expect("client")
+                .manifest(),
+        )
+        .expect("manifest");
+    let (mut base, mut finer) = (0, 0);
+    for t in &manifest.tiles {
+        base += terrain_client::scene::expected_tile_bytes(&manifest, t, 1).total() + per_tile;
+        finer += terrain_client::render::textures::extra_costs(&manifest, t, 1)
+            .last()
+            .copied()
+            .unwrap_or(0);
+    }
+    // With room for the method's shared bytes (a full-resolution index set at most).
+    base + finer / 4 + (512 << 10)
+}
+
+/// A camera low over jacksboro looking at its north-west: about half the tiles in view.
+fn close() -> Camera {
+    Camera::looking_at([15000.0, 8000.0, 1500.0], [5000.0, 2000.0, 300.0])
 }
 
 #[test]
@@ -590,10 +658,24 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
     let server = TestServer::start(&report.out);
     let runtime = tokio::runtime::Runtime::new().expect("runtime");
     let _guard = runtime.enter();
-    let (mut scene, mut fetcher) = scene(&server, &gpu, 256 << 20, RenderConfig::default());
+    let manifest = tokio::runtime::Handle::current()
+        .block_on(
+            terrain_client::fetch::TileClient::new(server.base_url())
+                .expect("client")
+                .manifest(),
+        )
+        .expect("manifest");
+    let largest = manifest
+        .tiles
+        .iter()
+        .map(|t| t.heights.bytes)
+        .max()
+        .unwrap_or(0);
+    let limit = competing_limit(&server, largest);
+    let (mut scene, mut fetcher) = scene(&server, &gpu, limit, RenderConfig::default());
     scene.use_method(|with| Box::new(OwnData::new(with)));
     let target = Offscreen::new(&gpu, W, H);
-    let camera = overview();
+    let camera = close();
     let mut frame = 0;
     let mut drawn = 0;
     while !scene.settled() || frame < 5 || drawn == 0 {
@@ -639,7 +721,7 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
         geometry.cpu_lod
     );
     assert!(scene.cpu_bytes() >= own);
-    assert!(report_textures(&scene, &server) > 0, "textures refined");
+    textures_follow_importance(&scene, &camera);
     assert!(scene.resident_bytes() <= scene.memory_limit());
 }
 
