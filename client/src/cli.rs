@@ -1,29 +1,32 @@
 //! The subcommands of the `terrain-client` binary, so the binary itself stays a parser and
-//! an exit code. For now one: `fetch`, which downloads the whole database through
-//! [`TileClient`], verifies and decodes every blob, and writes an overview picture and a
-//! per-tile CSV. It is the client's end-to-end smoke test and its throughput probe.
+//! an exit code. For now one: `fetch`, which downloads the whole database through the
+//! client's [`Fetcher`] (retries, backoff, hash checks, decoding off the async threads, as
+//! the flights have them), and writes an overview picture and a per-tile CSV. It is the
+//! client's end-to-end smoke test and its throughput probe.
 //!
-//! Owns the IO at the rim: the progress bar, the output files, the task pool. What it
+//! Owns the IO at the rim: the progress bar, the output files. What it
 //! prints and writes is formatted by [`crate::report`] and [`crate::overview`].
 
-use crate::fetch::{FetchError, TileClient, decode_heights};
+use crate::fetch::FetchError;
+use crate::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
 use crate::overview::{OverviewError, mosaic};
 use crate::report::{FetchSummary, TileReport, csv};
+use crate::scene::Scene;
 use bytes::Bytes;
 use indicatif::{ProgressBar, ProgressStyle};
+use std::collections::HashMap;
 use std::io::Cursor;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Instant;
-use terrain_shared::{Manifest, TileId, TileRecord, routes};
+use std::time::{Duration, Instant};
+use terrain_shared::{Heights, Manifest, TileId, TileRecord};
 use thiserror::Error;
-use tokio::task::{JoinError, JoinSet};
+use tokio::task::JoinError;
 
 /// Where `fetch` writes unless told otherwise.
 pub const DEFAULT_OUT_DIR: &str = "out/fetch";
-/// Requests in flight at once. Eight keeps a local server's workers and a LAN busy without
-/// queueing behind its concurrency limit (the server sheds load rather than queue).
-pub const DEFAULT_CONCURRENCY: u32 = 8;
+/// Requests in flight at once: the fetcher's default, [`crate::fetcher::DEFAULT_CONCURRENCY`].
+pub const DEFAULT_CONCURRENCY: u32 = crate::fetcher::DEFAULT_CONCURRENCY as u32;
 /// Longest side of `overview.png`: enough to see the terrain, small enough to open anywhere.
 pub const OVERVIEW_MAX_SIDE: u32 = 1024;
 pub const OVERVIEW_FILE: &str = "overview.png";
@@ -38,7 +41,7 @@ pub struct FetchArgs {
     /// Directory for overview.png and tiles.csv; created if missing.
     #[arg(long, default_value = DEFAULT_OUT_DIR)]
     pub out: PathBuf,
-    /// Tiles fetched at once (each tile's requests run one after the other).
+    /// Requests at once (each retried on transient errors).
     #[arg(long, default_value_t = DEFAULT_CONCURRENCY, value_parser = clap::value_parser!(u32).range(1..=1024))]
     pub concurrency: u32,
 }
@@ -67,13 +70,22 @@ pub enum CliError {
 }
 
 /// Runs `fetch`: the manifest, then every tile's heights and texture levels with
-/// `args.concurrency` tiles in flight; then writes the overview and the CSV into `args.out`.
+/// `args.concurrency` requests at once; then writes the overview and the CSV into `args.out`.
 pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
-    let client = TileClient::new(&args.server)?;
     let start = Instant::now();
-    let manifest = Arc::new(client.manifest().await?);
+    let connection = Scene::connect(
+        &args.server,
+        FetcherConfig {
+            concurrency: args.concurrency as usize,
+            ..FetcherConfig::default()
+        },
+        tokio::runtime::Handle::current(),
+    )
+    .await?;
+    let (manifest, mut fetcher) = (connection.manifest, connection.fetcher);
+    let server = fetcher.base_url().to_string();
     tracing::info!(
-        server = client.base_url(),
+        server,
         dataset = manifest.dataset,
         content_version = manifest.content_version,
         tiles = manifest.tiles.len(),
@@ -83,7 +95,7 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
 
     let total_bytes: u64 = manifest.tiles.iter().map(blob_bytes).sum();
     let bar = progress_bar(total_bytes);
-    let fetched = fetch_all(&client, &manifest, args.concurrency as usize, &bar).await;
+    let fetched = fetch_all(&mut fetcher, &manifest, &bar).await;
     bar.finish_and_clear();
     let mut fetched = fetched?;
     let elapsed = start.elapsed();
@@ -124,7 +136,7 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
             (lo.min(r.min_m), hi.max(r.max_m))
         });
     Ok(FetchSummary {
-        server: client.base_url().to_string(),
+        server,
         dataset: manifest.dataset.clone(),
         content_version: manifest.content_version.clone(),
         tiles: reports.len(),
@@ -147,75 +159,124 @@ struct FetchedTile {
     finest_texture: Bytes,
 }
 
-/// Every tile of the manifest with at most `concurrency` in flight. The first error stops
-/// the fetch: dropping the [`JoinSet`] aborts the tiles still running.
+/// A tile on its way: what has arrived of it.
+#[derive(Debug)]
+struct Arriving {
+    heights: Option<(Heights, u64)>,
+    /// Texture levels by level (0 = coarsest).
+    textures: Vec<Option<Bytes>>,
+    fetch: Duration,
+    decode: Duration,
+}
+
+/// Every tile of the manifest through the client's [`Fetcher`] (the one the flights use:
+/// priority order, at most its concurrency in requests at once, retries with backoff on
+/// transient errors, a corrupt body fetched again): each tile's heights with its coarsest
+/// texture level, then its finer levels, tiles in the manifest's order. The first request
+/// that fails after its retries stops the fetch (dropping the fetcher aborts the rest).
 async fn fetch_all(
-    client: &TileClient,
-    manifest: &Arc<Manifest>,
-    concurrency: usize,
+    fetcher: &mut Fetcher,
+    manifest: &Manifest,
     bar: &ProgressBar,
 ) -> Result<Vec<FetchedTile>, CliError> {
     let total = manifest.tiles.len();
-    let mut pending = manifest.tiles.iter().map(TileRecord::id);
-    let mut running = JoinSet::new();
+    let levels = manifest.texture.levels as usize;
+    let mut arriving: HashMap<TileId, Arriving> = HashMap::with_capacity(total);
+    let mut rank: HashMap<TileId, u64> = HashMap::with_capacity(total);
+    for (i, record) in manifest.tiles.iter().enumerate() {
+        // A tile's finer levels come right after it: priority (tile, level).
+        fetcher.request(record.id(), Want::Tile, (i as u64) << 8);
+        rank.insert(record.id(), i as u64);
+    }
     let mut fetched = Vec::with_capacity(total);
-    loop {
-        while running.len() < concurrency.max(1) {
-            let Some(id) = pending.next() else { break };
-            running.spawn(fetch_tile(
-                client.clone(),
-                Arc::clone(manifest),
-                id,
-                bar.clone(),
-            ));
+    while fetched.len() < total {
+        let events = fetcher.poll();
+        if events.is_empty() {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+            continue;
         }
-        let Some(joined) = running.join_next().await else {
-            break;
-        };
-        fetched.push(joined.map_err(|error| join_failure(error, "a tile fetch"))??);
-        bar.set_message(format!("{}/{total} tiles", fetched.len()));
+        for event in events {
+            let id = event.id();
+            let tile = arriving.entry(id).or_insert_with(|| Arriving {
+                heights: None,
+                textures: vec![None; levels],
+                fetch: Duration::ZERO,
+                decode: Duration::ZERO,
+            });
+            match event {
+                FetchEvent::Tile {
+                    heights,
+                    heights_bytes,
+                    coarsest_texture,
+                    elapsed,
+                    decode,
+                    ..
+                } => {
+                    bar.inc(heights_bytes + coarsest_texture.len() as u64);
+                    tile.heights = Some((heights, heights_bytes));
+                    if let Some(slot) = tile.textures.first_mut() {
+                        *slot = Some(coarsest_texture);
+                    }
+                    tile.fetch += elapsed.saturating_sub(decode);
+                    tile.decode = decode;
+                    for level in 1..levels as u32 {
+                        let priority = (rank[&id] << 8) | u64::from(level);
+                        fetcher.request(id, Want::TextureLevel(level), priority);
+                    }
+                }
+                FetchEvent::TextureLevel {
+                    level,
+                    bytes,
+                    elapsed,
+                    ..
+                } => {
+                    bar.inc(bytes.len() as u64);
+                    tile.fetch += elapsed;
+                    if let Some(slot) = tile.textures.get_mut(level as usize) {
+                        *slot = Some(bytes);
+                    }
+                }
+                FetchEvent::Failed { error, .. } => return Err(error.into()),
+                // Nothing here asks for other data.
+                FetchEvent::Data { .. } => {}
+            }
+            if !tile.textures.iter().all(Option::is_some) {
+                continue;
+            }
+            if let Some(mut tile) = arriving.remove(&id) {
+                match tile.heights.take() {
+                    Some(heights) => {
+                        fetched.push(finish_tile(manifest, id, heights, tile, bar)?);
+                        bar.set_message(format!("{}/{total} tiles", fetched.len()));
+                    }
+                    // Finer levels before the tile itself: it is still on its way.
+                    None => {
+                        arriving.insert(id, tile);
+                    }
+                }
+            }
+        }
     }
     Ok(fetched)
 }
 
-/// Heights first (so decoding overlaps the texture requests of other tiles), then the
-/// texture levels coarsest first, the order a viewer needs them in.
-async fn fetch_tile(
-    client: TileClient,
-    manifest: Arc<Manifest>,
+/// The report of a tile whose heights and every texture level arrived.
+fn finish_tile(
+    manifest: &Manifest,
     id: TileId,
-    bar: ProgressBar,
+    (heights, heights_len): (Heights, u64),
+    tile: Arriving,
+    bar: &ProgressBar,
 ) -> Result<FetchedTile, FetchError> {
-    let started = Instant::now();
-    let heights_bytes = client.heights_bytes(&manifest, id).await?;
-    let mut fetch = started.elapsed();
-    bar.inc(heights_bytes.len() as u64);
-
-    let decode_started = Instant::now();
-    let url = client.url(&routes::heights(&manifest.content_version, id));
-    let heights_len = heights_bytes.len() as u64;
-    let heights = decode_heights(url, heights_bytes).await?;
-    let decode = decode_started.elapsed();
-    let (min_code, max_code) = heights.code_range();
-    let to_metres = |code: i32| heights.offset_m + heights.quantum_m * f64::from(code);
-    let (min_m, max_m) = (to_metres(min_code), to_metres(max_code));
-
-    let mut texture_bytes = 0;
-    let mut finest_texture = Bytes::new();
-    for level in 0..manifest.texture.levels {
-        let started = Instant::now();
-        let texture = client.texture(&manifest, id, level).await?;
-        fetch += started.elapsed();
-        bar.inc(texture.len() as u64);
-        texture_bytes += texture.len() as u64;
-        finest_texture = texture;
-    }
-
     let record = manifest.tile(id).ok_or(FetchError::NotInGrid {
         id,
         columns: manifest.grid.columns,
         rows: manifest.grid.rows,
     })?;
+    let (min_code, max_code) = heights.code_range();
+    let to_metres = |code: i32| heights.offset_m + heights.quantum_m * f64::from(code);
+    let (min_m, max_m) = (to_metres(min_code), to_metres(max_code));
+    let textures: Vec<Bytes> = tile.textures.into_iter().flatten().collect();
     // The manifest's per-tile range is stored as f32; half a quantum plus f32 rounding of
     // the largest heights on Earth (~1 mm at 9 km) covers an honest disagreement.
     let tolerance = heights.quantum_m / 2.0 + 1e-3;
@@ -234,14 +295,14 @@ async fn fetch_tile(
         report: TileReport {
             id,
             heights_bytes: heights_len,
-            texture_bytes,
+            texture_bytes: textures.iter().map(|t| t.len() as u64).sum(),
             min_m,
             max_m,
             roughness_m: record.roughness_m,
-            decode,
-            fetch,
+            decode: tile.decode,
+            fetch: tile.fetch,
         },
-        finest_texture,
+        finest_texture: textures.last().cloned().unwrap_or_default(),
     })
 }
 

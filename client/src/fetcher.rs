@@ -25,7 +25,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::hash::BuildHasher;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use terrain_shared::{Heights, Manifest, TileId, routes};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
@@ -101,12 +101,19 @@ pub enum FetchEvent {
         coarsest_texture: Bytes,
         /// Tries of the blob that needed most (1: nothing was retried).
         attempts: u32,
+        /// From the request's start to its end: its GETs one after the other (with any
+        /// backoff between tries) and the decoding.
+        elapsed: Duration,
+        /// Decoding the heights, on the blocking pool.
+        decode: Duration,
     },
     /// One texture level, verified, in the manifest's `texture.format`.
     TextureLevel {
         id: TileId,
         level: u32,
         bytes: Bytes,
+        /// From the request's start to its end (with any backoff between tries).
+        elapsed: Duration,
     },
     /// A method's own data ([`Want::Data`]), verified when its hash was given.
     Data { id: TileId, key: u32, bytes: Bytes },
@@ -205,6 +212,11 @@ impl Fetcher {
             failures: 0,
             cancelled: 0,
         }
+    }
+
+    /// The server's base URL, as the client normalised it.
+    pub fn base_url(&self) -> &str {
+        self.client.base_url()
     }
 
     /// Queues a request; smaller `priority` starts sooner, equal keys in the order given.
@@ -610,14 +622,20 @@ struct Job {
 impl Job {
     async fn run(&self) -> FetchEvent {
         let Request { id, want } = self.request;
+        let started = Instant::now();
         // The blobs of a Tile are fetched one after the other, so a request holds at most
         // one HTTP request at a time and `concurrency` bounds the connections.
         let result = match want {
-            Want::Tile => self.tile().await,
+            Want::Tile => self.tile(started).await,
             Want::TextureLevel(level) => self
                 .with_retries(Part::Texture(level), || self.texture(level))
                 .await
-                .map(|(bytes, _)| FetchEvent::TextureLevel { id, level, bytes }),
+                .map(|(bytes, _)| FetchEvent::TextureLevel {
+                    id,
+                    level,
+                    bytes,
+                    elapsed: started.elapsed(),
+                }),
             Want::Data(key) => self
                 .with_retries(Part::Data(key), || self.data())
                 .await
@@ -634,8 +652,8 @@ impl Job {
         })
     }
 
-    async fn tile(&self) -> Result<FetchEvent, (FetchError, u32)> {
-        let ((heights, heights_bytes), heights_tries) =
+    async fn tile(&self, started: Instant) -> Result<FetchEvent, (FetchError, u32)> {
+        let ((heights, heights_bytes, decode), heights_tries) =
             self.with_retries(Part::Heights, || self.heights()).await?;
         let (coarsest_texture, texture_tries) = self
             .with_retries(Part::Texture(0), || self.texture(0))
@@ -646,6 +664,8 @@ impl Job {
             heights_bytes,
             coarsest_texture,
             attempts: heights_tries.max(texture_tries),
+            elapsed: started.elapsed(),
+            decode,
         })
     }
 
@@ -689,7 +709,7 @@ impl Job {
     }
 
     /// One try of the heights: fetched, verified, decoded; with their encoded size.
-    async fn heights(&self) -> Result<(Heights, u64), FetchError> {
+    async fn heights(&self) -> Result<(Heights, u64, Duration), FetchError> {
         let (manifest, id) = (&*self.manifest, self.request.id);
         let body = self
             .counted(Part::Heights, self.client.heights_bytes(manifest, id))
@@ -698,7 +718,9 @@ impl Job {
         let url = self
             .client
             .url(&routes::heights(&manifest.content_version, id));
-        Ok((decode_heights(url, body).await?, bytes))
+        let decoding = Instant::now();
+        let heights = decode_heights(url, body).await?;
+        Ok((heights, bytes, decoding.elapsed()))
     }
 
     /// One try of a texture level: fetched and verified.

@@ -683,7 +683,9 @@ impl Scene {
                 });
                 self.tiles_fetched += 1;
             }
-            FetchEvent::TextureLevel { id, level, bytes } => {
+            FetchEvent::TextureLevel {
+                id, level, bytes, ..
+            } => {
                 let i = self.index(id);
                 let target = self.rendering.as_ref().map_or(0, |r| r.texture_target[i]);
                 if let Some(tile) = &mut self.tiles[i]
@@ -1173,6 +1175,8 @@ mod tests {
                 heights_bytes: 7,
                 coarsest_texture: bytes::Bytes::from_static(b"tx"),
                 attempts: 1,
+                elapsed: std::time::Duration::ZERO,
+                decode: std::time::Duration::ZERO,
             })
             .expect("delivered");
     }
@@ -1252,6 +1256,7 @@ mod tests {
                 id: TileId::new(0, 0),
                 level: 3,
                 bytes: bytes::Bytes::from_static(b"far too fine"),
+                elapsed: std::time::Duration::ZERO,
             })
             .expect("delivered");
         assert_eq!(scene.resident_bytes(), before);

@@ -17,6 +17,8 @@ pub const TERRAIN: &str = include_str!("terrain.wgsl");
 pub mod entry {
     pub const SURFACE: &str = "vs_surface";
     pub const FRAGMENT: &str = "fs_main";
+    /// The fragment shader that discards what lies past the terrain's edge.
+    pub const FRAGMENT_CLIPPED: &str = "fs_clipped";
 }
 
 /// Index of the foot of sample 0's skirt, for tiles of `n` samples a side: the foot of
@@ -99,7 +101,7 @@ mod tests {
         )
         .validate(&module)
         .expect("the terrain shader validates");
-        for name in [entry::SURFACE, entry::FRAGMENT] {
+        for name in [entry::SURFACE, entry::FRAGMENT, entry::FRAGMENT_CLIPPED] {
             assert!(
                 module.entry_points.iter().any(|e| e.name == name),
                 "entry point {name} is missing"

@@ -128,11 +128,23 @@ fn past_the_edge(p: vec3<f32>) -> bool {
     return p.x < frame.clip.x || p.z < frame.clip.y || p.x > frame.clip.z || p.z > frame.clip.w;
 }
 
+// Tiles whose surface and fillers may reach past the terrain's edge (at the border, or
+// padded) are drawn with this one; the others with `fs_main`, which keeps the rasteriser's
+// early depth test (a `discard` anywhere in a shader turns it off).
 @fragment
-fn fs_main(in: Varyings) -> @location(0) vec4<f32> {
+fn fs_clipped(in: Varyings) -> @location(0) vec4<f32> {
     if past_the_edge(in.position) {
         discard;
     }
+    return shade(in);
+}
+
+@fragment
+fn fs_main(in: Varyings) -> @location(0) vec4<f32> {
+    return shade(in);
+}
+
+fn shade(in: Varyings) -> vec4<f32> {
     let albedo = textureSample(tile_texture, tile_sampler, in.uv).rgb;
     let lambert = max(dot(normalize(in.normal), frame.light_dir.xyz), 0.0);
     let ambient = frame.params.x;

@@ -512,6 +512,7 @@ impl Reference {
                     heights_bytes,
                     coarsest_texture,
                     attempts,
+                    ..
                 } => {
                     assert_eq!(Some(heights), self.heights.get(id), "tile {id} heights");
                     assert!(*heights_bytes > 0 && *attempts >= 1);
@@ -522,7 +523,9 @@ impl Reference {
                     );
                     assert!(delivered.tiles.insert(*id), "tile {id} delivered twice");
                 }
-                FetchEvent::TextureLevel { id, level, bytes } => {
+                FetchEvent::TextureLevel {
+                    id, level, bytes, ..
+                } => {
                     assert_eq!(
                         Some(&bytes.to_vec()),
                         self.textures.get(&(*id, *level)),

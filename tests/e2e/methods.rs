@@ -15,6 +15,7 @@
 
 use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
 use terrain_client::eval::session::whole_database_bytes;
 use terrain_client::fetcher::FetcherConfig;
 use terrain_client::lod::plan::{self, Draw, LodSettings};
@@ -840,4 +841,95 @@ fn geomipmaps_with_map_blocks_never_hold_more_than_the_limit_on_the_gpu_as_the_a
         levels_seen.len() > tiles_seen.len(),
         "textures changed level during the flight"
     );
+}
+
+#[test]
+fn by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone() {
+    use terrain_tests::proxy::{FaultPlan, FaultyProxy};
+    let test =
+        "methods::by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = build_jacksboro(tmp.path());
+    let server = TestServer::start(&report.out);
+    // A slow link, so that a belt arrives over many frames.
+    let proxy = FaultyProxy::start(
+        server.addr(),
+        FaultPlan::pass_through().with_bandwidth(300_000),
+    );
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let _guard = runtime.enter();
+    let connection = runtime
+        .block_on(Scene::connect(
+            proxy.base_url(),
+            FetcherConfig::default(),
+            runtime.handle().clone(),
+        ))
+        .expect("connects");
+    let manifest = Arc::clone(&connection.manifest);
+    let limit = 256 << 20;
+    let mut scene = connection.scene(
+        limit,
+        true,
+        Some((gpu.clone(), OFFSCREEN_FORMAT, RenderConfig::default())),
+    );
+    let mut fetcher = connection.fetcher;
+    let pager = terrain_client::page::PagerConfig {
+        columns: manifest.grid.columns,
+        rows: manifest.grid.rows,
+        memory_limit: limit,
+        nearest_when_outside: true,
+    };
+    let target = Offscreen::new(&gpu, W, H);
+    let extent = manifest.extent_m;
+    // Over the north-west corner, high enough to see every tile.
+    let camera = Camera::looking_at(
+        [extent[0] * 0.05, extent[1] * 0.05, 30000.0],
+        [extent[0] * 0.5, extent[1] * 0.5, 300.0],
+    );
+    let drawn = |scene: &mut Scene| -> HashSet<TileId> {
+        scene
+            .draw(&target.view, &camera, std::time::Instant::now())
+            .expect("rendering")
+            .plan
+            .draws
+            .iter()
+            .map(|d| d.id)
+            .collect()
+    };
+    for frame in 0..3000 {
+        let update = scene
+            .update(&mut fetcher, frame, camera.position)
+            .expect("update");
+        let decision = update.decision;
+        let square: HashSet<TileId> =
+            terrain_client::page::square_tiles(&pager, decision.current, decision.complete_belts)
+                .collect();
+        let every = drawn(&mut scene);
+        if every.is_subset(&square) {
+            // Nothing resident outside the square yet (or the whole grid is the square).
+            assert!(frame < 2999, "a belt never arrived in parts");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            continue;
+        }
+        // Tiles of the belt still arriving are drawn by default; with square_only, only
+        // the square is.
+        scene.reconfigure(RenderConfig {
+            square_only: true,
+            ..RenderConfig::default()
+        });
+        let only = drawn(&mut scene);
+        eprintln!(
+            "frame {frame}: square of {} tiles; {} drawn by default, {} with square_only",
+            square.len(),
+            every.len(),
+            only.len()
+        );
+        assert!(!only.is_empty(), "the square is drawn");
+        assert!(only.is_subset(&square), "{only:?} in {square:?}");
+        assert!(only.len() < every.len());
+        return;
+    }
 }

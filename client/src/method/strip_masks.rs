@@ -175,7 +175,8 @@ impl StripMasks {
         }
         if let (CrackFiller::PlanarShadow, Some(quad)) = (filler, &self.quad) {
             // After every surface, so the depth test hides the shadows where tiles cover
-            // them.
+            // them. A shadow reaches past its tile, so past the terrain's edge too.
+            pass.clip_everything();
             for &slot in &order {
                 pass.bind_tile(slot);
                 pass.draw(quad);

@@ -11,8 +11,10 @@
 //! binds tiles and draws its index sets ([`FramePass::bind_tile`], [`FramePass::draw`]), or
 //! sets a pipeline of its own ([`FramePass::raw`]); [`Frame::finish`] submits and waits.
 //!
-//! Nothing past the terrain's edge ([`Layout::extent_m`]) is drawn: the fragment shader
-//! discards it, so the padding of the last tiles never shows.
+//! Nothing past the terrain's edge ([`Layout::extent_m`]) is drawn: tiles that hold padding
+//! (the last of a row or column) are drawn with a fragment shader that discards what lies
+//! past it, as is whatever a method marks ([`FramePass::clip_everything`]); the others keep
+//! the early depth test a `discard` would turn off.
 
 use super::camera::Camera;
 use super::gpu::Gpu;
@@ -116,6 +118,10 @@ pub struct Renderer {
     uniform_capacity: u64,
     uniform_stride: u64,
     tile_pipeline: wgpu::RenderPipeline,
+    /// The same, discarding what lies past the terrain's edge: for tiles that reach past
+    /// it (padded ones) and whatever a method marks (see [`FramePass::clip_everything`]).
+    /// Kept apart because a `discard` turns the early depth test off.
+    clipped_pipeline: wgpu::RenderPipeline,
     depth: Option<(wgpu::Texture, wgpu::TextureView)>,
     /// Whether the depth buffer is kept after a frame, for [`Renderer::read_depth`].
     keep_depth: bool,
@@ -161,37 +167,43 @@ impl Renderer {
             label: Some("terrain"),
             source: wgpu::ShaderSource::Wgsl(terrain_shaders::TERRAIN.into()),
         });
-        let tile_pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("tiles"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some(terrain_shaders::entry::SURFACE),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleStrip,
-                strip_index_format: Some(wgpu::IndexFormat::Uint32),
-                // Terrain is seen from below too (a camera under the surface): two-sided.
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: Some(depth_state()),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some(terrain_shaders::entry::FRAGMENT),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let tile_pipeline = |fragment: &str| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some("tiles"),
+                layout: Some(&pipeline_layout),
+                vertex: wgpu::VertexState {
+                    module: &shader,
+                    entry_point: Some(terrain_shaders::entry::SURFACE),
+                    compilation_options: Default::default(),
+                    buffers: &[],
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleStrip,
+                    strip_index_format: Some(wgpu::IndexFormat::Uint32),
+                    // Terrain is seen from below too (a camera under the surface): two-sided.
+                    cull_mode: None,
+                    ..Default::default()
+                },
+                depth_stencil: Some(depth_state()),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &shader,
+                    entry_point: Some(fragment),
+                    compilation_options: Default::default(),
+                    targets: &[Some(wgpu::ColorTargetState {
+                        format,
+                        blend: None,
+                        write_mask: wgpu::ColorWrites::ALL,
+                    })],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let (tile_pipeline, clipped_pipeline) = (
+            tile_pipeline(terrain_shaders::entry::FRAGMENT),
+            tile_pipeline(terrain_shaders::entry::FRAGMENT_CLIPPED),
+        );
         let frame_buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
             size: size_of::<FrameUniform>() as u64,
@@ -243,6 +255,7 @@ impl Renderer {
             uniform_capacity: 64,
             uniform_stride,
             tile_pipeline,
+            clipped_pipeline,
             depth: None,
             keep_depth: false,
             timestamps,
@@ -424,6 +437,8 @@ struct Prepared {
     ids: Vec<TileId>,
     samples: Vec<usize>,
     blocks: Vec<Option<[u32; 2]>>,
+    /// Whether the tile reaches past the terrain's edge (padded), so is clipped.
+    clipped: Vec<bool>,
 }
 
 /// One frame being recorded. See the module documentation.
@@ -515,10 +530,22 @@ impl<'f> Frame<'f> {
         if !uniforms.is_empty() {
             r.gpu.queue.write_buffer(&r.tile_uniforms, 0, &uniforms);
         }
+        let extent = r.layout.tile_extent_m();
+        let clipped = ids
+            .iter()
+            .map(|&id| {
+                let [x0, y0] = r.layout.tile_origin_m(id);
+                // Past the edge by more than rounding: the tile holds padding.
+                let slack = 1e-6 * (extent[0] + extent[1]);
+                x0 + extent[0] > r.layout.extent_m[0] + slack
+                    || y0 + extent[1] > r.layout.extent_m[1] + slack
+            })
+            .collect();
         self.prepared = Prepared {
             ids,
             samples,
             blocks,
+            clipped,
         };
         slots
     }
@@ -585,13 +612,14 @@ impl<'f> Frame<'f> {
             })
             .forget_lifetime();
         pass.set_bind_group(0, &r.frame_group, &[]);
-        pass.set_pipeline(&r.tile_pipeline);
         FramePass {
             pass,
             renderer: r,
             prepared: &self.prepared,
             stats: &mut self.stats,
             bound: None,
+            pipeline: None,
+            clip_everything: false,
         }
     }
 
@@ -641,6 +669,9 @@ pub struct FramePass<'p> {
     stats: &'p mut RenderStats,
     /// The MapBlock whose texture is bound.
     bound: Option<[u32; 2]>,
+    /// The tile pipeline set (`Some(true)`: the clipped one), `None` after another.
+    pipeline: Option<bool>,
+    clip_everything: bool,
 }
 
 impl FramePass<'_> {
@@ -650,16 +681,32 @@ impl FramePass<'_> {
         &mut self.pass
     }
 
-    /// Sets the tile pipeline again (after a pipeline of the method's own).
+    /// Makes the tile pipeline be set again at the next [`FramePass::bind_tile`] (after a
+    /// pipeline of the method's own).
     pub fn use_tile_pipeline(&mut self) {
-        self.pass.set_pipeline(&self.renderer.tile_pipeline);
+        self.pipeline = None;
         self.bound = None;
+    }
+
+    /// Clips every tile bound from now on at the terrain's edge, not only the padded ones:
+    /// for what a method draws that may reach past it from any tile (a planar shadow).
+    pub fn clip_everything(&mut self) {
+        self.clip_everything = true;
     }
 
     /// Binds prepared tile `slot`'s uniforms, samples and texture (a MapBlock's only when
     /// the block changes).
     pub fn bind_tile(&mut self, slot: usize) {
         let r = self.renderer;
+        let clipped = self.clip_everything || self.prepared.clipped[slot];
+        if self.pipeline != Some(clipped) {
+            self.pass.set_pipeline(if clipped {
+                &r.clipped_pipeline
+            } else {
+                &r.tile_pipeline
+            });
+            self.pipeline = Some(clipped);
+        }
         let offset = (slot as u64 * r.uniform_stride) as u32;
         self.pass
             .set_bind_group(1, &r.tile_uniform_group, &[offset]);
