@@ -16,6 +16,8 @@ pub const TERRAIN: &str = include_str!("terrain.wgsl");
 /// Entry points of [`TERRAIN`].
 pub mod entry {
     pub const SURFACE: &str = "vs_surface";
+    /// The vertex shader of `FRAGMENT_CLIPPED`: `SURFACE` with the position passed on.
+    pub const SURFACE_CLIPPED: &str = "vs_clipped";
     pub const FRAGMENT: &str = "fs_main";
     /// The fragment shader that discards what lies past the terrain's edge.
     pub const FRAGMENT_CLIPPED: &str = "fs_clipped";
@@ -101,7 +103,12 @@ mod tests {
         )
         .validate(&module)
         .expect("the terrain shader validates");
-        for name in [entry::SURFACE, entry::FRAGMENT, entry::FRAGMENT_CLIPPED] {
+        for name in [
+            entry::SURFACE,
+            entry::SURFACE_CLIPPED,
+            entry::FRAGMENT,
+            entry::FRAGMENT_CLIPPED,
+        ] {
             assert!(
                 module.entry_points.iter().any(|e| e.name == name),
                 "entry point {name} is missing"

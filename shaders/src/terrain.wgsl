@@ -59,6 +59,14 @@ struct Varyings {
     @location(2) position: vec3<f32>,
 };
 
+// What the unclipped fragment shader takes: no position to interpolate (a software
+// rasteriser pays for every varying of every pixel).
+struct Shaded {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) uv: vec2<f32>,
+    @location(1) normal: vec3<f32>,
+};
+
 // Render-space position of sample (column, row) at `height`.
 fn position_of(column: u32, row: u32, height: f32) -> vec3<f32> {
     return vec3<f32>(
@@ -86,7 +94,18 @@ fn place(column: u32, row: u32, height: f32) -> Varyings {
 // - 2*n*n + k, k in 0..4: corner k of the planar shadow.
 // One pipeline for all three keeps the render pass free of pipeline switches.
 @vertex
-fn vs_surface(@builtin(vertex_index) vertex: u32) -> Varyings {
+fn vs_surface(@builtin(vertex_index) vertex: u32) -> Shaded {
+    let v = vertex_of(vertex);
+    return Shaded(v.clip, v.uv, v.normal);
+}
+
+// The same, with the position for the clip at the terrain's edge (`fs_clipped`).
+@vertex
+fn vs_clipped(@builtin(vertex_index) vertex: u32) -> Varyings {
+    return vertex_of(vertex);
+}
+
+fn vertex_of(vertex: u32) -> Varyings {
     let n = u32(tile.spacing.z);
     let count = n * n;
     if vertex >= 2u * count {
@@ -136,17 +155,17 @@ fn fs_clipped(in: Varyings) -> @location(0) vec4<f32> {
     if past_the_edge(in.position) {
         discard;
     }
-    return shade(in);
+    return shade(in.uv, in.normal);
 }
 
 @fragment
-fn fs_main(in: Varyings) -> @location(0) vec4<f32> {
-    return shade(in);
+fn fs_main(in: Shaded) -> @location(0) vec4<f32> {
+    return shade(in.uv, in.normal);
 }
 
-fn shade(in: Varyings) -> vec4<f32> {
-    let albedo = textureSample(tile_texture, tile_sampler, in.uv).rgb;
-    let lambert = max(dot(normalize(in.normal), frame.light_dir.xyz), 0.0);
+fn shade(uv: vec2<f32>, normal: vec3<f32>) -> vec4<f32> {
+    let albedo = textureSample(tile_texture, tile_sampler, uv).rgb;
+    let lambert = max(dot(normalize(normal), frame.light_dir.xyz), 0.0);
     let ambient = frame.params.x;
     return vec4<f32>(albedo * (ambient + (1.0 - ambient) * lambert), 1.0);
 }

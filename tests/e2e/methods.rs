@@ -382,7 +382,7 @@ impl LodMethod for OwnData {
             .get_or_insert_with(|| IndexSet::new(&gpu, masks.strip(0), masks.triangle_count(0)));
         frame.prepare_tiles(&draws);
         let order = frame.draw_order();
-        let mut pass = frame.pass();
+        let mut pass = frame.last_pass();
         for slot in order {
             pass.bind_tile(slot);
             pass.draw(strip);

@@ -129,7 +129,7 @@ impl LodMethod for GeoMipMaps {
             }
         }
         let order = frame.draw_order();
-        let mut pass = frame.pass();
+        let mut pass = frame.last_pass();
         for slot in order {
             let Some(stitch) = stitch_of[slot] else {
                 continue;

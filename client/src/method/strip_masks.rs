@@ -160,7 +160,7 @@ impl StripMasks {
             }
         }
         let order = frame.draw_order();
-        let mut pass = frame.pass();
+        let mut pass = frame.last_pass();
         for &slot in &order {
             let level = level_of[slot];
             pass.bind_tile(slot);

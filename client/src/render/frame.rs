@@ -167,13 +167,13 @@ impl Renderer {
             label: Some("terrain"),
             source: wgpu::ShaderSource::Wgsl(terrain_shaders::TERRAIN.into()),
         });
-        let tile_pipeline = |fragment: &str| {
+        let tile_pipeline = |vertex: &str, fragment: &str| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some("tiles"),
                 layout: Some(&pipeline_layout),
                 vertex: wgpu::VertexState {
                     module: &shader,
-                    entry_point: Some(terrain_shaders::entry::SURFACE),
+                    entry_point: Some(vertex),
                     compilation_options: Default::default(),
                     buffers: &[],
                 },
@@ -201,8 +201,14 @@ impl Renderer {
             })
         };
         let (tile_pipeline, clipped_pipeline) = (
-            tile_pipeline(terrain_shaders::entry::FRAGMENT),
-            tile_pipeline(terrain_shaders::entry::FRAGMENT_CLIPPED),
+            tile_pipeline(
+                terrain_shaders::entry::SURFACE,
+                terrain_shaders::entry::FRAGMENT,
+            ),
+            tile_pipeline(
+                terrain_shaders::entry::SURFACE_CLIPPED,
+                terrain_shaders::entry::FRAGMENT_CLIPPED,
+            ),
         );
         let frame_buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
@@ -560,8 +566,19 @@ impl<'f> Frame<'f> {
     }
 
     /// Opens a render pass on the target and the depth buffer, the frame's uniforms bound
-    /// at group 0 and the tile pipeline set. The frame's first pass clears both.
+    /// at group 0; the tile pipeline is set by [`FramePass::bind_tile`]. The frame's first
+    /// pass clears both; the depth buffer is kept for the passes after it.
     pub fn pass(&mut self) -> FramePass<'_> {
+        self.open_pass(true)
+    }
+
+    /// [`Frame::pass`] for the frame's last pass: the depth buffer is not kept after it
+    /// (unless it is read back, [`Renderer::keep_depth`]), which saves a store.
+    pub fn last_pass(&mut self) -> FramePass<'_> {
+        self.open_pass(false)
+    }
+
+    fn open_pass(&mut self, keep_depth: bool) -> FramePass<'_> {
         let first = self.passes == 0;
         self.passes += 1;
         let r = &*self.renderer;
@@ -596,7 +613,11 @@ impl<'f> Frame<'f> {
                         } else {
                             wgpu::LoadOp::Load
                         },
-                        store: wgpu::StoreOp::Store,
+                        store: if keep_depth || r.keep_depth {
+                            wgpu::StoreOp::Store
+                        } else {
+                            wgpu::StoreOp::Discard
+                        },
                     }),
                     stencil_ops: None,
                 }),
