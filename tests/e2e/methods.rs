@@ -461,6 +461,16 @@ fn reported_terrain_bytes(gpu: &Gpu) -> Option<u64> {
     )
 }
 
+/// Jacksboro built into a temporary directory (kept while the first value lives), served
+/// on a free port, and a runtime for the client.
+fn jacksboro() -> (tempfile::TempDir, TestServer, tokio::runtime::Runtime) {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = build_jacksboro(tmp.path());
+    let server = TestServer::start(&report.out);
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    (tmp, server, runtime)
+}
+
 /// A scene streaming jacksboro from `server` under `limit` bytes, drawn by `config`.
 fn scene(
     server: &TestServer,
@@ -506,10 +516,7 @@ fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_
     let Some(gpu) = golden::gpu(test) else {
         return;
     };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build_jacksboro(tmp.path());
-    let server = TestServer::start(&report.out);
-    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let (_tmp, server, runtime) = jacksboro();
     let _guard = runtime.enter();
     let limit = competing_limit(&server, 2 * OwnMesh::grid_bytes());
     let (mut scene, mut fetcher) = scene(&server, &gpu, limit, RenderConfig::default());
@@ -654,10 +661,7 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
     let Some(gpu) = golden::gpu(test) else {
         return;
     };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build_jacksboro(tmp.path());
-    let server = TestServer::start(&report.out);
-    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let (_tmp, server, runtime) = jacksboro();
     let _guard = runtime.enter();
     let manifest = tokio::runtime::Handle::current()
         .block_on(
@@ -732,10 +736,7 @@ fn geomipmaps_with_map_blocks_never_hold_more_than_the_limit_on_the_gpu_as_the_a
     let Some(gpu) = golden::gpu(test) else {
         return;
     };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build_jacksboro(tmp.path());
-    let server = TestServer::start(&report.out);
-    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    let (_tmp, server, runtime) = jacksboro();
     let _guard = runtime.enter();
     let config = RenderConfig {
         method: MethodKind::Geomipmap,
@@ -851,15 +852,12 @@ fn by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone
     let Some(gpu) = golden::gpu(test) else {
         return;
     };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build_jacksboro(tmp.path());
-    let server = TestServer::start(&report.out);
+    let (_tmp, server, runtime) = jacksboro();
     // A slow link, so that a belt arrives over many frames.
     let proxy = FaultyProxy::start(
         server.addr(),
         FaultPlan::pass_through().with_bandwidth(300_000),
     );
-    let runtime = tokio::runtime::Runtime::new().expect("runtime");
     let _guard = runtime.enter();
     let connection = runtime
         .block_on(Scene::connect(

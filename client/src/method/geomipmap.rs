@@ -140,16 +140,7 @@ impl LodMethod for GeoMipMaps {
             pass.stats_mut().triangles += u64::from(set.triangles);
         }
         drop(pass);
-        MethodOutput {
-            importance: plan
-                .draws
-                .iter()
-                .zip(&plan.importances)
-                .map(|(d, &i)| (d.id, i))
-                .collect(),
-            plan,
-            lod_ms,
-        }
+        MethodOutput::of_plan(plan, lod_ms)
     }
 
     fn tile_resident(&mut self, _gpu: &Gpu, id: TileId, heights: &Heights) {

@@ -52,6 +52,22 @@ pub struct MethodOutput {
     pub lod_ms: f64,
 }
 
+impl MethodOutput {
+    /// The output of a per-tile method: its plan, each drawn tile's importance from it.
+    pub fn of_plan(plan: FramePlan, lod_ms: f64) -> MethodOutput {
+        MethodOutput {
+            importance: plan
+                .draws
+                .iter()
+                .zip(&plan.importances)
+                .map(|(d, &i)| (d.id, i))
+                .collect(),
+            plan,
+            lod_ms,
+        }
+    }
+}
+
 /// Bytes a method holds.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct MethodBytes {

@@ -235,16 +235,7 @@ impl LodMethod for StripMasks {
         let lod_ms = started.elapsed().as_secs_f64() * 1e3;
 
         self.draw_levels(frame, input.layout, input.tiles, &plan.draws, self.filler);
-        MethodOutput {
-            importance: plan
-                .draws
-                .iter()
-                .zip(&plan.importances)
-                .map(|(d, &i)| (d.id, i))
-                .collect(),
-            plan,
-            lod_ms,
-        }
+        MethodOutput::of_plan(plan, lod_ms)
     }
 
     fn shared_bytes(&self) -> MethodBytes {
