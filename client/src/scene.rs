@@ -346,7 +346,7 @@ impl Scene {
             .sum();
         let method = self.rendering.as_ref().map_or(0, |r| {
             let per_tile: u64 = self.tiles.iter().flatten().map(|t| t.bytes.method).sum();
-            per_tile + r.method.shared_bytes().total() - r.method.gpu_bytes()
+            (per_tile + r.method.shared_bytes().total()).saturating_sub(r.method.gpu_bytes())
         });
         tiles + method
     }
