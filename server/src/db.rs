@@ -32,12 +32,12 @@ pub const TEXTURES_PACK: &str = "textures.pack";
 /// Why a database could not be opened.
 #[derive(Debug, Error)]
 pub enum DbError {
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path} is not a usable manifest: {source}")]
+    #[error("{path} is not a usable manifest")]
     Manifest {
         path: PathBuf,
         source: ManifestError,
@@ -237,12 +237,89 @@ fn slice_pack<'a>(
     Ok(out)
 }
 
+/// Whether a database may be written at `out`: it must not exist, or, with `force`, be a
+/// tile database (a real directory holding a manifest and nothing but the database's files)
+/// or an empty directory. Anything else (a regular file, a symbolic link, a folder of other
+/// files) is refused with what was found, so `--force` can never delete someone's data.
+pub fn check_output(out: &Path, force: bool) -> Result<(), WriteError> {
+    let meta = match std::fs::symlink_metadata(out) {
+        Ok(meta) => meta,
+        Err(error) if error.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(source) => {
+            return Err(WriteError::Io {
+                path: out.to_path_buf(),
+                source,
+            });
+        }
+    };
+    if !force {
+        return Err(WriteError::Exists(out.to_path_buf()));
+    }
+    let not_a_database = |found: String| WriteError::NotADatabase {
+        path: out.to_path_buf(),
+        found,
+    };
+    let kind = meta.file_type();
+    if kind.is_symlink() {
+        return Err(not_a_database("a symbolic link".into()));
+    }
+    if !kind.is_dir() {
+        return Err(not_a_database(format!("a file of {} bytes", meta.len())));
+    }
+    let io = |source| WriteError::Io {
+        path: out.to_path_buf(),
+        source,
+    };
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(out).map_err(io)? {
+        names.push(entry.map_err(io)?.file_name().to_string_lossy().into_owned());
+    }
+    if names.is_empty() {
+        return Ok(());
+    }
+    names.sort();
+    let ours = [MANIFEST_FILE, HEIGHTS_PACK, TEXTURES_PACK];
+    let others: Vec<&String> = names
+        .iter()
+        .filter(|n| !ours.contains(&n.as_str()))
+        .collect();
+    if !others.is_empty() {
+        let shown: Vec<&str> = others.iter().take(3).map(|n| n.as_str()).collect();
+        let more = if others.len() > 3 {
+            format!(" and {} more", others.len() - 3)
+        } else {
+            String::new()
+        };
+        return Err(not_a_database(format!(
+            "a directory holding {}{more}",
+            shown.join(", ")
+        )));
+    }
+    if !names.iter().any(|n| n == MANIFEST_FILE) {
+        return Err(not_a_database(format!(
+            "a directory with no {MANIFEST_FILE}"
+        )));
+    }
+    Ok(())
+}
+
 /// Why a database could not be written.
 #[derive(Debug, Error)]
 pub enum WriteError {
     #[error("{0} already exists: pass --force to replace it")]
     Exists(PathBuf),
-    #[error("cannot write the database at {path}: {source}")]
+    #[error(
+        "{0} appeared while this build ran (another build to the same output?); \
+         nothing was replaced: pass --force to replace it"
+    )]
+    AppearedMeanwhile(PathBuf),
+    #[error(
+        "{path} is not a tile database ({found}); --force replaces only a tile database \
+         (a directory of {MANIFEST_FILE}, {HEIGHTS_PACK} and {TEXTURES_PACK}): \
+         choose another --out or remove it yourself"
+    )]
+    NotADatabase { path: PathBuf, found: String },
+    #[error("cannot write the database at {path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,
@@ -274,11 +351,10 @@ pub struct DbWriter {
 }
 
 impl DbWriter {
-    /// Starts a database that will appear at `out`. Refuses an existing `out` unless `force`.
+    /// Starts a database that will appear at `out`. Refuses an existing `out` unless
+    /// `force`, and even then unless it is a tile database (see [`check_output`]).
     pub fn create(out: &Path, force: bool) -> Result<DbWriter, WriteError> {
-        if out.exists() && !force {
-            return Err(WriteError::Exists(out.to_path_buf()));
-        }
+        check_output(out, force)?;
         let io = |source| WriteError::Io {
             path: out.to_path_buf(),
             source,
@@ -378,19 +454,31 @@ impl DbWriter {
         file.write_all(&manifest.to_json()).map_err(io)?;
         file.sync_all().map_err(io)?;
 
+        // Checked again: the output may have appeared, or changed, while the build ran.
+        match check_output(&out, self.force) {
+            Err(WriteError::Exists(path)) => return Err(WriteError::AppearedMeanwhile(path)),
+            other => other?,
+        }
         let tmp = self.tmp.keep();
         // An existing database is moved aside first and removed only once the new one is
         // in place, so `out` holds either the old database or the new one, never a mix.
         let mut old = None;
-        if self.force && out.exists() {
+        if self.force && std::fs::symlink_metadata(&out).is_ok() {
             let aside = tmp.with_extension("replaced");
-            std::fs::rename(&out, &aside).map_err(io)?;
+            if let Err(source) = std::fs::rename(&out, &aside) {
+                let _ = std::fs::remove_dir_all(&tmp);
+                return Err(WriteError::Io { path: out, source });
+            }
             old = Some(aside);
         }
         if let Err(source) = std::fs::rename(&tmp, &out) {
             let _ = std::fs::remove_dir_all(&tmp);
             if let Some(aside) = &old {
                 let _ = std::fs::rename(aside, &out);
+            }
+            // Another build finished first: its database stays, this one is dropped.
+            if old.is_none() && std::fs::symlink_metadata(&out).is_ok() {
+                return Err(WriteError::AppearedMeanwhile(out));
             }
             return Err(WriteError::Io { path: out, source });
         }

@@ -11,3 +11,15 @@
 pub mod build;
 pub mod db;
 pub mod http;
+
+/// Writes `text` to stdout and flushes it. A closed stdout (`terrain-server build … | head
+/// -0`) is not an error: whoever reads the output has gone, and the work is done, so the
+/// text is dropped quietly, as other command-line tools do.
+pub fn print_stdout(text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut stdout = std::io::stdout().lock();
+    match stdout.write_all(text.as_bytes()).and_then(|()| stdout.flush()) {
+        Err(error) if error.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        other => other,
+    }
+}

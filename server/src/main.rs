@@ -2,6 +2,7 @@
 //! Thin on purpose: argument parsing, logging set-up and the exit code; the library does the work.
 
 use clap::{Parser, Subcommand};
+use std::io::IsTerminal;
 use std::process::ExitCode;
 
 /// Build and serve terrain tile databases.
@@ -28,6 +29,8 @@ fn main() -> ExitCode {
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only where a person reads them, not in log files or CI logs.
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
     let result = match cli.command {
         Command::Build(args) => terrain_server::build::run_cli(args),

@@ -223,7 +223,7 @@ pub enum BuildError {
     Write(#[from] WriteError),
     #[error("texture {path}: {message}")]
     Texture { path: PathBuf, message: String },
-    #[error("cannot encode tile {tile}: {source}")]
+    #[error("cannot encode tile {tile}")]
     Encode {
         tile: terrain_shared::TileId,
         source: EncodeError,
@@ -313,6 +313,8 @@ pub fn build(
             "--texture-size {size} is not a power of two up to 4096"
         )));
     }
+    // Before reading anything: a refused output should not cost a read of the whole input.
+    crate::db::check_output(&options.out, options.force)?;
     let mut warnings = Vec::new();
     let dataset = input::DatasetInfo::beside(&options.heights)?;
     let (dataset_dir, info) = match dataset {
@@ -602,7 +604,7 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
     let report = build(&options, &on_progress, &cancel)
         .with_context(|| format!("building {}", options.heights.display()))?;
     bar.finish_and_clear();
-    print!("{}", Summary(&report));
+    crate::print_stdout(&Summary(&report).to_string()).context("cannot write to stdout")?;
     Ok(())
 }
 

@@ -7,7 +7,6 @@
 use super::{AppState, ServeOptions, serve, shutdown_signal};
 use crate::db::{TileDb, Verify};
 use anyhow::Context;
-use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -97,11 +96,8 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
         let local = listener
             .local_addr()
             .context("cannot read the bound address")?;
-        let mut stdout = std::io::stdout().lock();
-        writeln!(stdout, "listening on http://{local}")
-            .and_then(|()| stdout.flush())
+        crate::print_stdout(&format!("listening on http://{local}\n"))
             .context("cannot write to stdout")?;
-        drop(stdout);
         tracing::info!(addr = %local, ?options, "serving");
         serve(listener, state, options, shutdown_signal())
             .await

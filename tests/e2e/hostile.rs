@@ -1,0 +1,201 @@
+//! Hostile use of the release binaries: outputs that are not ours to replace, races, closed
+//! pipes, and error messages that must say what happened once.
+
+use std::path::{Path, PathBuf};
+use terrain_server::db::{DbWriter, WriteError};
+use terrain_shared::Manifest;
+use terrain_tests::data::{jacksboro, run_binary};
+
+fn build_args(out: &Path, extra: &[&str]) -> Vec<std::ffi::OsString> {
+    let mut args: Vec<std::ffi::OsString> = vec![
+        "build".into(),
+        jacksboro().into_os_string(),
+        "--out".into(),
+        out.as_os_str().to_owned(),
+        "--tile-size".into(),
+        "129".into(),
+    ];
+    args.extend(extra.iter().map(Into::into));
+    args
+}
+
+fn run_build(out: &Path, extra: &[&str]) -> (bool, String, String) {
+    let args = build_args(out, extra);
+    let refs: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+    run_binary("terrain-server", &refs)
+}
+
+/// Every entry of `dir`, sorted, hidden ones included.
+fn entries(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .expect("readable")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+#[test]
+fn force_refuses_a_directory_that_is_not_a_tile_database() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let documents = tmp.path().join("documents");
+    std::fs::create_dir(&documents).expect("mkdir");
+    std::fs::write(documents.join("thesis.tex"), "years of work").expect("write");
+    std::fs::write(documents.join("notes.txt"), "more").expect("write");
+
+    let (ok, _, stderr) = run_build(&documents, &["--force"]);
+    assert!(!ok, "a folder of documents was replaced: {stderr}");
+    assert!(
+        stderr.contains("is not a tile database") && stderr.contains("notes.txt, thesis.tex"),
+        "the refusal says what it found: {stderr}"
+    );
+    assert_eq!(entries(&documents), ["notes.txt", "thesis.tex"]);
+    assert_eq!(
+        std::fs::read_to_string(documents.join("thesis.tex")).expect("kept"),
+        "years of work"
+    );
+    assert_eq!(entries(tmp.path()), ["documents"], "nothing left beside it");
+}
+
+#[test]
+fn force_refuses_a_regular_file_and_leaves_it_where_it_was() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let file = tmp.path().join("report.pdf");
+    std::fs::write(&file, "%PDF-1.7 precious").expect("write");
+    for attempt in 0..2 {
+        let (ok, _, stderr) = run_build(&file, &["--force"]);
+        assert!(!ok, "attempt {attempt}: a regular file was replaced: {stderr}");
+        assert!(
+            stderr.contains("is not a tile database (a file of 17 bytes)"),
+            "attempt {attempt}: {stderr}"
+        );
+        assert_eq!(
+            std::fs::read_to_string(&file).expect("kept"),
+            "%PDF-1.7 precious"
+        );
+        assert_eq!(entries(tmp.path()), ["report.pdf"], "attempt {attempt}");
+    }
+}
+
+#[test]
+fn force_replaces_a_database_and_an_empty_directory() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    std::fs::create_dir(&out).expect("mkdir");
+    let (ok, _, stderr) = run_build(&out, &["--force"]);
+    assert!(ok, "an empty directory is replaced: {stderr}");
+    let (ok, _, stderr) = run_build(&out, &[]);
+    assert!(!ok && stderr.contains("pass --force"), "{stderr}");
+    let (ok, _, stderr) = run_build(&out, &["--force"]);
+    assert!(ok, "a database is replaced: {stderr}");
+    assert_eq!(entries(tmp.path()), ["db"]);
+    assert_eq!(
+        entries(&out),
+        ["heights.pack", "manifest.json", "textures.pack"]
+    );
+}
+
+#[test]
+fn an_error_cause_is_printed_once() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    // A parent that is a file: the output directory cannot be created under it.
+    let blocker = tmp.path().join("blocker");
+    std::fs::write(&blocker, "x").expect("write");
+    let (ok, _, stderr) = run_build(&blocker.join("db"), &[]);
+    assert!(!ok);
+    let cause = "Not a directory";
+    assert_eq!(
+        stderr.matches(cause).count(),
+        1,
+        "the cause appears once: {stderr}"
+    );
+}
+
+fn empty_manifest() -> Manifest {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = terrain_tests::data::build_jacksboro(tmp.path());
+    let db = terrain_server::db::TileDb::open(&report.out, terrain_server::db::Verify::SizesOnly)
+        .expect("opens");
+    let mut manifest = db.manifest().clone();
+    manifest.tiles.clear();
+    manifest
+}
+
+/// Two builds to one output: the first to finish wins, the second says so plainly and
+/// leaves nothing behind (no `.building-*`, no half-replaced database).
+#[test]
+fn the_second_of_two_racing_builds_says_what_happened() {
+    let manifest = empty_manifest();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    let first = DbWriter::create(&out, false).expect("first");
+    let second = DbWriter::create(&out, false).expect("second");
+    first.finish(&manifest).expect("the first finishes");
+    let error = second.finish(&manifest).expect_err("the second is refused");
+    assert!(matches!(error, WriteError::AppearedMeanwhile(_)), "{error:?}");
+    let message = error.to_string();
+    assert!(
+        message.contains("appeared while this build ran") && !message.contains("os error"),
+        "{message}"
+    );
+    assert_eq!(entries(tmp.path()), ["db"]);
+    let kept: PathBuf = out.join("manifest.json");
+    assert!(kept.exists(), "the first build's database stays");
+}
+
+/// `terrain-server build … | true`: the reader is gone before the summary is printed.
+#[test]
+fn a_closed_stdout_ends_a_build_quietly() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    let mut child = std::process::Command::new(terrain_tests::data::workspace_binary(
+        "terrain-server",
+    ))
+    .args(build_args(&out, &[]))
+    .stdout(std::process::Stdio::piped())
+    .stderr(std::process::Stdio::piped())
+    .spawn()
+    .expect("spawns");
+    drop(child.stdout.take());
+    let output = child.wait_with_output().expect("waits");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "{:?}: {stderr}",
+        output.status.code()
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(out.join("manifest.json").exists(), "the build was completed");
+}
+
+/// Logs written to a file (not a terminal) carry no colour escape codes.
+#[test]
+fn logs_to_a_file_have_no_colour_codes() {
+    use std::io::{BufRead, BufReader};
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = terrain_tests::data::build_jacksboro(tmp.path());
+    let log = tmp.path().join("server.log");
+    let mut child = std::process::Command::new(terrain_tests::data::workspace_binary(
+        "terrain-server",
+    ))
+    .arg("serve")
+    .arg(&report.out)
+    .args(["--addr", "127.0.0.1:0"])
+    .stdout(std::process::Stdio::piped())
+    .stderr(std::fs::File::create(&log).expect("log file"))
+    .spawn()
+    .expect("spawns");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("listening line");
+    assert!(line.starts_with("listening on http://"), "{line}");
+    let _ = child.kill();
+    let _ = child.wait();
+    let text = std::fs::read_to_string(&log).expect("log");
+    assert!(
+        text.contains("database opened"),
+        "the log has the start line: {text}"
+    );
+    assert!(!text.contains('\u{1b}'), "escape codes in a log file: {text:?}");
+}
