@@ -69,11 +69,21 @@ pub enum Verify {
     SizesOnly,
 }
 
-/// One stored object ready to send: the bytes (a slice of the map) and its content hash.
+/// One stored object ready to send: the bytes (a slice of the map), its content hash and
+/// that hash as a strong entity tag (`"hash"`), made once here rather than per request.
 #[derive(Debug, Clone)]
 pub struct StoredBlob {
     pub bytes: Bytes,
     pub hash: String,
+    /// `None` when the hash is not a valid tag (only in a damaged manifest).
+    pub etag: Option<axum::http::HeaderValue>,
+}
+
+/// `hash` as a strong entity tag header value.
+pub fn strong_etag(hash: &str) -> Option<axum::http::HeaderValue> {
+    let tag = format!("\"{hash}\"");
+    tag.parse::<headers::ETag>().ok()?;
+    axum::http::HeaderValue::from_str(&tag).ok()
 }
 
 /// An opened, checked database. Cheap to share behind an `Arc`.
@@ -82,7 +92,10 @@ pub struct TileDb {
     dir: PathBuf,
     manifest: Manifest,
     manifest_json: Bytes,
+    /// The manifest gzipped once at open, served to clients that accept gzip.
+    manifest_gzip: Bytes,
     manifest_hash: String,
+    manifest_etag: Option<axum::http::HeaderValue>,
     heights: Vec<StoredBlob>,
     /// Per tile, its texture levels coarsest first.
     textures: Vec<Vec<StoredBlob>>,
@@ -132,8 +145,14 @@ impl TileDb {
             .map(|_| flat.by_ref().take(levels).collect())
             .collect();
 
+        let manifest_gzip = gzip(&manifest_json).map_err(|source| DbError::Io {
+            path: manifest_path.clone(),
+            source,
+        })?;
         Ok(TileDb {
             dir: dir.to_path_buf(),
+            manifest_gzip: Bytes::from(manifest_gzip),
+            manifest_etag: strong_etag(&content_hash(&manifest_json)),
             manifest_hash: content_hash(&manifest_json),
             manifest,
             manifest_json: Bytes::from(manifest_json),
@@ -153,6 +172,17 @@ impl TileDb {
     /// The manifest exactly as stored, for serving.
     pub fn manifest_json(&self) -> &Bytes {
         &self.manifest_json
+    }
+
+    /// The manifest gzipped (once, when the database was opened): a large manifest costs
+    /// tens of milliseconds of CPU to compress, too much to spend per request.
+    pub fn manifest_gzip(&self) -> &Bytes {
+        &self.manifest_gzip
+    }
+
+    /// [`Self::manifest_hash`] as a strong entity tag.
+    pub fn manifest_etag(&self) -> Option<&axum::http::HeaderValue> {
+        self.manifest_etag.as_ref()
     }
 
     /// Content hash of [`Self::manifest_json`], for its entity tag.
@@ -232,6 +262,7 @@ fn slice_pack<'a>(
         out.push(StoredBlob {
             bytes,
             hash: blob.hash.clone(),
+            etag: strong_etag(&blob.hash),
         });
     }
     Ok(out)
@@ -301,6 +332,17 @@ pub fn check_output(out: &Path, force: bool) -> Result<(), WriteError> {
         )));
     }
     Ok(())
+}
+
+/// `bytes` gzipped at the best compression: it is done once per database open.
+fn gzip(bytes: &[u8]) -> std::io::Result<Vec<u8>> {
+    use std::io::Write;
+    let mut encoder = flate2::write::GzEncoder::new(
+        Vec::with_capacity(bytes.len() / 4),
+        flate2::Compression::best(),
+    );
+    encoder.write_all(bytes)?;
+    encoder.finish()
 }
 
 /// Why a database could not be written.

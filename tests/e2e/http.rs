@@ -967,3 +967,260 @@ async fn a_request_slower_than_the_request_timeout_gets_503() {
         started.elapsed()
     );
 }
+
+/// A raw request line (any form of request target) on a fresh connection; returns the
+/// response head.
+async fn raw_head(server: &TestServer, request: &str) -> String {
+    let mut stream = TcpStream::connect(server.addr())
+        .await
+        .expect("cannot connect");
+    stream
+        .write_all(request.as_bytes())
+        .await
+        .expect("cannot send the request");
+    let mut received = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(5), stream.read_to_end(&mut received)).await;
+    let text = String::from_utf8_lossy(&received).into_owned();
+    text.split("\r\n\r\n").next().unwrap_or("").to_string()
+}
+
+#[tokio::test]
+async fn a_tile_url_has_one_spelling_no_query_string_and_no_percent_encoding() {
+    let db = synthetic();
+    let server = TestServer::start(db.dir());
+    let client = reqwest::Client::new();
+    let v = &db.manifest().content_version;
+    let heights = routes::heights(v, TileId::new(1, 0));
+    let texture = routes::texture(v, TileId::new(1, 0), 0);
+    assert_eq!(get(&client, &server.url(&heights)).await.status, 200);
+    assert_eq!(get(&client, &server.url(&texture)).await.status, 200);
+    for respelled in [
+        format!("{heights}?v=2"),
+        format!("{heights}?"),
+        format!("{texture}?cache-buster=1"),
+        heights.replace("/tiles/1/", "/tiles/%31/"),
+        texture.replace("/texture/0", "/texture/%30"),
+    ] {
+        let answer = get(&client, &server.url(&respelled)).await;
+        assert_eq!(answer.status, 400, "{respelled} was served");
+        let (message, _) = answer.json_error();
+        assert!(message.contains("one spelling"), "{respelled}: {message}");
+    }
+    // Routing matches the path as sent, so a respelled fixed segment matches no route.
+    let answer = get(&client, &server.url(&heights.replace("/heights", "/h%65ights"))).await;
+    assert_eq!(answer.status, 404);
+    // The absolute form of the same request target is the same URL (RFC 9112 section
+    // 3.2.2: a server must accept it, and the target URI, which caches key on, is the one
+    // the origin form names), so it is answered, with the same entity tag.
+    let origin = raw_head(
+        &server,
+        &format!("GET {heights} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n"),
+    )
+    .await;
+    let absolute = raw_head(
+        &server,
+        &format!(
+            "GET http://{}{heights} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n",
+            server.addr()
+        ),
+    )
+    .await;
+    assert!(absolute.starts_with("HTTP/1.1 200"), "{absolute}");
+    let etag = |head: &str| {
+        head.lines()
+            .find(|l| l.to_ascii_lowercase().starts_with("etag:"))
+            .map(str::to_string)
+    };
+    assert_eq!(etag(&absolute), etag(&origin));
+    assert!(etag(&origin).is_some(), "{origin}");
+}
+
+#[tokio::test]
+async fn the_gzipped_manifest_is_the_one_compressed_at_open() {
+    let db = synthetic();
+    let server = TestServer::start(db.dir());
+    let client = reqwest::Client::new();
+    let stored = server.state().db.manifest_gzip().clone();
+    for _ in 0..3 {
+        let answer = fetch(
+            &client,
+            Method::GET,
+            &server.url(routes::MANIFEST),
+            &[("accept-encoding", "gzip")],
+        )
+        .await;
+        assert_eq!(answer.header("content-encoding"), "gzip");
+        // Compressed per request, a body would be streamed (chunked, no length); the stored
+        // bytes go out whole, with their length.
+        assert_eq!(answer.header("content-length"), stored.len().to_string());
+        assert!(answer.body == stored, "the body is the stored gzip");
+    }
+    let refused = fetch(
+        &client,
+        Method::GET,
+        &server.url(routes::MANIFEST),
+        &[("accept-encoding", "gzip;q=0, *")],
+    )
+    .await;
+    assert_eq!(refused.header("content-encoding"), "");
+    assert_eq!(refused.header("vary"), "accept-encoding");
+}
+
+#[tokio::test]
+async fn a_client_that_never_reads_is_cut_off_by_the_write_timeout() {
+    const LARGE: usize = 48 << 20;
+    let db =
+        SyntheticDb::write_with_large_texture(LARGE).expect("cannot write the synthetic database");
+    let timeout = Duration::from_millis(500);
+    let server = TestServer::start_with(
+        db.dir(),
+        ServeOptions {
+            write_timeout: timeout,
+            ..ServeOptions::default()
+        },
+    );
+    let (id, level) = LARGE_TEXTURE;
+    let path = routes::texture(&db.manifest().content_version, id, level);
+    let mut stream = TcpStream::connect(server.addr())
+        .await
+        .expect("cannot connect");
+    let (head, mut body) = send_raw_request(&mut stream, &path).await;
+    assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+    // The client stops reading; well past the timeout, it reads what was sent: the socket
+    // buffers' worth, then the end of a connection the server gave up on.
+    tokio::time::sleep(timeout * 6).await;
+    let mut chunk = vec![0u8; 1 << 16];
+    let ended = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            match stream.read(&mut chunk).await {
+                Ok(0) | Err(_) => break,
+                Ok(n) => body.extend_from_slice(&chunk[..n]),
+            }
+        }
+    })
+    .await;
+    assert!(ended.is_ok(), "the connection stayed open");
+    assert!(
+        body.len() < LARGE,
+        "the whole body arrived ({} bytes): nothing was cut off",
+        body.len()
+    );
+    let client = reqwest::Client::new();
+    let metrics =
+        String::from_utf8(get(&client, &server.url(routes::METRICS)).await.body).expect("text");
+    assert_eq!(
+        sample(
+            &metrics,
+            "http_connections_closed_by_server_total",
+            "reason=\"write_timeout\""
+        ),
+        1.0,
+        "{metrics}"
+    );
+}
+
+#[tokio::test]
+async fn when_every_slot_is_taken_the_oldest_idle_connection_makes_room() {
+    let db = synthetic();
+    let slots = 32;
+    let server = TestServer::start_with(
+        db.dir(),
+        ServeOptions {
+            max_connections: slots,
+            ..ServeOptions::default()
+        },
+    );
+    // Every slot held by a connection that sends nothing (the default idle timeout, 10 s,
+    // would keep each for that long).
+    let mut idle = Vec::new();
+    for _ in 0..slots + 8 {
+        idle.push(
+            TcpStream::connect(server.addr())
+                .await
+                .expect("cannot connect"),
+        );
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let client = reqwest::Client::new();
+    let started = Instant::now();
+    let answer = tokio::time::timeout(
+        Duration::from_secs(5),
+        get(&client, &server.url(routes::HEALTHZ)),
+    )
+    .await
+    .expect("a new client is served while idle connections hold every slot");
+    assert_eq!(answer.status, 200);
+    assert!(
+        started.elapsed() < Duration::from_secs(2),
+        "served after {:?}",
+        started.elapsed()
+    );
+    let metrics =
+        String::from_utf8(get(&client, &server.url(routes::METRICS)).await.body).expect("text");
+    assert!(
+        sample(
+            &metrics,
+            "http_connections_closed_by_server_total",
+            "reason=\"evicted\""
+        ) >= 8.0,
+        "{metrics}"
+    );
+    drop(idle);
+}
+
+#[tokio::test]
+async fn http2_with_prior_knowledge_is_served() {
+    let db = synthetic();
+    let server = TestServer::start(db.dir());
+    let client = reqwest::Client::builder()
+        .http2_prior_knowledge()
+        .build()
+        .expect("client");
+    let v = &db.manifest().content_version;
+    let id = TileId::new(0, 0);
+    let response = client
+        .get(server.url(&routes::heights(v, id)))
+        .send()
+        .await
+        .expect("an h2c request is answered");
+    assert_eq!(response.version(), reqwest::Version::HTTP_2);
+    assert_eq!(response.status(), 200);
+    let body = response.bytes().await.expect("body");
+    assert!(body.as_ref() == db.heights(id));
+}
+
+#[tokio::test]
+async fn heads_too_large_for_the_server_are_answered_and_counted() {
+    let db = synthetic();
+    let server = TestServer::start(db.dir());
+    let long_uri = format!("/{}", "a".repeat(70_000));
+    let head = raw_head(
+        &server,
+        &format!("GET {long_uri} HTTP/1.1\r\nHost: test\r\n\r\n"),
+    )
+    .await;
+    assert!(head.starts_with("HTTP/1.1 414"), "{head}");
+    let head = raw_head(
+        &server,
+        &format!(
+            "GET /healthz HTTP/1.1\r\nHost: test\r\nX-Big: {}\r\n\r\n",
+            "b".repeat(500_000)
+        ),
+    )
+    .await;
+    assert!(head.starts_with("HTTP/1.1 431"), "{head}");
+    let client = reqwest::Client::new();
+    let metrics =
+        String::from_utf8(get(&client, &server.url(routes::METRICS)).await.body).expect("text");
+    for status in [414, 431] {
+        assert_eq!(
+            sample(
+                &metrics,
+                "http_requests_total",
+                &format!("route=\"unmatched\",status=\"{status}\"")
+            ),
+            1.0,
+            "{status}: {metrics}"
+        );
+    }
+}

@@ -28,16 +28,22 @@ pub struct ServeArgs {
     /// databases, but a damaged blob would be served).
     #[arg(long)]
     pub no_verify: bool,
-    /// Seconds a client has to send its request head; also the keep-alive idle timeout.
+    /// Seconds a connection may go without a request in progress: to send its request head
+    /// after connecting, and between requests (the keep-alive idle timeout).
     #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_HEADER_READ_TIMEOUT.as_secs_f64(), value_parser = seconds)]
     pub header_read_timeout: f64,
+    /// Seconds a response may make no progress (the client not reading) before its
+    /// connection is closed.
+    #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_WRITE_TIMEOUT.as_secs_f64(), value_parser = seconds)]
+    pub write_timeout: f64,
     /// Seconds from routing a request to its response head before it is answered 503.
     #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_REQUEST_TIMEOUT.as_secs_f64(), value_parser = seconds)]
     pub request_timeout: f64,
     /// Requests handled at once; more are refused with 503 instead of queued.
     #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONCURRENT_REQUESTS)]
     pub max_concurrent_requests: usize,
-    /// Connections open at once; more wait in the kernel's accept backlog.
+    /// Connections open at once. When all are taken, the oldest with no request in progress
+    /// is closed to make room; when every one is busy, new ones wait in the accept backlog.
     #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONNECTIONS)]
     pub max_connections: usize,
     /// Seconds shutdown waits for responses in flight after SIGINT or SIGTERM.
@@ -52,6 +58,7 @@ impl ServeArgs {
     pub fn options(&self) -> ServeOptions {
         ServeOptions {
             header_read_timeout: Duration::from_secs_f64(self.header_read_timeout),
+            write_timeout: Duration::from_secs_f64(self.write_timeout),
             request_timeout: Duration::from_secs_f64(self.request_timeout),
             max_concurrent_requests: self.max_concurrent_requests,
             max_connections: self.max_connections,

@@ -26,6 +26,13 @@ pub enum HttpError {
     /// The path could not be split into its parameters (e.g. invalid percent-encoding).
     #[error("malformed path: {reason}")]
     MalformedPath { reason: String },
+    /// A tile URL spelled another way than the one the API gives it: each tile has one
+    /// URL, so a cache in front of the server cannot be filled or bypassed by respelling.
+    #[error("{reason}; a tile URL has one spelling: {canonical}")]
+    NotCanonical {
+        reason: &'static str,
+        canonical: &'static str,
+    },
     #[error("tile {id} is outside the {columns}x{rows} grid")]
     TileOutsideGrid { id: TileId, columns: u32, rows: u32 },
     #[error("tile {id} has texture levels 0 to {last}, not {level}")]
@@ -53,9 +60,9 @@ pub enum HttpError {
 impl HttpError {
     pub fn status(&self) -> StatusCode {
         match self {
-            HttpError::MalformedNumber { .. } | HttpError::MalformedPath { .. } => {
-                StatusCode::BAD_REQUEST
-            }
+            HttpError::MalformedNumber { .. }
+            | HttpError::MalformedPath { .. }
+            | HttpError::NotCanonical { .. } => StatusCode::BAD_REQUEST,
             HttpError::TileOutsideGrid { .. }
             | HttpError::NoSuchTextureLevel { .. }
             | HttpError::UnknownContentVersion { .. }

@@ -37,19 +37,46 @@ pub const UNMATCHED_ROUTE: &str = "unmatched";
 
 #[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RouteLabels {
-    route: String,
+    route: &'static str,
 }
 
 #[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RouteStatusLabels {
-    route: String,
+    route: &'static str,
     status: u16,
 }
 
+/// The route template as a label that costs no allocation per request. Templates are a
+/// fixed set (the router's routes); each is made `'static` the first time it is seen and
+/// kept for the life of the process.
+fn route_label(template: &str) -> &'static str {
+    static SEEN: std::sync::RwLock<Vec<&'static str>> = std::sync::RwLock::new(Vec::new());
+    let known = |seen: &[&'static str]| seen.iter().copied().find(|t| *t == template);
+    if let Some(label) = known(&SEEN.read().unwrap_or_else(std::sync::PoisonError::into_inner)) {
+        return label;
+    }
+    let mut seen = SEEN
+        .write()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    if let Some(label) = known(&seen) {
+        return label;
+    }
+    // Bounded: `MatchedPath` only ever holds one of the router's templates.
+    let label: &'static str = Box::leak(template.to_owned().into_boxed_str());
+    seen.push(label);
+    label
+}
+
 /// The server's counters, shared by every request through [`AppState`].
+#[derive(Debug, Clone, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ReasonLabels {
+    reason: &'static str,
+}
+
 #[derive(Debug)]
 pub struct Metrics {
     registry: Registry,
+    closed: Family<ReasonLabels, Counter>,
     requests: Family<RouteStatusLabels, Counter>,
     body_bytes: Family<RouteStatusLabels, Counter>,
     latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
@@ -70,7 +97,13 @@ impl Metrics {
             latency_histogram,
         );
         let in_flight = Gauge::default();
+        let closed = Family::<ReasonLabels, Counter>::default();
         let mut registry = Registry::default();
+        registry.register(
+            "http_connections_closed_by_server",
+            "Connections the server closed itself: idle, evicted to make room, write timeout",
+            closed.clone(),
+        );
         registry.register(
             "http_requests",
             "HTTP requests answered, by route template and status",
@@ -93,6 +126,7 @@ impl Metrics {
         );
         Metrics {
             registry,
+            closed,
             requests,
             body_bytes,
             latency,
@@ -101,6 +135,26 @@ impl Metrics {
     }
 
     /// The whole registry in the OpenMetrics text format.
+    /// A request head that hyper answered itself (400, 414, 431) before any route saw it:
+    /// counted under the [`UNMATCHED_ROUTE`] label.
+    pub fn refused_head(&self, status: u16) {
+        self.requests
+            .get_or_create(&RouteStatusLabels {
+                route: UNMATCHED_ROUTE,
+                status,
+            })
+            .inc();
+    }
+
+    /// A connection the server closed itself.
+    pub fn connection_closed(&self, reason: super::serve::CloseReason) {
+        self.closed
+            .get_or_create(&ReasonLabels {
+                reason: reason.label(),
+            })
+            .inc();
+    }
+
     pub fn encode(&self) -> Result<String, std::fmt::Error> {
         let mut text = String::new();
         prometheus_client::encoding::text::encode(&mut text, &self.registry)?;
@@ -122,8 +176,8 @@ pub(super) async fn observe(
 ) -> Response {
     let started = Instant::now();
     let route = match request.extensions().get::<MatchedPath>() {
-        Some(path) => path.as_str().to_owned(),
-        None => UNMATCHED_ROUTE.to_owned(),
+        Some(path) => route_label(path.as_str()),
+        None => UNMATCHED_ROUTE,
     };
     let method = request.method().clone();
     let span = tracing::debug_span!("request", %method, %route);

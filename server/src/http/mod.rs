@@ -10,10 +10,7 @@
 //!
 //! 1. metrics and tracing, so every answer is counted, 503s from shedding included;
 //! 2. CORS, so error answers carry the CORS headers too and browsers can read them;
-//! 3. ETag weakening, then gzip (for JSON only): gzip makes a different representation,
-//!    which must not share the identity body's *strong* tag (RFC 9110 section 8.8.1; nginx
-//!    does the same);
-//! 4. only on the tile API: load shedding, the concurrency limit and the request timeout.
+//! 3. only on the tile API: load shedding, the concurrency limit and the request timeout.
 //!    `/healthz` and `/metrics` stay outside, so an overloaded server can still be watched.
 //!
 //! **Invariant:** nothing from a URL is used as a file path; every lookup goes through
@@ -36,15 +33,12 @@ pub use serve::{ServeOptions, serve, shutdown_signal};
 use crate::db::TileDb;
 use axum::Router;
 use axum::error_handling::HandleErrorLayer;
-use axum::http::{Extensions, HeaderMap, HeaderValue, Method, StatusCode, Version, header};
-use axum::response::Response;
+use axum::http::{Method, header};
 use axum::routing::get;
 use std::sync::Arc;
 use terrain_shared::TileId;
 use terrain_shared::routes::{HEALTHZ, MANIFEST, METRICS};
 use tower::ServiceBuilder;
-use tower_http::compression::CompressionLayer;
-use tower_http::compression::predicate::{Predicate, SizeAbove};
 use tower_http::cors::{Any, CorsLayer};
 
 /// Everything a request may need, shared by all of them.
@@ -135,9 +129,7 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
                     Arc::clone(&state),
                     metrics::observe,
                 ))
-                .layer(cors())
-                .layer(axum::middleware::map_response(weaken_etag_when_encoded))
-                .layer(CompressionLayer::new().compress_when(json_only())),
+                .layer(cors()),
         )
         .with_state(state)
 }
@@ -161,36 +153,4 @@ fn cors() -> CorsLayer {
         .allow_headers([header::IF_NONE_MATCH])
         .expose_headers([header::ETAG])
         .max_age(std::time::Duration::from_secs(24 * 60 * 60))
-}
-
-/// Only JSON (the manifest, errors) is worth compressing: heights are zstd inside and
-/// textures are JPEG or PNG, so gzip would spend CPU to make them larger. Below 1 KiB
-/// (a short error body) the gzip framing outweighs the gain.
-fn json_only() -> impl Predicate {
-    const MIN_COMPRESSED_BYTES: u64 = 1024;
-    let is_json = |_: StatusCode, _: Version, headers: &HeaderMap, _: &Extensions| {
-        headers
-            .get(header::CONTENT_TYPE)
-            .and_then(|value| value.to_str().ok())
-            .is_some_and(|value| value.starts_with(routes::JSON_CONTENT_TYPE))
-    };
-    SizeAbove::new(MIN_COMPRESSED_BYTES).and(is_json)
-}
-
-/// A gzip body is a different representation from the stored bytes, so its entity tag
-/// is made weak (`W/"hash"`); `If-None-Match` compares weakly, so it still revalidates.
-async fn weaken_etag_when_encoded<B>(mut response: Response<B>) -> Response<B> {
-    if !response.headers().contains_key(header::CONTENT_ENCODING) {
-        return response;
-    }
-    let weak = response
-        .headers()
-        .get(header::ETAG)
-        .and_then(|tag| tag.to_str().ok())
-        .filter(|tag| tag.starts_with('"'))
-        .and_then(|tag| HeaderValue::from_str(&format!("W/{tag}")).ok());
-    if let Some(weak) = weak {
-        response.headers_mut().insert(header::ETAG, weak);
-    }
-    response
 }

@@ -17,7 +17,7 @@ use axum::body::Body;
 use axum::extract::rejection::PathRejection;
 use axum::extract::{FromRequestParts, Path, State};
 use axum::http::request::Parts;
-use axum::http::{HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, Uri, header};
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use headers::{ETag, HeaderMapExt, IfNoneMatch};
@@ -77,25 +77,77 @@ impl<S: Send + Sync> FromRequestParts<S> for Conditional {
     }
 }
 
+/// The manifest, gzipped when the client accepts gzip: the bytes compressed once when
+/// the database was opened, never per request. The gzip body is another representation of
+/// the same resource, so its entity tag is weak (`W/"hash"`, RFC 9110 section 8.8.1, as
+/// nginx does); `If-None-Match` compares weakly, so either tag revalidates either body.
 pub(super) async fn manifest(
     State(state): State<Arc<AppState>>,
     conditional: Conditional,
+    headers: HeaderMap,
 ) -> Response {
     let db = &state.db;
-    entity(
+    let gzipped = accepts_gzip(&headers);
+    let body = if gzipped {
+        db.manifest_gzip()
+    } else {
+        db.manifest_json()
+    };
+    let mut response = entity(
         &conditional,
-        db.manifest_json(),
-        db.manifest_hash(),
+        body,
+        db.manifest_etag(),
         JSON_CONTENT_TYPE,
         MANIFEST_CACHE_CONTROL,
-    )
+    );
+    let ok = response.status() == StatusCode::OK;
+    let headers = response.headers_mut();
+    headers.insert(header::VARY, HeaderValue::from_static("accept-encoding"));
+    if gzipped {
+        if ok {
+            headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("gzip"));
+        }
+        let weak = HeaderValue::from_str(&format!("W/\"{}\"", db.manifest_hash())).ok();
+        if let Some(weak) = weak {
+            headers.insert(header::ETAG, weak);
+        }
+    }
+    response
+}
+
+/// Whether `Accept-Encoding` accepts gzip (RFC 9110 section 12.5.3): `gzip`, `x-gzip` or
+/// `*`, with a q-value above zero. An explicit `gzip;q=0` refuses it even if `*` is listed.
+fn accepts_gzip(headers: &HeaderMap) -> bool {
+    let mut star = false;
+    for value in headers.get_all(header::ACCEPT_ENCODING) {
+        let Ok(value) = value.to_str() else { continue };
+        for item in value.split(',') {
+            let mut parts = item.split(';');
+            let coding = parts.next().unwrap_or("").trim().to_ascii_lowercase();
+            let refused = parts.any(|param| {
+                let param = param.trim().to_ascii_lowercase();
+                param
+                    .strip_prefix("q=")
+                    .and_then(|q| q.trim().parse::<f32>().ok())
+                    .is_some_and(|q| q <= 0.0)
+            });
+            match coding.as_str() {
+                "gzip" | "x-gzip" => return !refused,
+                "*" => star = !refused,
+                _ => {}
+            }
+        }
+    }
+    star
 }
 
 pub(super) async fn heights(
     State(state): State<Arc<AppState>>,
+    uri: Uri,
     path: Result<Path<HeightsPath>, PathRejection>,
     conditional: Conditional,
 ) -> Result<Response, HttpError> {
+    check_canonical(&uri, HEIGHTS_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.x, &path.y)?;
     state.check_content_version(&path.content_version)?;
@@ -103,7 +155,7 @@ pub(super) async fn heights(
     Ok(entity(
         &conditional,
         &blob.bytes,
-        &blob.hash,
+        blob.etag.as_ref(),
         HEIGHTS_CONTENT_TYPE,
         TILE_CACHE_CONTROL,
     ))
@@ -111,9 +163,11 @@ pub(super) async fn heights(
 
 pub(super) async fn texture(
     State(state): State<Arc<AppState>>,
+    uri: Uri,
     path: Result<Path<TexturePath>, PathRejection>,
     conditional: Conditional,
 ) -> Result<Response, HttpError> {
+    check_canonical(&uri, TEXTURE_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.x, &path.y)?;
     let level = parse_number("texture level", &path.level)?;
@@ -132,7 +186,7 @@ pub(super) async fn texture(
     Ok(entity(
         &conditional,
         &blob.bytes,
-        &blob.hash,
+        blob.etag.as_ref(),
         content_type,
         TILE_CACHE_CONTROL,
     ))
@@ -162,16 +216,18 @@ pub(super) async fn method_not_allowed() -> HttpError {
 fn entity(
     conditional: &Conditional,
     bytes: &Bytes,
-    hash: &str,
+    etag: Option<&HeaderValue>,
     content_type: &'static str,
     cache_control: &'static str,
 ) -> Response {
-    // Hashes are lowercase hex, so the quoted tag is always a valid entity tag and header
-    // value; a damaged manifest with any other hash still gets an answer, just no ETag.
-    let etag = format!("\"{hash}\"");
-    let parsed: Option<ETag> = etag.parse().ok();
-    let not_modified = match (&parsed, &conditional.0) {
-        (Some(etag), Some(if_none_match)) => !if_none_match.precondition_passes(etag),
+    // The tag was made when the database opened; it is parsed only to answer an
+    // `If-None-Match`. A damaged manifest's blob without a valid tag is still served.
+    let not_modified = match (etag, &conditional.0) {
+        (Some(etag), Some(if_none_match)) => etag
+            .to_str()
+            .ok()
+            .and_then(|tag| tag.parse::<ETag>().ok())
+            .is_some_and(|tag| !if_none_match.precondition_passes(&tag)),
         _ => false,
     };
     let mut response = if not_modified {
@@ -186,14 +242,37 @@ fn entity(
         response
     };
     let headers = response.headers_mut();
-    if let Some(etag) = parsed {
-        headers.typed_insert(etag);
+    if let Some(etag) = etag {
+        headers.insert(header::ETAG, etag.clone());
     }
     headers.insert(
         header::CACHE_CONTROL,
         HeaderValue::from_static(cache_control),
     );
     response
+}
+
+const HEIGHTS_SPELLING: &str = "/v1/{content_version}/tiles/{x}/{y}/heights, plain digits, no query";
+const TEXTURE_SPELLING: &str =
+    "/v1/{content_version}/tiles/{x}/{y}/texture/{level}, plain digits, no query";
+
+/// Refuses the spellings of a tile URL that routing alone would accept: a query string
+/// (ignored by the handler, but part of every cache's key) and percent-encoding (`%31` for
+/// `1`; no segment of a tile URL needs it). Coordinates are checked by [`parse_number`].
+fn check_canonical(uri: &Uri, canonical: &'static str) -> Result<(), HttpError> {
+    if uri.query().is_some() {
+        return Err(HttpError::NotCanonical {
+            reason: "tile URLs take no query string",
+            canonical,
+        });
+    }
+    if uri.path().contains('%') {
+        return Err(HttpError::NotCanonical {
+            reason: "tile URLs are never percent-encoded",
+            canonical,
+        });
+    }
+    Ok(())
 }
 
 fn parse_tile(x: &str, y: &str) -> Result<TileId, HttpError> {
@@ -253,6 +332,28 @@ mod tests {
         };
         assert_eq!(fill(heights_template()), routes::heights("abc", id));
         assert_eq!(fill(texture_template()), routes::texture("abc", id, 2));
+    }
+
+    #[test]
+    fn gzip_is_accepted_as_rfc_9110_reads() {
+        for (accept, expected) in [
+            ("gzip", true),
+            ("GZIP", true),
+            ("x-gzip", true),
+            ("deflate, gzip;q=0.5", true),
+            ("gzip;q=0", false),
+            ("gzip; q=0.0", false),
+            ("*", true),
+            ("*;q=0", false),
+            ("gzip;q=0, *", false),
+            ("br, zstd", false),
+            ("", false),
+        ] {
+            let mut headers = HeaderMap::new();
+            headers.insert(header::ACCEPT_ENCODING, HeaderValue::from_static(accept));
+            assert_eq!(accepts_gzip(&headers), expected, "{accept:?}");
+        }
+        assert!(!accepts_gzip(&HeaderMap::new()));
     }
 
     #[test]
