@@ -1395,6 +1395,44 @@ mod tests {
     }
 
     #[test]
+    fn a_new_manifest_keeps_the_tiles_whose_hashes_did_not_change_and_refuses_another_grid() {
+        let mut scene = scene(1 << 20);
+        arrive(&mut scene, 0, [1; 9]);
+        arrive(&mut scene, 1, [2; 9]);
+        let mut rebuilt = (*manifest()).clone();
+        rebuilt.content_version = "1".into();
+        rebuilt.tiles[1].heights = Blob::of(b"other heights");
+        assert_eq!(
+            scene.replace_manifest(Arc::new(rebuilt.clone())),
+            Reconciled::Kept {
+                kept: 1,
+                dropped: 1
+            }
+        );
+        assert_eq!(scene.resident_tiles(), 1);
+        assert_eq!(
+            scene.ground_under([5.0, 5.0, 100.0]),
+            Some(1.0),
+            "tile 0 kept"
+        );
+        assert_eq!(
+            scene.ground_under([31.0, 5.0, 100.0]),
+            None,
+            "tile 1 dropped"
+        );
+        assert_eq!(scene.manifest().content_version, "1");
+        assert_eq!(scene.resident_bytes(), 9 * 4 + 2);
+        // Another grid cannot be taken: the caller starts a new scene.
+        let mut reshaped = rebuilt;
+        reshaped.tile_size = 5;
+        assert_eq!(
+            scene.replace_manifest(Arc::new(reshaped)),
+            Reconciled::Reshaped
+        );
+        assert_eq!(scene.manifest().content_version, "1");
+    }
+
+    #[test]
     fn a_refused_tile_stops_the_scene_and_a_failed_request_does_not() {
         let mut scene = scene(1 << 20);
         let failed = |status: u16| FetchEvent::Failed {
