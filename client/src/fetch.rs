@@ -102,6 +102,13 @@ pub enum FetchError {
 }
 
 impl FetchError {
+    /// The error and every cause under it, joined by `: `, each once: what a log line or a
+    /// report needs (the variants' own messages leave their `#[source]` out, so that
+    /// `anyhow`'s `{:#}` does not print a cause twice).
+    pub fn chain(&self) -> String {
+        cause_chain(self)
+    }
+
     /// Whether the same request may succeed if tried again later: transport failures,
     /// timeouts, and the statuses that say "not now" (408, 429, 5xx). Everything else is
     /// a property of the request or the content and repeats on every attempt.
@@ -164,10 +171,25 @@ impl TileClient {
         format!("{}{path}", self.base)
     }
 
-    /// Fetches and validates the manifest.
+    /// Fetches and validates the manifest. The server tags it with its content hash (a
+    /// strong `ETag`); a body that does not match its tag was damaged on the way and is a
+    /// [`FetchError::HashMismatch`], worth fetching again, like a damaged tile.
     pub async fn manifest(&self) -> Result<Manifest, FetchError> {
         let url = self.url(routes::MANIFEST);
-        let body = self.get(&url).await?;
+        let (body, etag) = self.get_tagged(&url).await?;
+        // A weak tag (`W/"..."`) names another representation (compressed); only a strong
+        // one is the hash of these bytes.
+        if let Some(expected) = etag.as_deref().and_then(|tag| tag.strip_prefix('"')) {
+            let expected = expected.trim_end_matches('"');
+            let found = content_hash(&body);
+            if found != expected {
+                return Err(FetchError::HashMismatch {
+                    url,
+                    expected: expected.to_string(),
+                    found,
+                });
+            }
+        }
         Manifest::from_json(&body).map_err(|source| FetchError::Manifest { url, source })
     }
 
@@ -245,8 +267,13 @@ impl TileClient {
     }
 
     /// One GET; a 4xx/5xx becomes [`FetchError::Http`] carrying the server's error body.
-    #[tracing::instrument(level = "debug", skip(self), fields(status, bytes, ms))]
     async fn get(&self, url: &str) -> Result<Bytes, FetchError> {
+        self.get_tagged(url).await.map(|(body, _)| body)
+    }
+
+    /// [`TileClient::get`], with the response's `ETag` when it has one.
+    #[tracing::instrument(level = "debug", skip(self), fields(status, bytes, ms))]
+    async fn get_tagged(&self, url: &str) -> Result<(Bytes, Option<String>), FetchError> {
         let start = Instant::now();
         let transport = |source| FetchError::Transport {
             url: url.to_string(),
@@ -267,12 +294,33 @@ impl TileClient {
                 body,
             });
         }
+        let etag = response
+            .headers()
+            .get(reqwest::header::ETAG)
+            .and_then(|tag| tag.to_str().ok())
+            .map(str::to_string);
         let body = response.bytes().await.map_err(transport)?;
         span.record("bytes", body.len());
         span.record("ms", start.elapsed().as_millis() as u64);
         tracing::debug!("fetched");
-        Ok(body)
+        Ok((body, etag))
     }
+}
+
+/// `error` and every cause under it, joined by `: `. Causes whose text the one above
+/// already ends with (a wrapper repeating its source) are left out, so each shows once.
+pub fn cause_chain(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(error) = cause {
+        let line = error.to_string();
+        if !line.is_empty() && !text.ends_with(&line) {
+            text.push_str(": ");
+            text.push_str(&line);
+        }
+        cause = error.source();
+    }
+    text
 }
 
 /// Decodes heights fetched from `url` on tokio's blocking pool: a large tile takes

@@ -50,9 +50,10 @@ pub const DEFAULT_CORRUPT_ATTEMPTS: u32 = 2;
 /// How the fetcher schedules and retries.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FetcherConfig {
-    /// Requests running at once (each makes one HTTP request at a time); 0 counts as 1.
-    /// A request waiting out a backoff keeps its slot, so a struggling server never sees
-    /// more than this many requests from one client.
+    /// Requests running at once; 0 counts as 1. A [`Want::Tile`] request fetches its two
+    /// blobs side by side, any other one blob at a time, so a server sees at most twice
+    /// this many HTTP requests from one client. A request waiting out a backoff keeps its
+    /// slot, so a struggling server is not asked more while it struggles.
     pub concurrency: usize,
     /// Tries of one blob on transient failures (timeouts, refused or reset connections,
     /// bodies cut short, 5xx, 408, 429), the first included.
@@ -101,7 +102,7 @@ pub enum FetchEvent {
         coarsest_texture: Bytes,
         /// Tries of the blob that needed most (1: nothing was retried).
         attempts: u32,
-        /// From the request's start to its end: its GETs one after the other (with any
+        /// From the request's start to its end: its two GETs side by side (with any
         /// backoff between tries) and the decoding.
         elapsed: Duration,
         /// Decoding the heights, on the blocking pool.
@@ -212,6 +213,25 @@ impl Fetcher {
             failures: 0,
             cancelled: 0,
         }
+    }
+
+    /// Fetches the server's manifest again ([`fetch_manifest`], with its retries).
+    pub async fn fetch_manifest(&self) -> Result<Manifest, FetchError> {
+        fetch_manifest(&self.client, &self.config).await
+    }
+
+    /// The manifest whose tiles this fetcher fetches.
+    pub fn manifest(&self) -> &Arc<Manifest> {
+        &self.manifest
+    }
+
+    /// Fetches `manifest`'s tiles from now on (the server's database was rebuilt): every
+    /// request queued or running is dropped, as by [`Fetcher::cancel`], since its URL names
+    /// content the server no longer serves.
+    pub fn replace_manifest(&mut self, manifest: Arc<Manifest>) {
+        let pending: Vec<TileId> = self.pending().collect();
+        self.cancel(&pending);
+        self.manifest = manifest;
     }
 
     /// The server's base URL, as the client normalised it.
@@ -440,6 +460,41 @@ pub fn backoff_delay(config: &FetcherConfig, retry: u32, random: u64) -> Duratio
     }
 }
 
+/// The server's manifest, tried like a tile's blob: transient failures (5xx, a body cut
+/// short, a reset) are retried with backoff up to [`FetcherConfig::max_attempts`] tries,
+/// a body that fails its hash or does not parse is fetched again up to
+/// [`FetcherConfig::corrupt_attempts`] times, and anything else (404: no server there) is
+/// reported at once. One bad response does not end a client that has only started.
+pub async fn fetch_manifest(
+    client: &TileClient,
+    config: &FetcherConfig,
+) -> Result<Manifest, FetchError> {
+    let jitter_seed = std::collections::hash_map::RandomState::new().hash_one(1u64);
+    let (mut tries, mut corrupt) = (0, 0);
+    loop {
+        tries += 1;
+        let error = match client.manifest().await {
+            Ok(manifest) => return Ok(manifest),
+            Err(error) => error,
+        };
+        let kind = FailureKind::of(&error);
+        if kind == FailureKind::Corrupt {
+            corrupt += 1;
+        }
+        if verdict(config, kind, tries, corrupt) == Verdict::GiveUp {
+            return Err(error);
+        }
+        let delay = backoff_delay(config, tries - 1, mix(jitter_seed ^ mix(u64::from(tries))));
+        tracing::warn!(
+            tries,
+            delay_ms = delay.as_millis() as u64,
+            "manifest: {}; trying again",
+            error.chain()
+        );
+        tokio::time::sleep(delay).await;
+    }
+}
+
 /// How a failed try is classified.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FailureKind {
@@ -457,7 +512,9 @@ impl FailureKind {
             return FailureKind::Transient;
         }
         match error {
-            FetchError::HashMismatch { .. } | FetchError::Decode { .. } => FailureKind::Corrupt,
+            FetchError::HashMismatch { .. }
+            | FetchError::Decode { .. }
+            | FetchError::Manifest { .. } => FailureKind::Corrupt,
             _ => FailureKind::Permanent,
         }
     }
@@ -623,8 +680,6 @@ impl Job {
     async fn run(&self) -> FetchEvent {
         let Request { id, want } = self.request;
         let started = Instant::now();
-        // The blobs of a Tile are fetched one after the other, so a request holds at most
-        // one HTTP request at a time and `concurrency` bounds the connections.
         let result = match want {
             Want::Tile => self.tile(started).await,
             Want::TextureLevel(level) => self
@@ -652,12 +707,15 @@ impl Job {
         })
     }
 
+    /// The heights and the coarsest texture level, fetched side by side: one after the
+    /// other, a tile took two round trips, and on a slow link (2 s a request) the viewpoint
+    /// had moved on before it landed.
     async fn tile(&self, started: Instant) -> Result<FetchEvent, (FetchError, u32)> {
-        let ((heights, heights_bytes, decode), heights_tries) =
-            self.with_retries(Part::Heights, || self.heights()).await?;
-        let (coarsest_texture, texture_tries) = self
-            .with_retries(Part::Texture(0), || self.texture(0))
-            .await?;
+        let (((heights, heights_bytes, decode), heights_tries), (coarsest_texture, texture_tries)) =
+            tokio::try_join!(
+                self.with_retries(Part::Heights, || self.heights()),
+                self.with_retries(Part::Texture(0), || self.texture(0)),
+            )?;
         Ok(FetchEvent::Tile {
             id: self.request.id,
             heights,

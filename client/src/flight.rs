@@ -23,11 +23,12 @@ use crate::method::CrackFiller;
 use crate::method::MethodKind;
 use crate::path::{CameraPath, PathError};
 use crate::render::{Camera, Gpu, GpuError, Offscreen};
-use crate::scene::{RenderConfig, Scene};
+use crate::scene::{Reconciled, RenderConfig, Scene, SceneError};
 use std::fmt;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use terrain_shared::Manifest;
 use thiserror::Error;
 
 pub use crate::scene::expected_tile_bytes;
@@ -299,7 +300,7 @@ pub enum FlightError {
     Gpu(#[from] GpuError),
     #[error(transparent)]
     Scene(#[from] crate::scene::SceneError),
-    #[error("cannot write {path}: {source}")]
+    #[error("cannot write {path}")]
     Write {
         path: PathBuf,
         source: std::io::Error,
@@ -310,6 +311,22 @@ pub enum FlightError {
     Chart(#[from] crate::charts::ChartError),
     #[error("invalid option: {0}")]
     BadOption(String),
+    /// Not one tile arrived: a flight of empty frames is no result.
+    #[error(
+        "no tile arrived in {wall_s:.1} s of flight ({requests} HTTP requests, {failures} failed, \
+         {cancelled} cancelled before they landed{last}); flight.csv and the charts in {} \
+         show the frames",
+        out.display(),
+        last = last_failure.as_ref().map(|e| format!("; last failure: {e}")).unwrap_or_default()
+    )]
+    NothingLoaded {
+        wall_s: f64,
+        requests: u64,
+        failures: u64,
+        cancelled: u64,
+        last_failure: Option<String>,
+        out: PathBuf,
+    },
 }
 
 pub use crate::record::{CSV_HEADER, FrameRecord, RenderRecord, windowed_fps};
@@ -399,8 +416,18 @@ pub struct FlightSummary {
     pub tiles_fetched: u64,
     pub bytes_downloaded: u64,
     pub evicted_unused_bytes: u64,
+    /// Request attempts repeated: after transient failures, corrupt bodies, and tiles
+    /// asked for again after a failed request.
     pub retries: u64,
     pub failures: u64,
+    /// Tiles given up after repeated failures, with the last failure of each.
+    pub unavailable: Vec<crate::scene::UnavailableTile>,
+    /// Times the server's content changed under the flight (its database was rebuilt), and
+    /// what that did to the resident tiles.
+    pub content_changes: Vec<ContentChange>,
+    /// The largest tile's bytes, when the memory limit is below it: that tile alone
+    /// exceeds the limit whenever it is current.
+    pub limit_below_one_tile: Option<u64>,
     /// Peak resident set size of this process (VmHWM), when the OS reports it.
     pub peak_rss_bytes: Option<u64>,
     /// The adapter, when the flight rendered.
@@ -441,6 +468,24 @@ impl fmt::Display for FlightSummary {
             self.retries,
             self.failures
         )?;
+        if let Some(tile_bytes) = self.limit_below_one_tile {
+            writeln!(
+                f,
+                "  warning   the limit of {:.2} MiB is below one tile ({:.2} MiB): the current tile alone exceeds it",
+                mib(self.memory_limit_bytes),
+                mib(tile_bytes)
+            )?;
+        }
+        for change in &self.content_changes {
+            writeln!(f, "  content   {change}")?;
+        }
+        for tile in &self.unavailable {
+            writeln!(
+                f,
+                "  missing   tile {} given up after {} failed requests: {}",
+                tile.id, tile.failures, tile.error
+            )?;
+        }
         if let Some(adapter) = &self.adapter {
             writeln!(f, "  adapter   {adapter}")?;
         }
@@ -483,6 +528,34 @@ impl fmt::Display for FlightSummary {
             )?;
         }
         writeln!(f)
+    }
+}
+
+/// The server's content changed during a flight: a new content version.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ContentChange {
+    pub frame: u64,
+    pub from: String,
+    pub to: String,
+    /// Resident tiles kept (same hashes) and dropped; `None` when the grid changed shape
+    /// and paging started again from nothing.
+    pub kept_dropped: Option<(u64, u64)>,
+}
+
+impl fmt::Display for ContentChange {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "frame {}: content version {} replaced {}; ",
+            self.frame, self.to, self.from
+        )?;
+        match self.kept_dropped {
+            Some((kept, dropped)) => write!(
+                f,
+                "{kept} resident tiles kept (unchanged), {dropped} dropped"
+            ),
+            None => write!(f, "the grid changed shape, paging started again"),
+        }
     }
 }
 
@@ -558,18 +631,37 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         Some((gpu, target, _)) => (Some(target), Some(gpu.description())),
         None => (None, None),
     };
-    let mut scene = connection.scene(
-        budget.limit_bytes(),
-        !args.no_nearest_when_outside,
+    let scene_render = || {
         render.as_ref().map(|(gpu, _, config)| {
             (
                 gpu.clone(),
                 crate::render::offscreen::OFFSCREEN_FORMAT,
                 *config,
             )
-        }),
+        })
+    };
+    let mut scene = connection.scene(
+        budget.limit_bytes(),
+        !args.no_nearest_when_outside,
+        scene_render(),
     );
     let mut fetcher = connection.fetcher;
+    let limit_below_one_tile = scene
+        .largest_tile()
+        .filter(|&(_, bytes)| bytes > budget.limit_bytes())
+        .map(|(id, bytes)| {
+            tracing::warn!(
+                "the memory limit of {} bytes ({:.0}% of --memory) is below one tile: tile {id} \
+                 holds {bytes} bytes, so the current tile alone will exceed the limit",
+                budget.limit_bytes(),
+                budget.limit_percent
+            );
+            bytes
+        });
+    let mut content_changes = Vec::new();
+    let mut last_failure = None;
+    // A failure that stops the flight; the frames flown so far are still written.
+    let mut stopped: Option<FlightError> = None;
     let started = Instant::now();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.fps));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -588,7 +680,44 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         let frame_started = Instant::now();
         let time_s = frame as f64 / args.fps;
         let position = path.position_at(time_s);
-        let update = scene.update(&mut fetcher, frame, position)?;
+        let update = match scene.update(&mut fetcher, frame, position) {
+            Ok(update) => update,
+            Err(SceneError::TileFailed { id, message }) => {
+                // A tile refused (404) is what a client sees when the server's database
+                // was rebuilt: its URLs name the old content version. The manifest says
+                // whether that is so.
+                last_failure = Some(message.clone());
+                match reload_content(&mut scene, &mut fetcher, frame).await {
+                    Ok(Some((change, reshaped))) => {
+                        if let Some(manifest) = reshaped {
+                            let pager = crate::page::PagerConfig {
+                                columns: manifest.grid.columns,
+                                rows: manifest.grid.rows,
+                                memory_limit: budget.limit_bytes(),
+                                nearest_when_outside: !args.no_nearest_when_outside,
+                            };
+                            scene = Scene::new(manifest, pager, scene_render());
+                        }
+                        content_changes.push(change);
+                        match scene.update(&mut fetcher, frame, position) {
+                            Ok(update) => update,
+                            Err(error) => {
+                                stopped = Some(error.into());
+                                break;
+                            }
+                        }
+                    }
+                    Ok(None) => {
+                        stopped = Some(SceneError::TileFailed { id, message }.into());
+                        break;
+                    }
+                    Err(error) => {
+                        stopped = Some(error.into());
+                        break;
+                    }
+                }
+            }
+        };
         let update_ms = frame_started.elapsed().as_secs_f64() * 1e3;
         yaw = heading(&path, time_s, yaw);
         let camera = Camera::new(position, yaw, args.render.pitch_deg.to_radians());
@@ -639,7 +768,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             gpu_bytes: scene.gpu_bytes(),
             bytes_downloaded: stats.bytes_downloaded,
             in_flight: scene.in_flight(),
-            retries: stats.retries,
+            retries: retries(&stats, &scene),
             evicted_unused_bytes: scene.evicted_unused_bytes,
             texture_budget_bytes: update.texture_budget,
             render: render_record,
@@ -664,7 +793,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         records.push(record);
     }
     bar.finish_and_clear();
-    fetcher.cancel(&manifest.tiles.iter().map(|t| t.id()).collect::<Vec<_>>());
+    let pending: Vec<_> = fetcher.pending().collect();
+    fetcher.cancel(&pending);
 
     let csv = args.out.join("flight.csv");
     let mut text = String::with_capacity(records.len() * 200);
@@ -684,6 +814,20 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     }
 
     let stats = fetcher.stats();
+    if let Some(error) = stopped {
+        return Err(error);
+    }
+    if scene.tiles_fetched == 0 && !manifest.tiles.is_empty() {
+        return Err(FlightError::NothingLoaded {
+            wall_s: started.elapsed().as_secs_f64(),
+            requests: stats.requests_started,
+            failures: stats.failures,
+            cancelled: stats.cancelled,
+            last_failure: last_failure
+                .or_else(|| scene.unavailable.last().map(|t| t.error.clone())),
+            out: args.out.clone(),
+        });
+    }
     let last = records.last().cloned();
     Ok(FlightSummary {
         dataset: manifest.dataset.clone(),
@@ -701,8 +845,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         tiles_fetched: scene.tiles_fetched,
         bytes_downloaded: stats.bytes_downloaded,
         evicted_unused_bytes: scene.evicted_unused_bytes,
-        retries: stats.retries,
+        retries: retries(&stats, &scene),
         failures: stats.failures,
+        unavailable: scene.unavailable.clone(),
+        content_changes,
+        limit_below_one_tile,
         peak_rss_bytes: peak_rss_bytes(),
         adapter,
         frame_rate: FrameRateSummary::of(&records),
@@ -710,6 +857,47 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         csv,
         charts,
     })
+}
+
+/// Request attempts repeated so far, as `flight.csv`'s `retries` counts them: the
+/// fetcher's retries after transient failures and refetches of corrupt bodies, and the
+/// scene's requests for tiles whose earlier request failed.
+fn retries(stats: &crate::fetcher::FetchStats, scene: &Scene) -> u64 {
+    stats.retries + stats.corrupt_refetches + scene.requests_repeated
+}
+
+/// After a tile was refused: fetches the manifest again and, when its content version
+/// changed, hands it to the fetcher and the scene. `None` when the content is the same
+/// (the refusal stands); with the change, the new manifest when the scene cannot take it
+/// (its grid changed shape) and a new scene must be made of it.
+async fn reload_content(
+    scene: &mut Scene,
+    fetcher: &mut crate::fetcher::Fetcher,
+    frame: u64,
+) -> Result<Option<(ContentChange, Option<Arc<Manifest>>)>, FetchError> {
+    let manifest = Arc::new(fetcher.fetch_manifest().await?);
+    let from = fetcher.manifest().content_version.clone();
+    if manifest.content_version == from {
+        return Ok(None);
+    }
+    tracing::warn!(
+        "the server's content changed from version {from} to {}: reloading",
+        manifest.content_version
+    );
+    fetcher.replace_manifest(Arc::clone(&manifest));
+    let mut change = ContentChange {
+        frame,
+        from,
+        to: manifest.content_version.clone(),
+        kept_dropped: None,
+    };
+    match scene.replace_manifest(Arc::clone(&manifest)) {
+        Reconciled::Kept { kept, dropped } => {
+            change.kept_dropped = Some((kept, dropped));
+            Ok(Some((change, None)))
+        }
+        Reconciled::Reshaped => Ok(Some((change, Some(manifest)))),
+    }
 }
 
 /// Peak resident set size of this process, from /proc/self/status (Linux).

@@ -2,7 +2,7 @@
 //! logging set-up and the exit code; the library does the work.
 
 use clap::{Parser, Subcommand};
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::process::ExitCode;
 
 /// Stream, inspect and render terrain tiles from a terrain-server.
@@ -56,51 +56,70 @@ fn main() -> ExitCode {
         // Colour codes only where a person reads them, not in files or CI logs.
         .with_ansi(std::io::stderr().is_terminal())
         .init();
-    let result: anyhow::Result<()> = match cli.command {
+    // Each command's report is printed once it is done, so that a closed stdout is seen
+    // in one place.
+    let result: anyhow::Result<String> = match cli.command {
         // The window's event loop needs the main thread, outside any async runtime; the
         // viewer builds the runtime its fetcher runs on.
-        Command::View(args) => terrain_client::viewer::run(&args).map_err(anyhow::Error::from),
+        Command::View(args) => terrain_client::viewer::run(&args)
+            .map(|()| String::new())
+            .map_err(anyhow::Error::from),
         Command::Fetch(args) => in_runtime(async move {
             terrain_client::cli::run_fetch(&args)
                 .await
-                .map(|summary| println!("{summary}"))
+                .map(|summary| format!("{summary}\n"))
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Accuracy(args)) => in_runtime(async move {
             terrain_client::eval::accuracy::run(&args)
                 .await
-                .map(|report| print!("{report}"))
+                .map(|report| report.to_string())
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Stability(args)) if args.list => {
-            print!("{}", terrain_client::eval::stability::list());
-            Ok(())
+            Ok(terrain_client::eval::stability::list())
         }
         Command::Bench(BenchCommand::Stability(args)) => in_runtime(async move {
             terrain_client::eval::stability::run(&args)
                 .await
-                .map(|report| print!("{report}"))
+                .map(|report| report.to_string())
                 .map_err(anyhow::Error::from)
         }),
         Command::Fly(args) => in_runtime(async move {
             terrain_client::flight::fly(&args)
                 .await
-                .map(|summary| print!("{summary}"))
+                .map(|summary| summary.to_string())
                 .map_err(anyhow::Error::from)
         }),
     };
-    match result {
+    match result.and_then(|report| print_report(&report)) {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            // Nobody reads stderr either when it is closed; that is not worth a panic.
+            let _ = writeln!(std::io::stderr(), "error: {error:#}");
             ExitCode::FAILURE
         }
     }
 }
 
+/// Writes a command's report to stdout. A reader that went away (`terrain-client ... |
+/// head`) ends the program quietly and successfully, as ripgrep and the coreutils do:
+/// its outputs are written already, and the report was only for the reader.
+fn print_report(report: &str) -> anyhow::Result<()> {
+    let mut stdout = std::io::stdout().lock();
+    match stdout
+        .write_all(report.as_bytes())
+        .and_then(|()| stdout.flush())
+    {
+        Err(error) if error.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        Err(error) => Err(anyhow::Error::new(error).context("cannot write to stdout")),
+        Ok(()) => Ok(()),
+    }
+}
+
 /// Runs `work` to completion in a multi-threaded tokio runtime (subcommands without a
 /// window).
-fn in_runtime(work: impl Future<Output = anyhow::Result<()>>) -> anyhow::Result<()> {
+fn in_runtime(work: impl Future<Output = anyhow::Result<String>>) -> anyhow::Result<String> {
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?

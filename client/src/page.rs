@@ -145,7 +145,10 @@ pub struct Decision {
 ///    around the current tile) go in `cancel`, so a jump does not wait for the old belt. The
 ///    belt after the one being built is kept: a one-tile step moves tiles of the old belt
 ///    there, and they are wanted next (cancelling them cost 5% of all fetches, 779 of
-///    15,500, in the pager bench's flight).
+///    15,500, in the pager bench's flight). With sizes known, tiles within the largest
+///    square that fits the limit around the current tile ([`fitting_belts`]) are kept too:
+///    the square would fetch them anyway, and a viewpoint that crosses tiles faster than a
+///    request lands would otherwise cancel every request before it lands.
 /// 2. If in-flight tiles remain, the pager is loading: nothing else happens.
 /// 3. Else, over the limit: the farthest belt holding a resident tile is evicted whole if it
 ///    lies beyond the farthest complete belt; complete belts stay, even over the limit.
@@ -240,9 +243,11 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
     }
     let farthest_resident_belt = resident_reach.checked_sub(1);
 
-    // The tiles of the belt being built, and of the one after it, stay in flight; any other
-    // in-flight tile belongs to a square the viewpoint has left. In-flight tiles are few (one belt at most), so the flags
-    // are scanned a block at a time: an OR over a block is branch-free and cheap.
+    // The tiles of the belt being built, and of the one after it, stay in flight; so do,
+    // with sizes known, those within the largest square that fits the limit, which the
+    // square would fetch anyway as it grows. Any other in-flight tile belongs to a square
+    // the viewpoint has left. In-flight tiles are few (one belt at most), so the flags are
+    // scanned a block at a time: an OR over a block is branch-free and cheap.
     let mut in_flight = 0;
     let mut cancel = Vec::new();
     for (block, flags) in view.in_flight.chunks(IN_FLIGHT_BLOCK).enumerate() {
@@ -257,6 +262,15 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
                 cancel.push(id);
             }
         }
+    }
+    if !cancel.is_empty()
+        && let Some(expected) = view.expected_bytes
+    {
+        // On a slow link the viewpoint may cross several tiles while a request is on its
+        // way; cancelling it then, only to ask for it again once the square grows back,
+        // meant that nothing ever landed (2 s a request, a tile crossed every 0.47 s).
+        let reach = fitting_belts(config, current, expected);
+        cancel.retain(|&id| belt_of(current, id) >= reach);
     }
     let loading = cancel.len() < in_flight;
 
@@ -322,6 +336,21 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
         decision.fetch = fetch;
     }
     decision
+}
+
+/// Belts around `current` whose tiles together fit `config.memory_limit` at the sizes
+/// `expected` gives: belts `0..n` make the largest square the pager can hold there.
+pub fn fitting_belts(config: &PagerConfig, current: CurrentTile, expected: &[u64]) -> u32 {
+    let mut total = 0u64;
+    for belt in 0..belt_count(config, current) {
+        total = belt_tiles(config, current, belt)
+            .map(|id| expected[config.index(id)])
+            .fold(total, u64::saturating_add);
+        if total > config.memory_limit {
+            return belt;
+        }
+    }
+    belt_count(config, current)
 }
 
 /// The current tile for a viewpoint: the tile under it, or with
@@ -1271,11 +1300,31 @@ mod tests {
                 k + 1,
                 d.cancel
             );
+            // With sizes known, tiles within the largest square that fits stay in flight.
+            let keep = if self.predict {
+                let mut fitting = 0;
+                while fitting < rings(&config, centre)
+                    && grid(&config)
+                        .filter(|&(_, id)| ring(id) <= fitting)
+                        .map(|(i, _)| self.sizes[i])
+                        .sum::<u64>()
+                        <= limit
+                {
+                    fitting += 1;
+                }
+                (k + 1).max(fitting.saturating_sub(1))
+            } else {
+                k + 1
+            };
             assert!(
-                flying_after.iter().all(|&id| ring(id) <= k + 1),
-                "[cancel] a tile beyond ring {} of {centre:?} is still in flight: {:?}",
-                k + 1,
+                flying_after.iter().all(|&id| ring(id) <= keep),
+                "[cancel] a tile beyond ring {keep} of {centre:?} is still in flight: {:?}",
                 flying_after
+            );
+            assert!(
+                d.cancel.iter().all(|&id| ring(id) > keep),
+                "[cancel] a tile within ring {keep} of {centre:?}, which fits, is cancelled: {:?}",
+                d.cancel
             );
             self.cancelled += d.cancel.len();
 
@@ -1580,10 +1629,20 @@ mod tests {
                 .map(|(_, id)| id)
                 .collect();
             let d = world.frame(b, &mut delay);
-            if !old.is_empty() {
-                let mut cancelled = d.cancel.clone();
-                cancelled.sort_by_key(|id| (id.y, id.x));
-                prop_assert_eq!(cancelled, old, "[jump] not every old request cancelled");
+            // With sizes known, requests within the largest square that fits around B stay
+            // (the frame's own check holds them to that); the others are cancelled.
+            let keep = (d.complete_belts + 1).max(
+                fitting_belts(&world.config, d.current, &world.sizes).saturating_sub(1),
+            );
+            let beyond: Vec<TileId> = old
+                .iter()
+                .copied()
+                .filter(|&id| !world.predict || belt_of(d.current, id) > keep)
+                .collect();
+            let mut cancelled = d.cancel.clone();
+            cancelled.sort_by_key(|id| (id.y, id.x));
+            prop_assert_eq!(cancelled, beyond.clone(), "[jump] not every old request beyond the fitting square cancelled");
+            if !old.is_empty() && beyond.len() == old.len() {
                 let tile = TileId::new(b[0].floor() as u32, b[1].floor() as u32);
                 prop_assert_eq!(d.fetch, vec![tile],
                     "[jump] the new current tile is not requested at once");

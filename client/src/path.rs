@@ -36,7 +36,7 @@ pub struct Keyframe {
 /// Why a path file was refused.
 #[derive(Debug, Error)]
 pub enum PathError {
-    #[error("cannot read flight path {path}: {source}")]
+    #[error("cannot read flight path {path}")]
     Io {
         path: String,
         source: std::io::Error,

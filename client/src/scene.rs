@@ -25,10 +25,19 @@ use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, Met
 use crate::page::{self, Decision, PagerConfig, PagerView};
 use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
 use crate::render::{Camera, Gpu, RenderStats, Renderer};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 use terrain_shared::{Manifest, TileId};
+
+/// Requests of one tile that may fail (each after the fetcher's own retries) before the
+/// tile is given up: with a corrupt body fetched twice a request, a tile that is bad at the
+/// source costs 8 GETs, not one every frame for the rest of the flight.
+pub const TILE_REQUESTS_BEFORE_GIVING_UP: u32 = 4;
+/// Wait before a failed tile is asked for again; it doubles with each failure (1, 2, 4 s),
+/// so a server restarting is waited for and a bad tile is given up some 7 s after it
+/// first failed.
+pub const TILE_RETRY_DELAY: Duration = Duration::from_secs(1);
 
 /// Why a scene cannot go on.
 #[derive(Debug, thiserror::Error)]
@@ -193,6 +202,33 @@ struct Rendering {
     texture_costs: Vec<Vec<u64>>,
 }
 
+/// A tile whose requests failed: when it may be asked for again.
+#[derive(Debug, Clone)]
+struct TileFailures {
+    failures: u32,
+    retry_at: Instant,
+}
+
+/// A tile the scene stopped asking for, and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnavailableTile {
+    pub id: TileId,
+    /// Requests that failed.
+    pub failures: u32,
+    /// The last failure, with its whole cause chain.
+    pub error: String,
+}
+
+/// What [`Scene::replace_manifest`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Reconciled {
+    /// Same grid: resident tiles whose blobs are unchanged stay, the others were dropped.
+    Kept { kept: u64, dropped: u64 },
+    /// The grid changed shape (tiles, tile size, raster, spacing or texture levels): the
+    /// scene cannot hold the new tiles, and a new one must be made.
+    Reshaped,
+}
+
 /// Resident tiles, paging, and optionally rendering. See the module documentation.
 #[derive(Debug)]
 pub struct Scene {
@@ -211,6 +247,12 @@ pub struct Scene {
     /// Per tile, whether it is in the square of complete belts (as of the last update).
     in_square: Vec<bool>,
     rendering: Option<Rendering>,
+    /// Tiles whose requests failed and that are waiting to be asked for again.
+    failing: HashMap<TileId, TileFailures>,
+    /// Tiles given up, in the order they were.
+    pub unavailable: Vec<UnavailableTile>,
+    /// Tile requests made again after one failed (each made at least one GET).
+    pub requests_repeated: u64,
 }
 
 /// A server's manifest and the fetcher that streams its tiles: what [`Scene::connect`]
@@ -251,7 +293,7 @@ impl Scene {
         runtime: tokio::runtime::Handle,
     ) -> Result<Connection, crate::fetch::FetchError> {
         let client = crate::fetch::TileClient::new(server)?;
-        let manifest = Arc::new(client.manifest().await?);
+        let manifest = Arc::new(crate::fetcher::fetch_manifest(&client, &config).await?);
         let fetcher = Fetcher::new(client, Arc::clone(&manifest), config, runtime);
         Ok(Connection { manifest, fetcher })
     }
@@ -306,7 +348,102 @@ impl Scene {
             in_square: vec![false; count],
             rendering,
             manifest,
+            failing: HashMap::new(),
+            unavailable: Vec::new(),
+            requests_repeated: 0,
         }
+    }
+
+    /// Takes `manifest`, a newer one of the same server (its database was rebuilt), in
+    /// place of the scene's. With the same grid, resident tiles whose heights and held
+    /// texture levels have the same hashes stay; the others are dropped, to be fetched
+    /// again from the new content; the method is built again for the new manifest. A grid
+    /// of another shape cannot be taken: [`Reconciled::Reshaped`], and nothing changes.
+    pub fn replace_manifest(&mut self, manifest: Arc<Manifest>) -> Reconciled {
+        let old = &self.manifest;
+        let same_shape = old.grid.columns == manifest.grid.columns
+            && old.grid.rows == manifest.grid.rows
+            && old.tile_size == manifest.tile_size
+            && old.raster.width == manifest.raster.width
+            && old.raster.height == manifest.raster.height
+            && old.spacing_m == manifest.spacing_m
+            && old.mask_levels == manifest.mask_levels
+            && old.texture.size == manifest.texture.size
+            && old.texture.levels == manifest.texture.levels
+            && old.texture.format == manifest.texture.format;
+        if !same_shape {
+            return Reconciled::Reshaped;
+        }
+        let (mut kept, mut dropped) = (0, 0);
+        for i in 0..self.tiles.len() {
+            let Some(tile) = &self.tiles[i] else {
+                continue;
+            };
+            let (before, after) = (&self.manifest.tiles[i], &manifest.tiles[i]);
+            let held = tile.textures.len();
+            let same = before.heights.hash == after.heights.hash
+                && before.texture.len() >= held
+                && after.texture.len() >= held
+                && before.texture[..held]
+                    .iter()
+                    .zip(&after.texture[..held])
+                    .all(|(a, b)| a.hash == b.hash);
+            if same {
+                kept += 1;
+            } else {
+                dropped += 1;
+                self.drop_tile(before.id());
+            }
+        }
+        self.manifest = Arc::clone(&manifest);
+        self.layout = Layout::of(&manifest);
+        self.error_minima = manifest
+            .tiles
+            .iter()
+            .map(|t| crate::lod::needed::suffix_minima(&t.mask_errors_m))
+            .collect();
+        self.failing.clear();
+        self.unavailable.clear();
+        match &self.rendering {
+            Some(r) => {
+                let method = build_method(&r.renderer, &manifest, &r.config);
+                // Teaches the method the kept tiles and recounts every tile's bytes and
+                // what the pager expects of each.
+                self.install(method);
+            }
+            None => {
+                for (expected, record) in self.expected_bytes.iter_mut().zip(&manifest.tiles) {
+                    *expected = expected_tile_bytes(&manifest, record, 0).total();
+                }
+            }
+        }
+        Reconciled::Kept { kept, dropped }
+    }
+
+    /// Drops resident tile `id`, everywhere it is held.
+    fn drop_tile(&mut self, id: TileId) {
+        let i = self.index(id);
+        if let Some(tile) = self.tiles[i].take()
+            && !tile.used
+        {
+            self.evicted_unused_bytes += tile.downloaded;
+        }
+        self.base_bytes[i] = 0;
+        if let Some(r) = &mut self.rendering {
+            r.renderer.tiles.remove_tile(id);
+            r.method.tile_evicted(id);
+            r.data_pending.retain(|(tile, _)| *tile != id);
+        }
+    }
+
+    /// The largest number of bytes one tile will hold once resident, and that tile: what
+    /// a memory limit must at least allow.
+    pub fn largest_tile(&self) -> Option<(TileId, u64)> {
+        self.expected_bytes
+            .iter()
+            .zip(&self.manifest.tiles)
+            .map(|(&bytes, record)| (record.id(), bytes))
+            .max_by_key(|&(_, bytes)| bytes)
     }
 
     fn index(&self, id: TileId) -> usize {
@@ -582,20 +719,17 @@ impl Scene {
         fetcher.cancel(&decision.cancel);
         fetcher.cancel(&decision.evict);
         for &id in &decision.evict {
-            let i = self.index(id);
-            if let Some(tile) = self.tiles[i].take()
-                && !tile.used
-            {
-                self.evicted_unused_bytes += tile.downloaded;
-            }
-            self.base_bytes[i] = 0;
-            if let Some(r) = &mut self.rendering {
-                r.renderer.tiles.remove_tile(id);
-                r.method.tile_evicted(id);
-                r.data_pending.retain(|(tile, _)| *tile != id);
-            }
+            self.drop_tile(id);
         }
+        let now = Instant::now();
         for (rank, &id) in decision.fetch.iter().enumerate() {
+            // A tile that failed waits out its delay; one given up is not asked for again.
+            if let Some(failing) = self.failing.get(&id) {
+                if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP || now < failing.retry_at {
+                    continue;
+                }
+                self.requests_repeated += 1;
+            }
             // Earlier frames' requests go first; within a frame, the pager's order.
             fetcher.request(id, Want::Tile, (frame << 20) | rank as u64);
             let i = self.index(id);
@@ -682,6 +816,7 @@ impl Scene {
                     used: false,
                 });
                 self.tiles_fetched += 1;
+                self.failing.remove(&id);
             }
             FetchEvent::TextureLevel {
                 id, level, bytes, ..
@@ -722,10 +857,40 @@ impl Scene {
                 if want == Want::Tile && FailureKind::of(&error) == FailureKind::Permanent {
                     return Err(SceneError::TileFailed {
                         id,
-                        message: error.to_string(),
+                        message: error.chain(),
                     });
                 }
-                tracing::warn!(tile = %id, error = %error, "request failed after retries; it will be made again");
+                if want != Want::Tile {
+                    tracing::warn!(tile = %id, ?want, "request failed: {}", error.chain());
+                    return Ok(());
+                }
+                let failing = self.failing.entry(id).or_insert(TileFailures {
+                    failures: 0,
+                    retry_at: Instant::now(),
+                });
+                failing.failures += 1;
+                let delay = TILE_RETRY_DELAY * (1 << (failing.failures - 1).min(16));
+                failing.retry_at = Instant::now() + delay;
+                if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP {
+                    tracing::warn!(
+                        tile = %id,
+                        "tile given up after {} failed requests; the square will not grow past it: {}",
+                        failing.failures,
+                        error.chain()
+                    );
+                    self.unavailable.push(UnavailableTile {
+                        id,
+                        failures: failing.failures,
+                        error: error.chain(),
+                    });
+                } else {
+                    tracing::warn!(
+                        tile = %id,
+                        "tile request failed; asking again in {:.0} s: {}",
+                        delay.as_secs_f64(),
+                        error.chain()
+                    );
+                }
             }
         }
         Ok(())
@@ -1227,6 +1392,44 @@ mod tests {
         // Rendering adds the GPU sample buffer (8 bytes a sample) and each texture copy.
         let rendered = expected_tile_bytes(scene.manifest(), record, 2);
         assert_eq!(rendered.gpu, 9 * 8 + 2 * 4);
+    }
+
+    #[test]
+    fn a_new_manifest_keeps_the_tiles_whose_hashes_did_not_change_and_refuses_another_grid() {
+        let mut scene = scene(1 << 20);
+        arrive(&mut scene, 0, [1; 9]);
+        arrive(&mut scene, 1, [2; 9]);
+        let mut rebuilt = (*manifest()).clone();
+        rebuilt.content_version = "1".into();
+        rebuilt.tiles[1].heights = Blob::of(b"other heights");
+        assert_eq!(
+            scene.replace_manifest(Arc::new(rebuilt.clone())),
+            Reconciled::Kept {
+                kept: 1,
+                dropped: 1
+            }
+        );
+        assert_eq!(scene.resident_tiles(), 1);
+        assert_eq!(
+            scene.ground_under([5.0, 5.0, 100.0]),
+            Some(1.0),
+            "tile 0 kept"
+        );
+        assert_eq!(
+            scene.ground_under([31.0, 5.0, 100.0]),
+            None,
+            "tile 1 dropped"
+        );
+        assert_eq!(scene.manifest().content_version, "1");
+        assert_eq!(scene.resident_bytes(), 9 * 4 + 2);
+        // Another grid cannot be taken: the caller starts a new scene.
+        let mut reshaped = rebuilt;
+        reshaped.tile_size = 5;
+        assert_eq!(
+            scene.replace_manifest(Arc::new(reshaped)),
+            Reconciled::Reshaped
+        );
+        assert_eq!(scene.manifest().content_version, "1");
     }
 
     #[test]

@@ -3,11 +3,15 @@
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use terrain_client::flight::{CSV_HEADER, FlightArgs, StreamArgs, fly};
+use std::time::Duration;
+use terrain_client::fetcher::FetcherConfig;
+use terrain_client::flight::{CSV_HEADER, FlightArgs, FlightError, StreamArgs, fly};
 use terrain_client::memory::MemorySize;
+use terrain_client::scene::Scene;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};
 use terrain_tests::data::{build_jacksboro, jacksboro};
+use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
 use terrain_tests::server::{RestartableServer, TestServer};
 
 fn runtime() -> tokio::runtime::Runtime {
@@ -285,4 +289,246 @@ fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame(
         summary.peak_resident_bytes > limit / 2,
         "the flight used its budget"
     );
+}
+
+// ---- hostile servers and links ----
+
+/// The jacksboro database built into `dir/name` with `tile_size` and heights offset by
+/// `offset_m` (a different offset makes every heights blob, and the content version, new).
+fn jacksboro_db(dir: &Path, name: &str, tile_size: u32, offset_m: f64) -> Manifest {
+    let mut options = BuildOptions::new(jacksboro(), dir.join(name));
+    options.tile_size = tile_size;
+    options.height_offset = Some(offset_m);
+    build(&options, &|_, _| {}, &AtomicBool::new(false))
+        .expect("jacksboro builds")
+        .manifest
+}
+
+#[test]
+fn a_manifest_answered_500_cut_short_or_corrupt_once_is_fetched_again() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (server, manifest) = jacksboro_server(tmp.path());
+    let runtime = runtime();
+    for fault in [Fault::ServerError, Fault::Truncate, Fault::Corrupt] {
+        let plan = FaultPlan::rotation(&[fault])
+            .only_paths_containing("manifest.json")
+            .at_most_per_path(1);
+        let proxy = FaultyProxy::start(server.addr(), plan);
+        let config = FetcherConfig {
+            backoff_base: Duration::from_millis(10),
+            ..FetcherConfig::default()
+        };
+        let connection = runtime
+            .block_on(Scene::connect(
+                proxy.base_url(),
+                config,
+                runtime.handle().clone(),
+            ))
+            .unwrap_or_else(|e| panic!("{fault:?} once: {}", e.chain()));
+        assert_eq!(*connection.manifest, manifest, "{fault:?}");
+        let stats = proxy.stats();
+        let faulted = stats.server_errors + stats.truncated + stats.corrupted;
+        assert_eq!(
+            (faulted, stats.connections),
+            (1, 2),
+            "{fault:?}: one faulted answer, one good one: {stats:?}"
+        );
+    }
+}
+
+#[test]
+fn a_flight_over_a_link_with_2_s_a_request_still_loads_tiles() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (server, manifest) = jacksboro_server(tmp.path());
+    let proxy = FaultyProxy::start(
+        server.addr(),
+        FaultPlan::pass_through().with_delay(Duration::from_secs(2)),
+    );
+    let summary = runtime()
+        .block_on(fly(&paging_flight(
+            proxy.base_url(),
+            &tmp.path().join("flight"),
+            Some(64 << 20),
+        )))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let rows = read_csv(&summary.csv);
+    let last = rows.last().expect("frames");
+    // The lap crosses a tile every half second; a tile takes 2 s. Requests that the square
+    // would hold anyway are kept in flight, so they land.
+    assert!(
+        summary.tiles_fetched >= 4,
+        "{} tiles fetched",
+        summary.tiles_fetched
+    );
+    assert!(
+        number(last, "complete_belts") >= 1,
+        "the current tile is held at the end"
+    );
+    assert!(number(last, "resident_tiles") <= manifest.tiles.len() as u64);
+}
+
+#[test]
+fn a_flight_that_loads_nothing_says_so_fails_and_still_writes_its_outputs() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (server, _) = jacksboro_server(tmp.path());
+    // Every tile request is reset; the manifest passes.
+    let proxy = FaultyProxy::start(
+        server.addr(),
+        FaultPlan::rotation(&[Fault::Reset]).only_paths_containing("/tiles/"),
+    );
+    let out = tmp.path().join("flight");
+    let error = runtime()
+        .block_on(fly(&paging_flight(proxy.base_url(), &out, Some(64 << 20))))
+        .expect_err("nothing can arrive");
+    let message = error.to_string();
+    assert!(
+        matches!(error, FlightError::NothingLoaded { .. }),
+        "{message}"
+    );
+    assert!(message.contains("no tile arrived"), "{message}");
+    assert!(out.join("flight.csv").exists() && out.join("flight.png").exists());
+}
+
+#[test]
+fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = build_jacksboro(tmp.path());
+    let manifest = report.manifest;
+    // Flip a byte in the middle of tile (1, 1)'s heights, as a disk would; the server
+    // (opened checking sizes only, as `serve --no-verify`) serves it as it is.
+    let bad = TileId::new(1, 1);
+    let pack = report.out.join(terrain_server::db::HEIGHTS_PACK);
+    let mut bytes = std::fs::read(&pack).expect("heights.pack");
+    let offset: u64 = manifest
+        .tiles
+        .iter()
+        .take_while(|t| t.id() != bad)
+        .map(|t| t.heights.bytes)
+        .sum();
+    let record = manifest.tile(bad).expect("in grid");
+    let blob = offset as usize..(offset + record.heights.bytes) as usize;
+    assert_eq!(
+        terrain_shared::manifest::content_hash(&bytes[blob.clone()]),
+        record.heights.hash
+    );
+    bytes[blob.start + blob.len() / 2] ^= 0x5a;
+    std::fs::write(&pack, bytes).expect("heights.pack written");
+    let server = RestartableServer::start(&report.out);
+
+    let summary = runtime()
+        .block_on(fly(&paging_flight(
+            &server.base_url(),
+            &tmp.path().join("flight"),
+            Some(64 << 20),
+        )))
+        .expect("the flight goes on without the bad tile");
+    assert_eq!(
+        summary.unavailable.iter().map(|t| t.id).collect::<Vec<_>>(),
+        [bad],
+        "{summary}"
+    );
+    assert!(
+        summary.unavailable[0].error.contains("content hash"),
+        "{summary}"
+    );
+    let limit = u64::from(terrain_client::scene::TILE_REQUESTS_BEFORE_GIVING_UP);
+    assert_eq!(summary.failures, limit, "{summary}");
+    // Each failed request fetched the bad heights twice (one refetch); the rest is counted
+    // in `retries`, as flight.csv documents.
+    assert_eq!(summary.retries, limit + (limit - 1), "{summary}");
+    let rows = read_csv(&summary.csv);
+    assert_eq!(
+        number(rows.last().expect("frames"), "retries"),
+        summary.retries
+    );
+    let everything: u64 = manifest
+        .tiles
+        .iter()
+        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .sum();
+    assert!(
+        summary.bytes_downloaded
+            <= everything + 2 * limit * (record.heights.bytes + record.texture[0].bytes),
+        "{} bytes downloaded, the tiles are {everything}",
+        summary.bytes_downloaded
+    );
+    assert!(
+        summary.to_string().contains("tile 1/1 given up"),
+        "{summary}"
+    );
+}
+
+/// Flies a lap with room for ten of jacksboro's twelve tiles (so it keeps fetching) while
+/// the served database is replaced, after 1 s, by `rebuilt` (a directory beside it).
+fn fly_through_a_rebuild(tmp: &Path, rebuilt: &str) -> terrain_client::flight::FlightSummary {
+    let report = build_jacksboro(tmp);
+    let mut server = RestartableServer::start(&report.out);
+    let one_tile = tile_bytes(&report.manifest, TileId::new(0, 0));
+    let args = paging_flight(
+        &server.base_url(),
+        &tmp.join("flight"),
+        Some(one_tile * 10 * 10 / 9),
+    );
+    let flight = std::thread::spawn(move || runtime().block_on(fly(&args)));
+    std::thread::sleep(Duration::from_millis(1000));
+    server.stop();
+    std::fs::rename(&report.out, tmp.join("old-db")).expect("old database moved away");
+    std::fs::rename(tmp.join(rebuilt), &report.out).expect("new database moved in");
+    server.restart();
+    flight
+        .join()
+        .expect("flight thread")
+        .unwrap_or_else(|e| panic!("the flight goes on through the rebuild: {e}"))
+}
+
+#[test]
+fn a_database_rebuilt_mid_flight_with_the_same_grid_is_reloaded_and_the_flight_goes_on() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let rebuilt = jacksboro_db(
+        tmp.path(),
+        "rebuilt",
+        terrain_server::build::DEFAULT_TILE_SIZE,
+        1.0,
+    );
+    let summary = fly_through_a_rebuild(tmp.path(), "rebuilt");
+    let [change] = summary.content_changes.as_slice() else {
+        panic!("one content change: {summary}");
+    };
+    assert_eq!(change.to, rebuilt.content_version);
+    assert!(change.kept_dropped.is_some(), "the same grid: {change}");
+    let rows = read_csv(&summary.csv);
+    let last = rows.last().expect("frames");
+    assert_eq!(number(last, "in_flight"), 0);
+    assert!(
+        number(last, "complete_belts") >= 2,
+        "the square was rebuilt"
+    );
+}
+
+#[test]
+fn a_database_rebuilt_mid_flight_with_another_grid_restarts_paging_and_the_flight_goes_on() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let rebuilt = jacksboro_db(tmp.path(), "rebuilt", 65, 0.0);
+    assert_eq!((rebuilt.grid.columns, rebuilt.grid.rows), (7, 6));
+    let summary = fly_through_a_rebuild(tmp.path(), "rebuilt");
+    let [change] = summary.content_changes.as_slice() else {
+        panic!("one content change: {summary}");
+    };
+    assert_eq!(change.to, rebuilt.content_version);
+    assert_eq!(
+        change.kept_dropped, None,
+        "the grid changed shape: {change}"
+    );
+    let rows = read_csv(&summary.csv);
+    let last = rows.last().expect("frames");
+    assert_eq!(number(last, "in_flight"), 0);
+    // The lap ends over the centre, which is tile (3, 2) or so of the new 7 x 6 grid,
+    // beyond the old 4 x 3 one.
+    assert!(
+        number(last, "current_x") >= 3,
+        "current tile {}/{}",
+        last["current_x"],
+        last["current_y"]
+    );
+    assert!(number(last, "resident_tiles") >= 1);
 }

@@ -2,6 +2,7 @@
 
 mod accuracy;
 mod build;
+mod client_cli;
 mod fetcher;
 mod flight;
 mod hostile;

@@ -1,7 +1,8 @@
 //! A misbehaving link for tests: a TCP proxy in front of a real server that, response by
 //! response and on a fixed schedule, passes a response through, flips a byte of its body,
-//! cuts its body short or resets the connection; and that can shape everything it sends
-//! to a given bandwidth.
+//! cuts its body short, resets the connection or answers 500 itself; and that can hold
+//! every request for a while (a long round trip) and shape everything it sends to a given
+//! bandwidth.
 //!
 //! Every request goes upstream with `Connection: close`, so each connection carries one
 //! request and one response, and the proxy reads the whole response (until the server
@@ -42,6 +43,9 @@ pub enum Fault {
     /// The connection is reset (`SO_LINGER` 0) without any response; the request never
     /// reaches the server.
     Reset,
+    /// A `500 Internal Server Error` with a short JSON body, as an overloaded server or a
+    /// gateway in front of it answers; the request never reaches the server.
+    ServerError,
 }
 
 /// Which responses get which [`Fault`].
@@ -57,6 +61,9 @@ pub struct FaultPlan {
     /// Bandwidth towards the clients in bytes per second, shared by all connections;
     /// `None`: unlimited.
     pub bandwidth: Option<u64>,
+    /// Every request waits this long before it goes on (a slow link's round trip, or a
+    /// server far away); requests wait side by side, not one after the other.
+    pub delay: Duration,
 }
 
 impl FaultPlan {
@@ -88,6 +95,12 @@ impl FaultPlan {
         self.bandwidth = Some(bytes_per_second);
         self
     }
+
+    /// Holds every request for `delay` before it goes on.
+    pub fn with_delay(mut self, delay: Duration) -> FaultPlan {
+        self.delay = delay;
+        self
+    }
 }
 
 /// What the proxy did so far.
@@ -98,6 +111,7 @@ pub struct ProxyStats {
     pub corrupted: u64,
     pub truncated: u64,
     pub reset: u64,
+    pub server_errors: u64,
     /// Bytes written to clients, heads included.
     pub bytes_sent: u64,
 }
@@ -164,6 +178,7 @@ impl FaultyProxy {
             corrupted: load(&counters.corrupted),
             truncated: load(&counters.truncated),
             reset: load(&counters.reset),
+            server_errors: load(&counters.server_errors),
             bytes_sent: load(&counters.bytes_sent),
         }
     }
@@ -210,6 +225,7 @@ struct Counters {
     corrupted: AtomicU64,
     truncated: AtomicU64,
     reset: AtomicU64,
+    server_errors: AtomicU64,
     bytes_sent: AtomicU64,
 }
 
@@ -260,6 +276,7 @@ impl Shared {
             Fault::Corrupt => &self.counters.corrupted,
             Fault::Truncate => &self.counters.truncated,
             Fault::Reset => &self.counters.reset,
+            Fault::ServerError => &self.counters.server_errors,
         };
         counter.fetch_add(1, Ordering::Relaxed);
     }
@@ -339,12 +356,26 @@ async fn proxy_one(
 ) -> std::io::Result<()> {
     client.set_nodelay(true)?;
     let head = read_request_head(&mut client).await?;
+    if !shared.plan.delay.is_zero() {
+        tokio::time::sleep(shared.plan.delay).await;
+    }
     let path = request_path(&head);
     let fault = shared.decide(&path);
     if fault == Fault::Reset {
         client.set_zero_linger()?;
         shared.count(fault);
         return Ok(());
+    }
+    if fault == Fault::ServerError {
+        shared.count(fault);
+        let body = r#"{"error":"internal server error (from the faulty proxy)","status":500}"#;
+        let response = format!(
+            "HTTP/1.1 500 Internal Server Error\r\ncontent-type: application/json\r\n\
+             content-length: {}\r\nconnection: close\r\n\r\n{body}",
+            body.len()
+        );
+        client.write_all(response.as_bytes()).await?;
+        return client.shutdown().await;
     }
     let mut server = TcpStream::connect(upstream).await?;
     server.write_all(&with_connection_close(&head)).await?;
@@ -358,7 +389,9 @@ async fn proxy_one(
             (Fault::Corrupt, response.len())
         }
         Fault::Truncate => (Fault::Truncate, body_start + body_len / 2),
-        Fault::Pass | Fault::Corrupt | Fault::Reset => (Fault::Pass, response.len()),
+        Fault::Pass | Fault::Corrupt | Fault::Reset | Fault::ServerError => {
+            (Fault::Pass, response.len())
+        }
     };
     shared.count(done);
     for chunk in response[..send_len].chunks(CHUNK_BYTES) {

@@ -1,0 +1,169 @@
+//! The `terrain-client` release binary as a person or a script runs it, against a real
+//! server: what it prints on stdout and stderr, and its exit status, when its reader goes
+//! away, when a file cannot be read or written, when a tile keeps failing and when the
+//! memory limit cannot hold one tile.
+
+use std::ffi::OsString;
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use terrain_tests::data::{build_jacksboro, workspace_binary};
+use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
+use terrain_tests::server::TestServer;
+
+/// A 2 s flight held still over tile (1, 1) of jacksboro's 4 x 3 grid.
+fn still_flight(dir: &Path) -> std::path::PathBuf {
+    let path = dir.join("still.json");
+    std::fs::write(
+        &path,
+        r#"{"units": "extent", "keyframes": [
+            {"t": 0, "x": 0.4, "y": 0.5, "z": 3000},
+            {"t": 2, "x": 0.4, "y": 0.5, "z": 3000}]}"#,
+    )
+    .expect("flight file");
+    path
+}
+
+/// `terrain-client fly --no-render --quiet` against `server` with `extra` arguments.
+fn fly_command(server: &str, out: &Path, flight: &Path, extra: &[&str]) -> Command {
+    let mut command = Command::new(workspace_binary("terrain-client"));
+    let mut args: Vec<OsString> = vec![
+        "fly".into(),
+        "--server".into(),
+        server.into(),
+        "--no-render".into(),
+        "--quiet".into(),
+        "--flight".into(),
+        flight.into(),
+        "--out".into(),
+        out.into(),
+    ];
+    args.extend(extra.iter().map(OsString::from));
+    command.args(args).env("RUST_LOG", "warn");
+    command
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+fn run(mut command: Command) -> Output {
+    command.output().expect("terrain-client runs")
+}
+
+#[test]
+fn a_reader_that_goes_away_ends_the_client_quietly_and_successfully() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let mut command = fly_command(
+        server.base_url(),
+        &tmp.path().join("flight"),
+        &still_flight(tmp.path()),
+        &[],
+    );
+    let mut child = command
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("terrain-client starts");
+    // `terrain-client fly ... | true`: the reader is gone before anything is printed.
+    drop(child.stdout.take());
+    let output = child.wait_with_output().expect("terrain-client ends");
+    let stderr = text(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(output.status.code(), Some(0), "{stderr}");
+    assert!(tmp.path().join("flight/flight.csv").exists());
+}
+
+#[test]
+fn an_error_prints_each_cause_once() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let flight = still_flight(tmp.path());
+    let a_file = tmp.path().join("a-file");
+    std::fs::write(&a_file, b"not a directory").expect("file");
+    let cases = [
+        (
+            fly_command(
+                server.base_url(),
+                &tmp.path().join("out"),
+                &tmp.path().join("no-such-flight.json"),
+                &[],
+            ),
+            "cannot read flight path",
+            "No such file or directory",
+        ),
+        (
+            fly_command(server.base_url(), &a_file.join("out"), &flight, &[]),
+            "cannot write",
+            "Not a directory",
+        ),
+    ];
+    for (command, context, cause) in cases {
+        let output = run(command);
+        let stderr = text(&output.stderr);
+        assert_eq!(output.status.code(), Some(1), "{stderr}");
+        let line = stderr
+            .lines()
+            .find(|line| line.starts_with("error: "))
+            .unwrap_or_else(|| panic!("no error line: {stderr}"));
+        assert!(line.contains(context), "{line}");
+        assert_eq!(line.matches(cause).count(), 1, "{line}");
+    }
+}
+
+#[test]
+fn a_failing_tile_is_warned_about_with_the_cause_of_its_failure() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    // Every request for tile (1, 1)'s heights is reset.
+    let proxy = FaultyProxy::start(
+        server.addr(),
+        FaultPlan::rotation(&[Fault::Reset]).only_paths_containing("/tiles/1/1/heights"),
+    );
+    let output = run(fly_command(
+        proxy.base_url(),
+        &tmp.path().join("flight"),
+        &still_flight(tmp.path()),
+        &[],
+    ));
+    let stderr = text(&output.stderr);
+    let warning = stderr
+        .lines()
+        .find(|line| line.contains("tile request failed"))
+        .unwrap_or_else(|| panic!("no warning for the failing tile: {stderr}"));
+    // "GET <url> failed" and, after it, what failed underneath (reqwest's error and the
+    // connection's).
+    let (_, cause) = warning
+        .split_once("/tiles/1/1/heights failed: ")
+        .unwrap_or_else(|| panic!("no cause after the URL: {warning}"));
+    assert!(cause.len() > 10, "{warning}");
+    assert_eq!(
+        warning.matches("/tiles/1/1/heights").count(),
+        1 + cause.matches("/tiles/1/1/heights").count()
+    );
+}
+
+#[test]
+fn a_memory_limit_below_one_tile_is_warned_about_once_and_reported() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let output = run(fly_command(
+        server.base_url(),
+        &tmp.path().join("flight"),
+        &still_flight(tmp.path()),
+        &["--memory", "1KiB"],
+    ));
+    let (stdout, stderr) = (text(&output.stdout), text(&output.stderr));
+    assert_eq!(output.status.code(), Some(0), "{stderr}");
+    assert_eq!(stderr.matches("below one tile").count(), 1, "{stderr}");
+    let warning = stderr
+        .lines()
+        .find(|line| line.contains("below one tile"))
+        .expect("warning");
+    // The limit (90% of 1 KiB) and the tile's bytes are named.
+    assert!(
+        warning.contains("921 bytes") && warning.contains("holds "),
+        "{warning}"
+    );
+    assert!(stdout.contains("below one tile"), "{stdout}");
+}
