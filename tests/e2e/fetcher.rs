@@ -184,7 +184,8 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
         want: Want,
         /// Parts the error's message must contain.
         message: &'a [&'a str],
-        /// HTTP requests the failure costs: 1 when the server refused, 0 when the manifest did.
+        /// HTTP requests the failure costs: 0 when the manifest refused, else 1, or 2 for a
+        /// tile (its heights and coarsest texture level are asked for together).
         requests: u64,
     }
     let cases = [
@@ -193,7 +194,7 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
             id: TileId::new(0, 0),
             want: Want::Tile,
             message: &["404", "not served", &current],
-            requests: 1,
+            requests: 2,
         },
         Case {
             manifest: &stale,
