@@ -109,7 +109,9 @@ pub enum DecodeError {
     Checksum { stored: u32, computed: u32 },
     #[error("heights payload does not decompress: {0}")]
     Zstd(String),
-    #[error("heights plane {plane} says it decompresses to {claimed} bytes, more than the {allowed} bytes of a {width}x{height} tile")]
+    #[error(
+        "heights plane {plane} says it decompresses to {claimed} bytes, more than the {allowed} bytes of a {width}x{height} tile"
+    )]
     PlaneTooLarge {
         plane: usize,
         allowed: usize,
@@ -117,7 +119,9 @@ pub enum DecodeError {
         width: u16,
         height: u16,
     },
-    #[error("heights plane {plane} decompresses past the {allowed} bytes of a {width}x{height} tile (its frame does not state its size)")]
+    #[error(
+        "heights plane {plane} decompresses past the {allowed} bytes of a {width}x{height} tile (its frame does not state its size)"
+    )]
     PlanePastTile {
         plane: usize,
         allowed: usize,
