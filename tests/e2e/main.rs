@@ -4,6 +4,7 @@ mod accuracy;
 mod build;
 mod fetcher;
 mod flight;
+mod fuzz_corpora;
 mod http;
 mod methods;
 mod render;
