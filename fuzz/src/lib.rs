@@ -70,28 +70,19 @@ pub fn read_geotiff(data: &[u8]) {
     read(data, Format::GeoTiff, Path::new("fuzz.tif"));
 }
 
-/// The builder's `.hgt` reader. The input is a file name, a newline, then the file's bytes;
-/// a name starting with `+` stands for a full-size (1201^2) file made of the bytes repeated,
-/// since random inputs never have one of the two sizes the format allows.
+/// The builder's `.hgt` reader. The input is a file name (which gives the corner), a
+/// newline, then the file's bytes. Only two lengths are valid and every 16-bit value is a
+/// sample, so what can go wrong is in the name and the length; full-size files are the
+/// end-to-end tests' (`an_srtm_hgt_file_gives_the_same_heights_as_its_geotiff`).
 pub fn read_hgt(data: &[u8]) {
     let split = data.iter().position(|&b| b == b'\n').unwrap_or(data.len());
     let (name, rest) = data.split_at(split);
-    let bytes = rest.get(1..).unwrap_or_default();
     let name = String::from_utf8_lossy(name);
-    let full: Vec<u8>;
-    let bytes = match name.strip_prefix('+') {
-        Some(_) if !bytes.is_empty() => {
-            full = bytes
-                .iter()
-                .copied()
-                .cycle()
-                .take(2 * 1201 * 1201)
-                .collect();
-            &full[..]
-        }
-        _ => bytes,
-    };
-    read(bytes, Format::Hgt, Path::new(&*name));
+    read(
+        rest.get(1..).unwrap_or_default(),
+        Format::Hgt,
+        Path::new(&*name),
+    );
 }
 
 /// Reads with the builder's defaults, then, when samples were refused for being out of

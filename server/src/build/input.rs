@@ -620,6 +620,7 @@ fn metres_per_degree_lon(lat: f64) -> f64 {
 /// SRTM `.hgt`: big-endian int16, 1201^2 (3") or 3601^2 (1") samples, void -32768. The name
 /// (e.g. `N46W122.hgt`) gives the south-west corner; row 0 is the north edge.
 fn read_hgt(bytes: &[u8], path: &Path) -> Result<Raster, InputError> {
+    let corner = hgt_corner(path);
     let side: u32 = match bytes.len() {
         n if n == 2 * 1201 * 1201 => 1201,
         n if n == 2 * 3601 * 3601 => 3601,
@@ -636,7 +637,7 @@ fn read_hgt(bytes: &[u8], path: &Path) -> Result<Raster, InputError> {
         .collect();
     let voids = voids_where(&codes, Some(-32768));
     let step = 1.0 / f64::from(side - 1);
-    let georeference = hgt_corner(path).map(|(lat, lon)| Georeference {
+    let georeference = corner.map(|(lat, lon)| Georeference {
         crs: Some("EPSG:4326".into()),
         origin: [lon, lat + 1.0],
         sample_step: [step, -step],
