@@ -540,7 +540,7 @@ fn build_cli(input: &Path, out: &Path, flags: &[&str]) -> (bool, String, String)
     args.push(input.as_os_str());
     args.push("--out".as_ref());
     args.push(out.as_os_str());
-    args.extend(flags.iter().map(|f| std::ffi::OsStr::new(f)));
+    args.extend(flags.iter().map(std::ffi::OsStr::new));
     terrain_tests::data::run_binary("terrain-server", &args)
 }
 

@@ -7,8 +7,11 @@ use std::path::Path;
 #[path = "../../fuzz/src/lib.rs"]
 mod targets;
 
+/// A fuzz target's body: any bytes in, a panic on a bug.
+type Target = fn(&[u8]);
+
 /// The targets, by the name of their folders under `corpus/` and `regressions/`.
-const TARGETS: [(&str, fn(&[u8])); 5] = [
+const TARGETS: [(&str, Target); 5] = [
     ("heights_decode", targets::heights_decode),
     ("manifest_parse", targets::manifest_parse),
     ("read_png", targets::read_png),
@@ -17,7 +20,7 @@ const TARGETS: [(&str, fn(&[u8])); 5] = [
 ];
 
 /// Runs every file of `fuzz/<kind>/<target>/` through the target; returns how many ran.
-fn replay(kind: &str, target: &str, run: fn(&[u8])) -> usize {
+fn replay(kind: &str, target: &str, run: Target) -> usize {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../fuzz")
         .join(kind)
