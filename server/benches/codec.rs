@@ -70,7 +70,14 @@ fn main() {
 
 /// Prints the main table's row and returns the entropy table's.
 fn bench(path: &std::path::Path) -> String {
-    let raster = match input::read_heights(path, None, 0.01) {
+    let raster = match input::read_heights(
+        path,
+        &input::ReadOptions {
+            nodata: None,
+            float_quantum_m: 0.01,
+            out_of_range: input::OutOfRange::Refuse,
+        },
+    ) {
         Ok(r) => r,
         Err(e) => {
             eprintln!("{}: {e}", path.display());

@@ -109,6 +109,25 @@ pub enum DecodeError {
     Checksum { stored: u32, computed: u32 },
     #[error("heights payload does not decompress: {0}")]
     Zstd(String),
+    #[error(
+        "heights plane {plane} says it decompresses to {claimed} bytes, more than the {allowed} bytes of a {width}x{height} tile"
+    )]
+    PlaneTooLarge {
+        plane: usize,
+        allowed: usize,
+        claimed: u64,
+        width: u16,
+        height: u16,
+    },
+    #[error(
+        "heights plane {plane} decompresses past the {allowed} bytes of a {width}x{height} tile (its frame does not state its size)"
+    )]
+    PlanePastTile {
+        plane: usize,
+        allowed: usize,
+        width: u16,
+        height: u16,
+    },
     #[error("decoded codes span {found:?}, the header says {expected:?}")]
     RangeMismatch {
         expected: (i32, i32),
@@ -222,17 +241,43 @@ impl Heights {
         // One zstd frame per plane, back to back; frames are self-delimiting.
         let mut planar = vec![0u8; n * header.planes];
         let mut rest = payload;
-        for plane in planar.chunks_exact_mut(n) {
+        for (index, plane) in planar.chunks_exact_mut(n).enumerate() {
             let frame_len = zstd::zstd_safe::find_frame_compressed_size(rest).map_err(|code| {
                 DecodeError::Zstd(zstd::zstd_safe::get_error_name(code).to_string())
             })?;
             let Some((frame, tail)) = rest.split_at_checked(frame_len) else {
                 return Err(DecodeError::Zstd("frame runs past the payload".into()));
             };
-            let written = DECOMPRESSOR
-                .with_borrow_mut(|d| d.as_mut().map(|d| d.decompress_to_buffer(frame, plane)))
-                .ok_or_else(|| DecodeError::Zstd("no zstd context".into()))?
-                .map_err(|e| DecodeError::Zstd(e.to_string()))?;
+            // A plane can never be larger than the tile: a frame that says so is refused
+            // unread, and one that does not say is stopped where the plane's buffer ends.
+            let claimed = zstd::zstd_safe::get_frame_content_size(frame)
+                .map_err(|_| DecodeError::Zstd("unreadable frame header".into()))?;
+            if let Some(claimed) = claimed.filter(|&c| c > n as u64) {
+                return Err(DecodeError::PlaneTooLarge {
+                    plane: index,
+                    allowed: n,
+                    claimed,
+                    width: header.width,
+                    height: header.height,
+                });
+            }
+            let written = match claimed {
+                Some(_) => DECOMPRESSOR
+                    .with_borrow_mut(|d| d.as_mut().map(|d| d.decompress_to_buffer(frame, plane)))
+                    .ok_or_else(|| DecodeError::Zstd("no zstd context".into()))?
+                    .map_err(|e| DecodeError::Zstd(e.to_string()))?,
+                // Frames of this codec's encoder always state their size; any other is
+                // streamed, a byte past the plane being enough to refuse it.
+                None => decompress_unsized(frame, plane).map_err(|e| match e {
+                    Unsized::PastTile => DecodeError::PlanePastTile {
+                        plane: index,
+                        allowed: n,
+                        width: header.width,
+                        height: header.height,
+                    },
+                    Unsized::Zstd(e) => DecodeError::Zstd(e.to_string()),
+                })?,
+            };
             if written != n {
                 return Err(DecodeError::Zstd(format!(
                     "plane of {written} bytes, {n} expected"
@@ -381,6 +426,38 @@ impl Header {
     }
 }
 
+/// Why a frame without a stated size did not fit its plane.
+enum Unsized {
+    PastTile,
+    Zstd(std::io::Error),
+}
+
+/// Decompresses one frame into `plane`, returning the bytes written; stops with
+/// [`Unsized::PastTile`] at the first byte beyond it.
+fn decompress_unsized(frame: &[u8], plane: &mut [u8]) -> Result<usize, Unsized> {
+    use std::io::Read as _;
+    let mut decoder = zstd::stream::read::Decoder::with_buffer(frame)
+        .map_err(Unsized::Zstd)?
+        .single_frame();
+    // The window a streamed frame asks for is memory the decoder allocates: no larger than
+    // the plane, or 8 MiB, the window of zstd's levels up to 19 (a smaller limit would
+    // refuse frames that plain streaming compressors write).
+    let window_log = plane.len().next_power_of_two().trailing_zeros().max(23);
+    decoder.window_log_max(window_log).map_err(Unsized::Zstd)?;
+    let mut written = 0;
+    while written < plane.len() {
+        match decoder.read(&mut plane[written..]).map_err(Unsized::Zstd)? {
+            0 => return Ok(written),
+            read => written += read,
+        }
+    }
+    let mut beyond = [0u8; 1];
+    match decoder.read(&mut beyond).map_err(Unsized::Zstd)? {
+        0 => Ok(written),
+        _ => Err(Unsized::PastTile),
+    }
+}
+
 fn zigzag_encode(v: i32) -> u32 {
     ((v << 1) ^ (v >> 31)) as u32
 }
@@ -464,6 +541,50 @@ mod tests {
         }
     }
 
+    /// A tile whose header passes every check before the payload: magic, version, length and
+    /// checksum are right; `planes`, the side and the payload are whatever the test says.
+    fn sealed(planes: u8, side: u16, payload: &[u8]) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        bytes.extend_from_slice(&MAGIC);
+        bytes.push(CODEC_VERSION);
+        bytes.push(planes);
+        bytes.extend_from_slice(&0u16.to_le_bytes());
+        bytes.extend_from_slice(&side.to_le_bytes());
+        bytes.extend_from_slice(&side.to_le_bytes());
+        bytes.extend_from_slice(&1.0f64.to_le_bytes());
+        bytes.extend_from_slice(&0.0f64.to_le_bytes());
+        bytes.extend_from_slice(&0i32.to_le_bytes());
+        bytes.extend_from_slice(&100i32.to_le_bytes());
+        bytes.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&bytes);
+        crc.update(payload);
+        bytes.extend_from_slice(&crc.finalize().to_le_bytes());
+        bytes.extend_from_slice(payload);
+        bytes
+    }
+
+    #[test]
+    fn a_plane_that_decompresses_past_the_tile_names_both_sizes() {
+        let bomb = vec![0u8; 10_000];
+        let check = |frame: &[u8], message: &str| {
+            let error = Heights::decode(&sealed(1, 4, frame)).expect_err("a 10 kB plane");
+            assert_eq!(error.to_string(), message);
+        };
+        // A frame that states its size is refused before it is decompressed.
+        check(
+            &zstd::bulk::compress(&bomb, 3).expect("compresses"),
+            "heights plane 0 says it decompresses to 10000 bytes, more than the 16 bytes of a \
+             4x4 tile",
+        );
+        // A streamed frame states none: decompression stops where the tile ends.
+        check(
+            &zstd::stream::encode_all(&bomb[..], 3).expect("compresses"),
+            "heights plane 0 decompresses past the 16 bytes of a 4x4 tile (its frame does not \
+             state its size)",
+        );
+    }
+
     #[test]
     fn bad_inputs_to_the_encoder_are_errors() {
         let mut h = tile(4, 4, |_, _| 0);
@@ -506,23 +627,7 @@ mod tests {
             tail in proptest::collection::vec(any::<u8>(), 0..300), planes in 0u8..6, side in 0u16..300
         ) {
             // Headers that pass the checksum but lie about everything else.
-            let mut bytes = Vec::new();
-            bytes.extend_from_slice(&MAGIC);
-            bytes.push(CODEC_VERSION);
-            bytes.push(planes);
-            bytes.extend_from_slice(&0u16.to_le_bytes());
-            bytes.extend_from_slice(&side.to_le_bytes());
-            bytes.extend_from_slice(&side.to_le_bytes());
-            bytes.extend_from_slice(&1.0f64.to_le_bytes());
-            bytes.extend_from_slice(&0.0f64.to_le_bytes());
-            bytes.extend_from_slice(&0i32.to_le_bytes());
-            bytes.extend_from_slice(&100i32.to_le_bytes());
-            bytes.extend_from_slice(&(tail.len() as u32).to_le_bytes());
-            let mut crc = crc32fast::Hasher::new();
-            crc.update(&bytes);
-            crc.update(&tail);
-            bytes.extend_from_slice(&crc.finalize().to_le_bytes());
-            bytes.extend_from_slice(&tail);
+            let bytes = sealed(planes, side, &tail);
             prop_assert!(Heights::decode(&bytes).is_err());
         }
     }

@@ -112,7 +112,11 @@ pub struct TextureInfo {
 impl TextureInfo {
     /// Texels per side of `level` (0 = coarsest).
     pub fn level_size(&self, level: u32) -> u32 {
-        self.size >> (self.levels.saturating_sub(1).saturating_sub(level))
+        // 0 when the levels outnumber the bits of the size: a shift of 32 or more is no
+        // halving at all for `>>`.
+        self.size
+            .checked_shr(self.levels.saturating_sub(1).saturating_sub(level))
+            .unwrap_or(0)
     }
 }
 
@@ -216,8 +220,11 @@ impl Manifest {
             });
         }
         let n = self.tile_size;
-        if n < 3 || !(n - 1).is_power_of_two() {
-            return bad(format!("tile size {n} is not 2^k + 1"));
+        if n < 3 || !(n - 1).is_power_of_two() || n > u32::from(crate::heights::MAX_SIDE) {
+            return bad(format!(
+                "tile size {n} is not 2^k + 1 up to {}",
+                crate::heights::MAX_SIDE
+            ));
         }
         let expected = (self.grid.columns as usize) * (self.grid.rows as usize);
         if self.tiles.len() != expected {
@@ -312,5 +319,22 @@ impl Manifest {
             }
         }
         content_hash(text.as_bytes())[..16].to_string()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn texture_levels_past_the_bits_of_the_size_are_empty_not_a_panic() {
+        let texture = TextureInfo {
+            format: ImageFormat::Png,
+            source: TextureSource::Generated,
+            size: 128,
+            levels: 40,
+        };
+        let sizes: Vec<u32> = [0, 7, 31, 32, 38, 39].map(|l| texture.level_size(l)).into();
+        assert_eq!(sizes, [0, 0, 0, 1, 64, 128]);
     }
 }

@@ -507,3 +507,140 @@ fn a_manifest_whose_extent_disagrees_with_its_raster_and_spacing_is_refused() {
     let error = Manifest::from_json(&tampered.to_json()).expect_err("extent off by 100 m");
     assert!(error.to_string().contains("extent"), "{error}");
 }
+
+/// A 40x30 float32 GeoTIFF (no GDAL no-data tag) with heights from 16 to 180 m in
+/// centimetres, and `special` samples `(x, y, value)` written over them.
+fn float_geotiff(dir: &Path, special: &[(u32, u32, f32)]) -> PathBuf {
+    let (w, h) = (40u32, 30u32);
+    let mut samples: Vec<f32> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (f64::from(i % w), f64::from(i / w));
+            (16.0 + 164.0 * (x / 39.0) * (0.5 + 0.5 * (y / 7.0).sin().abs())) as f32
+        })
+        .map(|m| (m * 100.0).round() / 100.0)
+        .collect();
+    samples[0] = 16.0;
+    samples[(w * h - 1) as usize] = 180.0;
+    samples[1] = 16.25; // not a whole number: the quantum applies
+    for &(x, y, value) in special {
+        samples[(y * w + x) as usize] = value;
+    }
+    let path = dir.join("float.tif");
+    let file = std::fs::File::create(&path).expect("create tif");
+    tiff::encoder::TiffEncoder::new(file)
+        .expect("tiff encoder")
+        .write_image::<tiff::encoder::colortype::Gray32Float>(w, h, &samples)
+        .expect("write float tif");
+    path
+}
+
+/// Runs the release builder on `input` with extra flags: (success, stdout, stderr).
+fn build_cli(input: &Path, out: &Path, flags: &[&str]) -> (bool, String, String) {
+    let mut args: Vec<&std::ffi::OsStr> = vec!["build".as_ref(), "--quiet".as_ref()];
+    args.push(input.as_os_str());
+    args.push("--out".as_ref());
+    args.push(out.as_os_str());
+    args.extend(flags.iter().map(std::ffi::OsStr::new));
+    terrain_tests::data::run_binary("terrain-server", &args)
+}
+
+#[test]
+fn float_heights_no_code_can_hold_are_refused_with_their_count_and_place() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    // A stray 1e30: one sample, named with its position and value.
+    let tif = float_geotiff(tmp.path(), &[(5, 3, 1e30)]);
+    let (ok, _, stderr) = build_cli(&tif, &out, &[]);
+    assert!(!ok, "a 1e30 m sample must not build: {stderr}");
+    assert!(stderr.contains("1 of 1200 float samples"), "{stderr}");
+    assert!(stderr.contains("1e30 at (5, 3)"), "{stderr}");
+    assert!(!out.exists());
+
+    // -3.4e38, the float32 no-data of many tools, with no tag saying so.
+    let tif = float_geotiff(
+        tmp.path(),
+        &[(0, 0, f32::MIN), (39, 0, f32::MIN), (7, 29, f32::MIN)],
+    );
+    let (ok, _, stderr) = build_cli(&tif, &out, &[]);
+    assert!(!ok, "unmarked -3.4e38 no-data must not build: {stderr}");
+    assert!(stderr.contains("3 of 1200 float samples"), "{stderr}");
+    assert!(
+        stderr.contains("at (0, 0)")
+            && stderr.contains("at (39, 0)")
+            && stderr.contains("at (7, 29)"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--out-of-range nodata"), "{stderr}");
+    assert!(!out.exists());
+
+    // Infinities are not heights either.
+    let tif = float_geotiff(tmp.path(), &[(2, 2, f32::INFINITY)]);
+    let (ok, _, stderr) = build_cli(&tif, &out, &[]);
+    assert!(!ok && stderr.contains("inf at (2, 2)"), "{stderr}");
+}
+
+#[test]
+fn a_float_quantum_too_fine_for_the_heights_is_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    let tif = float_geotiff(tmp.path(), &[]);
+    for policy in ["refuse", "nodata"] {
+        let (ok, _, stderr) = build_cli(
+            &tif,
+            &out,
+            &["--float-quantum", "1e-12", "--out-of-range", policy],
+        );
+        assert!(
+            !ok,
+            "{policy}: a 1e-12 m quantum cannot hold 16 .. 180 m: {stderr}"
+        );
+        assert!(stderr.contains("16 .. 180 m"), "{policy}: {stderr}");
+        assert!(stderr.contains("--float-quantum"), "{policy}: {stderr}");
+        assert!(!out.exists());
+    }
+    for bad in ["0", "-1", "nan"] {
+        let (ok, _, stderr) = build_cli(&tif, &out, &["--float-quantum", bad]);
+        assert!(!ok && stderr.contains("quantum"), "{bad}: {stderr}");
+    }
+    // The same file at a sane quantum builds exactly.
+    let (ok, stdout, stderr) = build_cli(&tif, &out, &[]);
+    assert!(ok, "{stderr}");
+    assert!(
+        stdout.contains("16.0 .. 180.0 m in steps of 0.01 m"),
+        "{stdout}"
+    );
+}
+
+#[test]
+fn out_of_range_floats_become_voids_when_asked() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("db");
+    let tif = float_geotiff(
+        tmp.path(),
+        &[
+            (5, 3, 1e30),
+            (0, 0, f32::MIN),
+            (7, 29, f32::NEG_INFINITY),
+            (9, 9, f32::NAN),
+        ],
+    );
+    let (ok, stdout, stderr) = build_cli(&tif, &out, &["--out-of-range", "nodata"]);
+    assert!(ok, "{stderr}");
+    assert!(
+        stdout.contains("3 float samples no height code holds were taken as no-data"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("filled 4 no-data samples"),
+        "NaN is no-data: {stdout}"
+    );
+    let db = TileDb::open(&out, Verify::Hashes).expect("opens");
+    let m = db.manifest();
+    assert_eq!(m.heights.filled_voids, 4);
+    assert!(
+        m.heights.min_m >= 16.0 - 1e-9 && m.heights.max_m <= 180.0 + 1e-9,
+        "{} .. {} m",
+        m.heights.min_m,
+        m.heights.max_m
+    );
+}

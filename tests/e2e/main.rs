@@ -5,6 +5,7 @@ mod build;
 mod client_cli;
 mod fetcher;
 mod flight;
+mod fuzz_corpora;
 mod hostile;
 mod http;
 mod methods;

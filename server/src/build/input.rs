@@ -3,9 +3,16 @@
 //! input. Everything is turned into integer height *codes* at the source's own precision,
 //! so the database stays lossless.
 //!
+//! Every reader works on bytes in memory ([`decode_heights`]); [`read_heights`] reads the
+//! file first. Any byte string gives a raster or an [`InputError`], never a panic, and never
+//! an allocation the input's size cannot justify (the fuzz targets in `fuzz/` hold it to
+//! that; their corpora are replayed by the end-to-end tests).
+//!
 //! This module only reads; merging the metadata with command-line flags is `mod.rs`'s job.
 
 use serde::Deserialize;
+use std::fmt;
+use std::io::Cursor;
 use std::path::{Path, PathBuf};
 use terrain_shared::manifest::Georeference;
 use thiserror::Error;
@@ -28,6 +35,8 @@ pub struct Raster {
     pub spacing_m: Option<[f64; 2]>,
     /// The file's format, for messages.
     pub format: &'static str,
+    /// Float samples no height code could hold that became voids ([`OutOfRange::Nodata`]).
+    pub out_of_range_voids: usize,
 }
 
 impl Raster {
@@ -64,23 +73,171 @@ pub enum InputError {
     },
     #[error("{path}: every sample is no-data")]
     AllVoid { path: PathBuf },
+    #[error(
+        "{path}: {width}x{height} samples of {bytes_per_sample} bytes from a {file_bytes}-byte file: \
+         more than its compression can hold ({max_ratio}:1 at most)"
+    )]
+    Bomb {
+        path: PathBuf,
+        width: u32,
+        height: u32,
+        bytes_per_sample: u64,
+        file_bytes: usize,
+        max_ratio: u64,
+    },
+    #[error(
+        "{path}: {count} of {total} float samples lie outside ±{limit_m} m, all that \
+         height codes hold at a quantum of {quantum_m} m: {samples}. If they mark no-data, give \
+         --nodata VALUE, or --out-of-range nodata to take every such sample as no-data"
+    )]
+    OutOfRange {
+        path: PathBuf,
+        count: usize,
+        total: usize,
+        quantum_m: Metres,
+        limit_m: Metres,
+        /// The first few, in row-major order.
+        samples: SampleList,
+    },
+    #[error(
+        "{path}: a float quantum of {quantum_m} m holds heights within ±{limit_m} m, but the \
+         samples span {min_m} .. {max_m} m: give --float-quantum {needed_m:.1e} or coarser"
+    )]
+    QuantumTooFine {
+        path: PathBuf,
+        quantum_m: Metres,
+        limit_m: Metres,
+        min_m: f64,
+        max_m: f64,
+        needed_m: f64,
+    },
+    #[error("float quantum {0} m is not a positive finite number")]
+    BadQuantum(f64),
 }
 
-/// Reads a height raster, choosing the reader by file extension (then by content for PNG).
-/// `float_quantum_m` is the precision kept for floating-point heights that are not whole numbers.
-pub fn read_heights(
+/// Float samples named in a message: `value at (x, y)`, and how many more there are.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SampleList {
+    pub first: Vec<(u32, u32, f64)>,
+    pub more: usize,
+}
+
+impl fmt::Display for SampleList {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, &(x, y, value)) in self.first.iter().enumerate() {
+            let sep = if i == 0 { "" } else { ", " };
+            // A float32 sample reads as it was written (1e30, not 1.0000000150474662e30).
+            let narrow = value as f32;
+            if f64::from(narrow) == value {
+                write!(f, "{sep}{narrow:e} at ({x}, {y})")?;
+            } else {
+                write!(f, "{sep}{value:e} at ({x}, {y})")?;
+            }
+        }
+        if self.more > 0 {
+            write!(f, " and {} more", self.more)?;
+        }
+        Ok(())
+    }
+}
+
+/// Metres in a message: at least three decimals and four significant digits, trailing zeros
+/// dropped; below a micrometre in scientific notation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Metres(pub f64);
+
+impl fmt::Display for Metres {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let magnitude = self.0.abs();
+        if magnitude != 0.0 && magnitude < 1e-6 {
+            return write!(f, "{:e}", self.0);
+        }
+        let decimals = (3.0 - magnitude.log10().floor()).clamp(3.0, 9.0) as usize;
+        let text = format!("{:.*}", decimals, self.0);
+        f.write_str(text.trim_end_matches('0').trim_end_matches('.'))
+    }
+}
+
+/// What the builder does with float samples that no height code can hold at the quantum:
+/// values beyond `i32::MAX` quanta from zero, and infinities. (NaN is always no-data: it is
+/// how GDAL and most tools mark it in float rasters.)
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum OutOfRange {
+    /// Stop with an error that says how many there are and where.
+    #[default]
+    Refuse,
+    /// Take them as no-data: they are filled from their neighbours like any void, and
+    /// counted in a warning. For float rasters that mark no-data with -3.4e38 or 1e30
+    /// without a tag saying so.
+    Nodata,
+}
+
+/// The height formats the builder reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    /// 8- or 16-bit greyscale PNG (or any image the `image` crate recognises by content).
+    Png,
+    GeoTiff,
+    /// SRTM `.hgt`: the file name gives the south-west corner.
+    Hgt,
+}
+
+impl Format {
+    /// By file extension: `.tif`/`.tiff`, `.hgt`, anything else is read as an image.
+    pub fn of(path: &Path) -> Format {
+        let ext = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        match ext.as_str() {
+            "tif" | "tiff" => Format::GeoTiff,
+            "hgt" => Format::Hgt,
+            _ => Format::Png,
+        }
+    }
+}
+
+/// How heights are read, beyond what the file says.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReadOptions {
+    /// Raster value meaning no data, overriding the file's own.
+    pub nodata: Option<f64>,
+    /// Precision kept for floating-point heights that are not whole numbers.
+    pub float_quantum_m: f64,
+    pub out_of_range: OutOfRange,
+}
+
+/// Largest ratio of decoded bytes to file bytes an image format can reach: deflate (PNG,
+/// TIFF) tops out near 1032:1 and TIFF's LZW near 2730:1 (4096-byte strings from 12-bit
+/// codes). A header that claims more than this asks for memory its data cannot fill.
+pub const MAX_COMPRESSION_RATIO: u64 = 4096;
+/// Samples named in an out-of-range message; the rest are counted.
+const NAMED_SAMPLES: usize = 5;
+
+/// Reads a height raster from a file, choosing the reader by file extension.
+pub fn read_heights(path: &Path, options: &ReadOptions) -> Result<Raster, InputError> {
+    let bytes = std::fs::read(path).map_err(|source| InputError::Io {
+        path: path.into(),
+        source,
+    })?;
+    decode_heights(&bytes, Format::of(path), path, options)
+}
+
+/// Reads a height raster from the bytes of a file. `path` names it in messages and, for
+/// `.hgt`, gives the corner; nothing is read from it.
+pub fn decode_heights(
+    bytes: &[u8],
+    format: Format,
     path: &Path,
-    nodata: Option<f64>,
-    float_quantum_m: f64,
+    options: &ReadOptions,
 ) -> Result<Raster, InputError> {
-    let ext = path
-        .extension()
-        .map(|e| e.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default();
-    let raster = match ext.as_str() {
-        "tif" | "tiff" => read_geotiff(path, nodata, float_quantum_m)?,
-        "hgt" => read_hgt(path)?,
-        _ => read_png(path, nodata)?,
+    if !(options.float_quantum_m.is_finite() && options.float_quantum_m > 0.0) {
+        return Err(InputError::BadQuantum(options.float_quantum_m));
+    }
+    let raster = match format {
+        Format::GeoTiff => read_geotiff(bytes, path, options)?,
+        Format::Hgt => read_hgt(bytes, path)?,
+        Format::Png => read_png(bytes, path, options.nodata)?,
     };
     if raster.width < 2 || raster.height < 2 {
         return Err(InputError::TooSmall {
@@ -95,22 +252,44 @@ pub fn read_heights(
     Ok(raster)
 }
 
-fn read_png(path: &Path, nodata: Option<f64>) -> Result<Raster, InputError> {
-    let image = image::ImageReader::open(path)
-        .map_err(|source| InputError::Io {
+/// Refuses a header whose decoded size its file cannot hold (see [`MAX_COMPRESSION_RATIO`]).
+fn check_decoded_size(
+    path: &Path,
+    (width, height): (u32, u32),
+    bytes_per_sample: u64,
+    file_bytes: usize,
+) -> Result<(), InputError> {
+    let decoded = u64::from(width) * u64::from(height) * bytes_per_sample;
+    if decoded > (file_bytes as u64).saturating_mul(MAX_COMPRESSION_RATIO) {
+        return Err(InputError::Bomb {
             path: path.into(),
-            source,
-        })?
+            width,
+            height,
+            bytes_per_sample,
+            file_bytes,
+            max_ratio: MAX_COMPRESSION_RATIO,
+        });
+    }
+    Ok(())
+}
+
+fn read_png(bytes: &[u8], path: &Path, nodata: Option<f64>) -> Result<Raster, InputError> {
+    use image::ImageDecoder as _;
+    let image_error = |e: image::ImageError| InputError::Image {
+        path: path.into(),
+        message: e.to_string(),
+    };
+    let decoder = image::ImageReader::new(Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|source| InputError::Io {
             path: path.into(),
             source,
         })?
-        .decode()
-        .map_err(|e| InputError::Image {
-            path: path.into(),
-            message: e.to_string(),
-        })?;
+        .into_decoder()
+        .map_err(image_error)?;
+    let pixel_bytes = u64::from(decoder.color_type().bytes_per_pixel());
+    check_decoded_size(path, decoder.dimensions(), pixel_bytes, bytes.len())?;
+    let image = image::DynamicImage::from_decoder(decoder).map_err(image_error)?;
     let (width, height) = (image.width(), image.height());
     let codes: Vec<i32> = match image {
         image::DynamicImage::ImageLuma16(img) => {
@@ -135,6 +314,7 @@ fn read_png(path: &Path, nodata: Option<f64>) -> Result<Raster, InputError> {
         georeference: None,
         spacing_m: None,
         format: "PNG",
+        out_of_range_voids: 0,
     })
 }
 
@@ -147,25 +327,25 @@ fn voids_where(codes: &[i32], nodata: Option<i64>) -> Vec<bool> {
     }
 }
 
-fn read_geotiff(
-    path: &Path,
-    nodata_flag: Option<f64>,
-    float_quantum_m: f64,
-) -> Result<Raster, InputError> {
+fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Raster, InputError> {
     use tiff::decoder::{Decoder, DecodingResult};
     use tiff::tags::Tag;
     let err = |message: String| InputError::Tiff {
         path: path.into(),
         message,
     };
-    let file = std::fs::File::open(path).map_err(|source| InputError::Io {
-        path: path.into(),
-        source,
-    })?;
-    let mut decoder =
-        Decoder::new(std::io::BufReader::new(file)).map_err(|e| err(e.to_string()))?;
+    let mut decoder = Decoder::new(Cursor::new(bytes)).map_err(|e| err(e.to_string()))?;
     let (width, height) = decoder.dimensions().map_err(|e| err(e.to_string()))?;
-    let nodata = match nodata_flag {
+    let colour = decoder.colortype().map_err(|e| err(e.to_string()))?;
+    if colour.num_samples() != 1 {
+        return Err(err(format!(
+            "{} samples per pixel: multi-band images are not heights",
+            colour.num_samples()
+        )));
+    }
+    let sample_bytes = u64::from(colour.bit_depth()).div_ceil(8);
+    check_decoded_size(path, (width, height), sample_bytes, bytes.len())?;
+    let nodata = match options.nodata {
         Some(v) => Some(v),
         None => decoder
             .find_tag(Tag::GdalNodata)
@@ -191,24 +371,31 @@ fn read_geotiff(
         .and_then(|v| v.into_u16_vec().ok());
     let image = decoder.read_image().map_err(|e| err(e.to_string()))?;
 
-    let is_void_f = |v: f64| !v.is_finite() || nodata.is_some_and(|n| v == n);
-    let (codes, voids, quantum_m): (Vec<i32>, Vec<bool>, f64) = match image {
-        DecodingResult::I16(v) => {
-            let voids = v.iter().map(|&c| is_void_f(f64::from(c))).collect();
-            (v.into_iter().map(i32::from).collect(), voids, 1.0)
-        }
-        DecodingResult::U16(v) => {
-            let voids = v.iter().map(|&c| is_void_f(f64::from(c))).collect();
-            (v.into_iter().map(i32::from).collect(), voids, 1.0)
-        }
-        DecodingResult::U8(v) => {
-            let voids = v.iter().map(|&c| is_void_f(f64::from(c))).collect();
-            (v.into_iter().map(i32::from).collect(), voids, 1.0)
-        }
+    let is_void_int = |v: i32| nodata.is_some_and(|n| f64::from(v) == n);
+    let floats = |is_void: &dyn Fn(f64) -> bool, values: &mut dyn Iterator<Item = f64>| {
+        let floats = FloatRaster {
+            path,
+            width,
+            quantum_m: options.float_quantum_m,
+            out_of_range: options.out_of_range,
+        };
+        floats.quantize(values, is_void)
+    };
+    let (codes, voids, quantum_m, out_of_range_voids) = match image {
+        DecodingResult::I16(v) => ints(v.into_iter().map(i32::from), &is_void_int),
+        DecodingResult::U16(v) => ints(v.into_iter().map(i32::from), &is_void_int),
+        DecodingResult::U8(v) => ints(v.into_iter().map(i32::from), &is_void_int),
         DecodingResult::F32(v) => {
-            quantize_floats(v.into_iter().map(f64::from), &is_void_f, float_quantum_m)
+            // Compared in float32, so that a tag of "-3.4028235e+38" matches float32's lowest
+            // value, which as a float64 is -3.4028234663852886e+38.
+            let nodata = nodata.map(|n| n as f32);
+            let is_void = |x: f64| x.is_nan() || nodata.is_some_and(|n| x as f32 == n);
+            floats(&is_void, &mut v.into_iter().map(f64::from))?
         }
-        DecodingResult::F64(v) => quantize_floats(v.into_iter(), &is_void_f, float_quantum_m),
+        DecodingResult::F64(v) => {
+            let is_void = |x: f64| x.is_nan() || nodata.is_some_and(|n| x == n);
+            floats(&is_void, &mut v.into_iter())?
+        }
         other => {
             return Err(err(format!(
                 "sample type {} (supported: int16, uint16, uint8, float32, float64)",
@@ -255,7 +442,18 @@ fn read_geotiff(
         georeference,
         spacing_m,
         format: "GeoTIFF",
+        out_of_range_voids,
     })
+}
+
+/// Integer samples: codes as they are, a 1 m quantum.
+fn ints(
+    values: impl Iterator<Item = i32>,
+    is_void: &dyn Fn(i32) -> bool,
+) -> (Vec<i32>, Vec<bool>, f64, usize) {
+    let codes: Vec<i32> = values.collect();
+    let voids = codes.iter().map(|&c| is_void(c)).collect();
+    (codes, voids, 1.0, 0)
 }
 
 fn sample_type_name(result: &tiff::decoder::DecodingResult) -> &'static str {
@@ -271,34 +469,107 @@ fn sample_type_name(result: &tiff::decoder::DecodingResult) -> &'static str {
     }
 }
 
-/// Floating-point heights: whole numbers keep a 1 m quantum (lossless); anything else is
-/// rounded to `quantum_m`, which the manifest then records.
-fn quantize_floats(
-    values: impl Iterator<Item = f64>,
-    is_void: &dyn Fn(f64) -> bool,
+/// A float raster being turned into codes: where it came from and the caller's choices.
+struct FloatRaster<'a> {
+    path: &'a Path,
+    width: u32,
     quantum_m: f64,
-) -> (Vec<i32>, Vec<bool>, f64) {
-    let values: Vec<f64> = values.collect();
-    let voids: Vec<bool> = values.iter().map(|&v| is_void(v)).collect();
-    let whole = values
-        .iter()
-        .zip(&voids)
-        .all(|(v, &void)| void || v.fract() == 0.0);
-    let q = if whole { 1.0 } else { quantum_m };
-    let codes = values
-        .iter()
-        .zip(&voids)
-        .map(|(&v, &void)| {
-            if void {
-                0
-            } else {
-                (v / q)
-                    .round()
-                    .clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+    out_of_range: OutOfRange,
+}
+
+/// Codes, voids, the quantum used, and how many samples became voids for being out of range.
+type Quantized = (Vec<i32>, Vec<bool>, f64, usize);
+
+impl FloatRaster<'_> {
+    /// Floating-point heights: whole numbers keep a 1 m quantum (lossless); anything else is
+    /// rounded to the quantum, which the manifest then records. A sample no `i32` code holds
+    /// at that quantum (beyond `i32::MAX` quanta, or infinite) is refused or made a void, as
+    /// [`OutOfRange`] says; a quantum too fine for the samples' own range is refused either
+    /// way, since making voids of real heights would hide the mistake.
+    fn quantize(
+        &self,
+        values: &mut dyn Iterator<Item = f64>,
+        is_void: &dyn Fn(f64) -> bool,
+    ) -> Result<Quantized, InputError> {
+        let values: Vec<f64> = values.collect();
+        let mut voids: Vec<bool> = values.iter().map(|&v| is_void(v)).collect();
+        let heights = || {
+            values
+                .iter()
+                .zip(&voids)
+                .filter(|&(v, &void)| !void && v.is_finite())
+                .map(|(&v, _)| v)
+        };
+        let whole = heights().all(|v| v.fract() == 0.0);
+        let q = if whole { 1.0 } else { self.quantum_m };
+        let limit_m = Metres(q * f64::from(i32::MAX));
+        let code = |v: f64| {
+            let code = (v / q).round();
+            (f64::from(i32::MIN)..=f64::from(i32::MAX))
+                .contains(&code)
+                .then_some(code as i32)
+        };
+
+        // The samples' own range: every finite height the default quantum can hold, which is
+        // any height on Earth in metres or even millimetres (±21,474 km); values past it
+        // are no-data markers such as -3.4e38 and 1e30, not heights.
+        let plausible_m = super::DEFAULT_FLOAT_QUANTUM_M * f64::from(i32::MAX);
+        let (min_m, max_m) = heights()
+            .filter(|v| v.abs() <= plausible_m)
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                (lo.min(v), hi.max(v))
+            });
+        if min_m <= max_m && (code(min_m).is_none() || code(max_m).is_none()) {
+            return Err(InputError::QuantumTooFine {
+                path: self.path.into(),
+                quantum_m: Metres(q),
+                limit_m,
+                min_m,
+                max_m,
+                needed_m: round_up_2_digits(min_m.abs().max(max_m.abs()) / f64::from(i32::MAX)),
+            });
+        }
+
+        let mut codes = Vec::with_capacity(values.len());
+        let mut outside = SampleList {
+            first: Vec::new(),
+            more: 0,
+        };
+        for (i, (&v, void)) in values.iter().zip(&mut voids).enumerate() {
+            let c = if *void { None } else { code(v) };
+            if !*void && c.is_none() {
+                if outside.first.len() < NAMED_SAMPLES {
+                    let (x, y) = (
+                        i as u64 % u64::from(self.width),
+                        i as u64 / u64::from(self.width),
+                    );
+                    outside.first.push((x as u32, y as u32, v));
+                } else {
+                    outside.more += 1;
+                }
+                *void = true;
             }
-        })
-        .collect();
-    (codes, voids, q)
+            codes.push(c.unwrap_or(0));
+        }
+        let count = outside.first.len() + outside.more;
+        if count > 0 && self.out_of_range == OutOfRange::Refuse {
+            return Err(InputError::OutOfRange {
+                path: self.path.into(),
+                count,
+                total: values.len(),
+                quantum_m: Metres(q),
+                limit_m,
+                samples: outside,
+            });
+        }
+        Ok((codes, voids, q, count))
+    }
+}
+
+/// `x` rounded up to two significant digits, so that a suggested quantum is never too fine.
+fn round_up_2_digits(x: f64) -> f64 {
+    let step = 10f64.powf(x.log10().floor() - 1.0);
+    (x / step).ceil() * step
 }
 
 /// The value of one GeoKey, from a GeoKeyDirectory (header of 4, then 4 shorts per key).
@@ -348,11 +619,8 @@ fn metres_per_degree_lon(lat: f64) -> f64 {
 
 /// SRTM `.hgt`: big-endian int16, 1201^2 (3") or 3601^2 (1") samples, void -32768. The name
 /// (e.g. `N46W122.hgt`) gives the south-west corner; row 0 is the north edge.
-fn read_hgt(path: &Path) -> Result<Raster, InputError> {
-    let bytes = std::fs::read(path).map_err(|source| InputError::Io {
-        path: path.into(),
-        source,
-    })?;
+fn read_hgt(bytes: &[u8], path: &Path) -> Result<Raster, InputError> {
+    let corner = hgt_corner(path);
     let side: u32 = match bytes.len() {
         n if n == 2 * 1201 * 1201 => 1201,
         n if n == 2 * 3601 * 3601 => 3601,
@@ -369,7 +637,7 @@ fn read_hgt(path: &Path) -> Result<Raster, InputError> {
         .collect();
     let voids = voids_where(&codes, Some(-32768));
     let step = 1.0 / f64::from(side - 1);
-    let georeference = hgt_corner(path).map(|(lat, lon)| Georeference {
+    let georeference = corner.map(|(lat, lon)| Georeference {
         crs: Some("EPSG:4326".into()),
         origin: [lon, lat + 1.0],
         sample_step: [step, -step],
@@ -387,6 +655,7 @@ fn read_hgt(path: &Path) -> Result<Raster, InputError> {
         georeference,
         spacing_m,
         format: "SRTM .hgt",
+        out_of_range_voids: 0,
     })
 }
 
@@ -508,12 +777,137 @@ mod tests {
         assert!(at(60.0)[0] < at(0.0)[0] / 1.9);
     }
 
+    /// Quantizes a float raster 4 samples wide (NaN is no-data) from `t.tif`.
+    fn quantize(
+        values: &[f64],
+        quantum_m: f64,
+        out_of_range: OutOfRange,
+    ) -> Result<Quantized, InputError> {
+        let floats = FloatRaster {
+            path: Path::new("t.tif"),
+            width: 4,
+            quantum_m,
+            out_of_range,
+        };
+        floats.quantize(&mut values.iter().copied(), &|v: f64| v.is_nan())
+    }
+
+    /// Quantizes and checks codes, the voids' indices, the quantum and the out-of-range count.
+    fn check(
+        values: &[f64],
+        quantum_m: f64,
+        policy: OutOfRange,
+        expect: (&[i32], &[usize], f64, usize),
+    ) {
+        let (codes, voids, q, outside) =
+            quantize(values, quantum_m, policy).unwrap_or_else(|e| panic!("{values:?}: {e}"));
+        let voids: Vec<usize> = (0..voids.len()).filter(|&i| voids[i]).collect();
+        assert_eq!((&codes[..], &voids[..], q, outside), expect, "{values:?}");
+    }
+
+    /// Quantizes expecting an error and checks its message.
+    fn check_refused(values: &[f64], quantum_m: f64, policy: OutOfRange, message: &str) {
+        match quantize(values, quantum_m, policy) {
+            Ok(q) => panic!("{values:?} at {quantum_m}: accepted as {q:?}"),
+            Err(e) => assert_eq!(e.to_string(), message, "{values:?}"),
+        }
+    }
+
     #[test]
     fn whole_floats_stay_lossless_and_others_use_the_quantum() {
-        let (codes, _, q) =
-            quantize_floats([1.0, 2.0, f64::NAN].into_iter(), &|v: f64| v.is_nan(), 0.01);
-        assert_eq!((codes, q), (vec![1, 2, 0], 1.0));
-        let (codes, _, q) = quantize_floats([1.25, 2.0].into_iter(), &|_| false, 0.01);
-        assert_eq!((codes, q), (vec![125, 200], 0.01));
+        use OutOfRange::Refuse;
+        check(
+            &[1.0, 2.0, f64::NAN, 4.0],
+            0.01,
+            Refuse,
+            (&[1, 2, 0, 4], &[2], 1.0, 0),
+        );
+        check(&[1.25, 2.0], 0.01, Refuse, (&[125, 200], &[], 0.01, 0));
+        // An infinity or a huge marker does not make whole-number data fractional.
+        check(
+            &[1.0, 2.0, f64::INFINITY],
+            0.01,
+            OutOfRange::Nodata,
+            (&[1, 2, 0], &[2], 1.0, 1),
+        );
+        // The edges of what a code holds: i32::MAX quanta is stored, one more is not.
+        let max = f64::from(i32::MAX);
+        check(
+            &[-max, max],
+            1.0,
+            Refuse,
+            (&[-i32::MAX, i32::MAX], &[], 1.0, 0),
+        );
+        check(
+            &[0.5, max * 0.01],
+            0.01,
+            Refuse,
+            (&[50, i32::MAX], &[], 0.01, 0),
+        );
+    }
+
+    #[test]
+    fn floats_no_code_holds_are_refused_with_their_count_and_place() {
+        use OutOfRange::Refuse;
+        let f32_lowest = f64::from(f32::MIN);
+        check_refused(
+            &[16.5, 1e30, 20.0, 21.0, f64::NEG_INFINITY, f32_lowest, 1.0],
+            0.01,
+            Refuse,
+            "t.tif: 3 of 7 float samples lie outside ±21474836.47 m, all that height codes hold \
+             at a quantum of 0.01 m: 1e30 at (1, 0), -inf at (0, 1), -3.4028235e38 at \
+             (1, 1). If they mark no-data, give --nodata VALUE, or --out-of-range nodata to take \
+             every such sample as no-data",
+        );
+        // Whole numbers keep a 1 m quantum, whose range is larger; the list stops at five.
+        let mut many = vec![f32_lowest; 9];
+        many.push(100.0);
+        check_refused(
+            &many,
+            0.01,
+            Refuse,
+            "t.tif: 9 of 10 float samples lie outside ±2147483647 m, all that height codes hold \
+             at a quantum of 1 m: -3.4028235e38 at (0, 0), -3.4028235e38 at \
+             (1, 0), -3.4028235e38 at (2, 0), -3.4028235e38 at (3, 0), \
+             -3.4028235e38 at (0, 1) and 4 more. If they mark no-data, give --nodata \
+             VALUE, or --out-of-range nodata to take every such sample as no-data",
+        );
+    }
+
+    #[test]
+    fn out_of_range_floats_become_voids_when_asked() {
+        check(
+            &[
+                16.5,
+                1e30,
+                20.0,
+                f64::NAN,
+                f64::NEG_INFINITY,
+                f64::from(f32::MIN),
+            ],
+            0.01,
+            OutOfRange::Nodata,
+            (&[1650, 0, 2000, 0, 0, 0], &[1, 3, 4, 5], 0.01, 3),
+        );
+    }
+
+    #[test]
+    fn a_quantum_too_fine_for_the_heights_is_refused_whatever_the_policy() {
+        for policy in [OutOfRange::Refuse, OutOfRange::Nodata] {
+            check_refused(
+                &[16.25, 180.0, 1e30, 17.0],
+                1e-12,
+                policy,
+                "t.tif: a float quantum of 1e-12 m holds heights within ±0.002147 m, but the samples span 16.25 .. 180 m: give --float-quantum \
+                 8.4e-8 or coarser",
+            );
+        }
+        // The suggested quantum holds them.
+        check(
+            &[16.25, -180.0],
+            8.4e-8,
+            OutOfRange::Refuse,
+            (&[193452381, -2142857143], &[], 8.4e-8, 0),
+        );
     }
 }

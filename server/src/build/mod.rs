@@ -28,7 +28,7 @@ use terrain_shared::manifest::{
 use terrain_shared::{EncodeError, Manifest, TileRecord, heights, mask};
 use thiserror::Error;
 
-pub use input::{InputError, Raster};
+pub use input::{InputError, OutOfRange, Raster};
 pub use texture::Registration;
 
 /// Default samples per tile side: 2^7 + 1, as in the strip-mask paper's experiments.
@@ -77,9 +77,16 @@ pub struct BuildArgs {
     /// Raster value meaning "no data" (GeoTIFF: read from the file; .hgt: -32768).
     #[arg(long, allow_hyphen_values = true)]
     pub nodata: Option<f64>,
-    /// Precision in metres kept for float heights that are not whole numbers.
-    #[arg(long, default_value_t = DEFAULT_FLOAT_QUANTUM_M)]
+    /// Precision in metres kept for float heights that are not whole numbers. Heights are
+    /// stored as 32-bit multiples of it, so it also bounds them: 0.01 m holds ±21,474 km; a
+    /// quantum too fine for the raster's heights is refused.
+    #[arg(long, default_value_t = DEFAULT_FLOAT_QUANTUM_M, allow_hyphen_values = true)]
     pub float_quantum: f64,
+    /// What to do with float samples no height code holds at the quantum (such as -3.4e38 or
+    /// 1e30 marking no-data without a no-data tag, or infinities): refuse the build and name
+    /// them, or take them as no-data and fill them like any void. NaN is always no-data.
+    #[arg(long, value_enum, default_value_t = OutOfRange::Refuse)]
+    pub out_of_range: OutOfRange,
     /// Texture image format: jpeg for photographs and tints, png for lossless.
     #[arg(long, value_enum, default_value_t = TextureFormatArg::Jpeg)]
     pub texture_format: TextureFormatArg,
@@ -119,6 +126,7 @@ pub struct BuildOptions {
     pub height_offset: Option<f64>,
     pub nodata: Option<f64>,
     pub float_quantum_m: f64,
+    pub out_of_range: OutOfRange,
     pub texture_format: ImageFormat,
     pub texture_size: Option<u32>,
     pub jpeg_quality: u8,
@@ -150,6 +158,7 @@ impl BuildOptions {
             height_offset: None,
             nodata: None,
             float_quantum_m: DEFAULT_FLOAT_QUANTUM_M,
+            out_of_range: OutOfRange::Refuse,
             texture_format: ImageFormat::Jpeg,
             texture_size: None,
             jpeg_quality: texture::DEFAULT_JPEG_QUALITY,
@@ -190,6 +199,7 @@ impl BuildOptions {
             height_offset: args.height_offset,
             nodata: args.nodata,
             float_quantum_m: args.float_quantum,
+            out_of_range: args.out_of_range,
             texture_format: match args.texture_format {
                 TextureFormatArg::Jpeg => ImageFormat::Jpeg,
                 TextureFormatArg::Png => ImageFormat::Png,
@@ -242,8 +252,15 @@ pub enum BuildError {
 #[derive(Debug, Clone, PartialEq)]
 pub enum BuildWarning {
     FilledVoids(voids::FillReport),
+    /// Float samples no height code holds, taken as no-data ([`OutOfRange::Nodata`]).
+    OutOfRangeAsNodata {
+        samples: usize,
+    },
     SpacingUnknown,
-    TextureAspect { texture: [u32; 2], raster: [u32; 2] },
+    TextureAspect {
+        texture: [u32; 2],
+        raster: [u32; 2],
+    },
 }
 
 impl fmt::Display for BuildWarning {
@@ -253,6 +270,10 @@ impl fmt::Display for BuildWarning {
                 f,
                 "filled {} no-data samples in {} voids (largest: {} samples) from their neighbours",
                 r.samples, r.regions, r.largest_region
+            ),
+            BuildWarning::OutOfRangeAsNodata { samples } => write!(
+                f,
+                "{samples} float samples no height code holds were taken as no-data (--out-of-range nodata)"
             ),
             BuildWarning::SpacingUnknown => {
                 write!(
@@ -323,9 +344,17 @@ pub fn build(
     };
     let mut raster = input::read_heights(
         &options.heights,
-        options.nodata.or(info.nodata),
-        options.float_quantum_m,
+        &input::ReadOptions {
+            nodata: options.nodata.or(info.nodata),
+            float_quantum_m: options.float_quantum_m,
+            out_of_range: options.out_of_range,
+        },
     )?;
+    if raster.out_of_range_voids > 0 {
+        warnings.push(BuildWarning::OutOfRangeAsNodata {
+            samples: raster.out_of_range_voids,
+        });
+    }
     let source_bytes = std::fs::metadata(&options.heights)
         .map(|m| m.len())
         .unwrap_or(0);
