@@ -185,7 +185,8 @@ pub fn content_hash(bytes: &[u8]) -> String {
 #[derive(Debug, Error)]
 pub enum ManifestError {
     #[error("manifest is not valid JSON for this schema: {0}")]
-    Json(#[from] serde_json::Error),
+    // Not a `#[source]`: the message carries it, so a cause chain prints it once.
+    Json(serde_json::Error),
     #[error("not a tile manifest: format {0:?}")]
     WrongFormat(String),
     #[error("manifest version {found} is not supported (this build reads {VERSION})")]
@@ -197,7 +198,7 @@ pub enum ManifestError {
 impl Manifest {
     /// Parses and checks a manifest: schema, version and internal consistency.
     pub fn from_json(bytes: &[u8]) -> Result<Manifest, ManifestError> {
-        let manifest: Manifest = serde_json::from_slice(bytes)?;
+        let manifest: Manifest = serde_json::from_slice(bytes).map_err(ManifestError::Json)?;
         manifest.validate()?;
         Ok(manifest)
     }
