@@ -10,7 +10,8 @@
 //!
 //! 1. metrics and tracing, so every answer is counted, 503s from shedding included;
 //! 2. CORS, so error answers carry the CORS headers too and browsers can read them;
-//! 3. only on the tile API: load shedding, the concurrency limit and the request timeout.
+//! 3. only on the tile API: load shedding at the concurrency limit and the request timeout
+//!    ([`limits`]).
 //!    `/healthz` and `/metrics` stay outside, so an overloaded server can still be watched.
 //!
 //! **Invariant:** nothing from a URL is used as a file path; every lookup goes through
@@ -18,6 +19,7 @@
 
 pub mod cli;
 pub mod error;
+mod limits;
 #[cfg(feature = "test-hooks")]
 #[doc(hidden)]
 pub mod hooks;
@@ -32,7 +34,6 @@ pub use serve::{ServeOptions, serve, shutdown_signal};
 
 use crate::db::TileDb;
 use axum::Router;
-use axum::error_handling::HandleErrorLayer;
 use axum::http::{Method, header};
 use axum::routing::get;
 use std::sync::Arc;
@@ -100,20 +101,10 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
     #[cfg(feature = "test-hooks")]
     let tile_api = tile_api.route(hooks::SLEEP, get(hooks::sleep));
 
-    let request_timeout = options.request_timeout;
-    // `Router::layer` wraps each route separately; the *global* limit layer shares one
-    // semaphore between them, so the limit is per server, not per route.
-    let tile_api = tile_api.layer(
-        ServiceBuilder::new()
-            .layer(HandleErrorLayer::new(
-                move |error: tower::BoxError| async move { limit_error(&error, request_timeout) },
-            ))
-            .layer(tower::load_shed::LoadShedLayer::new())
-            .layer(tower::limit::GlobalConcurrencyLimitLayer::new(
-                options.max_concurrent_requests.max(1),
-            ))
-            .layer(tower::timeout::TimeoutLayer::new(request_timeout)),
-    );
+    let tile_api = tile_api.layer(limits::TileLimitsLayer::new(
+        options.max_concurrent_requests,
+        options.request_timeout,
+    ));
 
     let operations = Router::new()
         .route(HEALTHZ, get(routes::healthz))
@@ -132,16 +123,6 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
                 .layer(cors()),
         )
         .with_state(state)
-}
-
-fn limit_error(error: &tower::BoxError, request_timeout: std::time::Duration) -> HttpError {
-    if error.is::<tower::load_shed::error::Overloaded>() {
-        HttpError::Overloaded
-    } else if error.is::<tower::timeout::error::Elapsed>() {
-        HttpError::Timeout(request_timeout)
-    } else {
-        HttpError::Internal(error.to_string())
-    }
 }
 
 /// Any origin may read tiles (they are public), with GET and HEAD only. `ETag` is exposed

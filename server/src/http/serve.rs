@@ -110,9 +110,12 @@ pub async fn serve(
 ) -> io::Result<()> {
     let router = super::app_with(Arc::clone(&state), &options);
     let mut http = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
+    // No hyper header-read timer: it arms one per request. The connection's own watchdog
+    // below closes a connection with no request in progress (trickling or idle) for both
+    // protocols, with one timer per connection.
     http.http1()
         .timer(TokioTimer::new())
-        .header_read_timeout(options.header_read_timeout);
+        .header_read_timeout(None);
     http.http2().timer(TokioTimer::new());
     let http = Arc::new(http);
     let table = Arc::new(ConnectionTable::default());
@@ -170,13 +173,24 @@ pub async fn serve(
             let connection = http.serve_connection(io, service);
             let mut connection = std::pin::pin!(connection);
             let mut closing = false;
+            // Set when the connection is closed for being idle: hyper closes an idle
+            // connection at once on a graceful shutdown, but not one halfway through a
+            // request head (a trickle), which is dropped when this grace runs out.
+            let mut drop_at: Option<tokio::time::Instant> = None;
             let result = loop {
                 let idle_for = tracker.idle_for();
                 let idle_check = tokio::time::sleep(
                     idle_timeout.saturating_sub(idle_for.unwrap_or_default()),
                 );
+                let dropped = async {
+                    match drop_at {
+                        Some(at) => tokio::time::sleep_until(at).await,
+                        None => std::future::pending().await,
+                    }
+                };
                 tokio::select! {
                     result = connection.as_mut() => break result,
+                    () = dropped => break Ok(()),
                     () = tracker.close.notified(), if !closing => {
                         closing = true;
                         connection.as_mut().graceful_shutdown();
@@ -190,6 +204,9 @@ pub async fn serve(
                             closing = true;
                             state.metrics.connection_closed(CloseReason::Idle);
                             connection.as_mut().graceful_shutdown();
+                            drop_at = Some(
+                                tokio::time::Instant::now() + idle_timeout.min(IDLE_CLOSE_GRACE),
+                            );
                         }
                     }
                 }
@@ -250,6 +267,10 @@ fn connection_error(
 }
 
 const WRITE_TIMED_OUT: &str = "write timed out";
+
+/// How long a connection closed for being idle may take to close on its own before it is
+/// dropped. Nothing is in progress on it, so nothing is lost.
+const IDLE_CLOSE_GRACE: Duration = Duration::from_secs(1);
 
 /// Why the server closed a connection itself (counted in `/metrics`).
 #[derive(Debug, Clone, Copy)]
