@@ -23,6 +23,9 @@ install_if_missing() { # command package
 }
 
 source scripts/gpu-env.sh
+# The connection-attack test holds both ends of 5,000 connections in one process: raise the
+# open-files limit to what the system allows (it says what it needs if that is too low).
+ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 
 if [ -z "${TERRAIN_DATA_DIR:-}" ]; then
   echo "note: TERRAIN_DATA_DIR is not set: tests that need the data kit will say NOT RUN"
