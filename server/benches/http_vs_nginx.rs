@@ -72,6 +72,9 @@ const WARM_UP: Duration = Duration::from_secs(2);
 const TARGET_RATIO: f64 = 1.0;
 const TARGET_P99_MS: f64 = 15.0;
 
+/// A figure of a run: its name, how to read it, and the decimals to print.
+type Figure = (&'static str, fn(&Run) -> Option<f64>, usize);
+
 fn main() {
     match run() {
         Ok(()) => {}
@@ -381,7 +384,7 @@ fn run() -> anyhow::Result<()> {
         "\n{:<16} {:<12} {:>10} {:>10} {:>10} {:>8}",
         "server", "figure", "median", "min", "max", "spread"
     );
-    let figures: [(&str, fn(&Run) -> Option<f64>, usize); 4] = [
+    let figures: [Figure; 4] = [
         ("requests/s", |r| Some(r.wrk.requests_per_second), 0),
         ("p99 ms", |r| Some(r.wrk.p99_ms), 2),
         ("cpu %", Run::cpu_percent, 0),

@@ -303,7 +303,13 @@ pub fn check_output(out: &Path, force: bool) -> Result<(), WriteError> {
     };
     let mut names = Vec::new();
     for entry in std::fs::read_dir(out).map_err(io)? {
-        names.push(entry.map_err(io)?.file_name().to_string_lossy().into_owned());
+        names.push(
+            entry
+                .map_err(io)?
+                .file_name()
+                .to_string_lossy()
+                .into_owned(),
+        );
     }
     if names.is_empty() {
         return Ok(());

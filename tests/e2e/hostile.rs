@@ -64,7 +64,10 @@ fn force_refuses_a_regular_file_and_leaves_it_where_it_was() {
     std::fs::write(&file, "%PDF-1.7 precious").expect("write");
     for attempt in 0..2 {
         let (ok, _, stderr) = run_build(&file, &["--force"]);
-        assert!(!ok, "attempt {attempt}: a regular file was replaced: {stderr}");
+        assert!(
+            !ok,
+            "attempt {attempt}: a regular file was replaced: {stderr}"
+        );
         assert!(
             stderr.contains("is not a tile database (a file of 17 bytes)"),
             "attempt {attempt}: {stderr}"
@@ -132,7 +135,10 @@ fn the_second_of_two_racing_builds_says_what_happened() {
     let second = DbWriter::create(&out, false).expect("second");
     first.finish(&manifest).expect("the first finishes");
     let error = second.finish(&manifest).expect_err("the second is refused");
-    assert!(matches!(error, WriteError::AppearedMeanwhile(_)), "{error:?}");
+    assert!(
+        matches!(error, WriteError::AppearedMeanwhile(_)),
+        "{error:?}"
+    );
     let message = error.to_string();
     assert!(
         message.contains("appeared while this build ran") && !message.contains("os error"),
@@ -148,14 +154,13 @@ fn the_second_of_two_racing_builds_says_what_happened() {
 fn a_closed_stdout_ends_a_build_quietly() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("db");
-    let mut child = std::process::Command::new(terrain_tests::data::workspace_binary(
-        "terrain-server",
-    ))
-    .args(build_args(&out, &[]))
-    .stdout(std::process::Stdio::piped())
-    .stderr(std::process::Stdio::piped())
-    .spawn()
-    .expect("spawns");
+    let mut child =
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .args(build_args(&out, &[]))
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("spawns");
     drop(child.stdout.take());
     let output = child.wait_with_output().expect("waits");
     let stderr = String::from_utf8_lossy(&output.stderr);
@@ -165,7 +170,10 @@ fn a_closed_stdout_ends_a_build_quietly() {
         output.status.code()
     );
     assert!(!stderr.contains("panicked"), "{stderr}");
-    assert!(out.join("manifest.json").exists(), "the build was completed");
+    assert!(
+        out.join("manifest.json").exists(),
+        "the build was completed"
+    );
 }
 
 /// Logs written to a file (not a terminal) carry no colour escape codes.
@@ -175,16 +183,15 @@ fn logs_to_a_file_have_no_colour_codes() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = terrain_tests::data::build_jacksboro(tmp.path());
     let log = tmp.path().join("server.log");
-    let mut child = std::process::Command::new(terrain_tests::data::workspace_binary(
-        "terrain-server",
-    ))
-    .arg("serve")
-    .arg(&report.out)
-    .args(["--addr", "127.0.0.1:0"])
-    .stdout(std::process::Stdio::piped())
-    .stderr(std::fs::File::create(&log).expect("log file"))
-    .spawn()
-    .expect("spawns");
+    let mut child =
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .arg("serve")
+            .arg(&report.out)
+            .args(["--addr", "127.0.0.1:0"])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::fs::File::create(&log).expect("log file"))
+            .spawn()
+            .expect("spawns");
     let mut line = String::new();
     BufReader::new(child.stdout.take().expect("stdout"))
         .read_line(&mut line)
@@ -197,5 +204,8 @@ fn logs_to_a_file_have_no_colour_codes() {
         text.contains("database opened"),
         "the log has the start line: {text}"
     );
-    assert!(!text.contains('\u{1b}'), "escape codes in a log file: {text:?}");
+    assert!(
+        !text.contains('\u{1b}'),
+        "escape codes in a log file: {text:?}"
+    );
 }

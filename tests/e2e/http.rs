@@ -1020,7 +1020,11 @@ async fn a_tile_url_has_one_spelling_no_query_string_and_no_percent_encoding() {
         assert!(message.contains("one spelling"), "{respelled}: {message}");
     }
     // Routing matches the path as sent, so a respelled fixed segment matches no route.
-    let answer = get(&client, &server.url(&heights.replace("/heights", "/h%65ights"))).await;
+    let answer = get(
+        &client,
+        &server.url(&heights.replace("/heights", "/h%65ights")),
+    )
+    .await;
     assert_eq!(answer.status, 404);
     // The absolute form of the same request target is the same URL (RFC 9112 section
     // 3.2.2: a server must accept it, and the target URI, which caches key on, is the one

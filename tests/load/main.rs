@@ -46,7 +46,11 @@ async fn sample_latencies(server: &TestServer, path: &str) -> Vec<Duration> {
         })
         .await;
         // A stalled request counts as the time given up after: the p99 fails either way.
-        latencies.push(if answered.is_ok() { started.elapsed() } else { STALLED });
+        latencies.push(if answered.is_ok() {
+            started.elapsed()
+        } else {
+            STALLED
+        });
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     latencies.sort();
@@ -96,7 +100,8 @@ async fn a_normal_client_stays_fast_while_thousands_of_connections_are_held_or_c
     let mut held = Vec::with_capacity(HELD);
     let opened_at = Instant::now();
     for _ in 0..HELD {
-        let (connected, release, addr) = (Arc::clone(&connected), Arc::clone(&release), server.addr());
+        let (connected, release, addr) =
+            (Arc::clone(&connected), Arc::clone(&release), server.addr());
         held.push(tokio::spawn(async move {
             if let Ok(stream) = TcpStream::connect(addr).await {
                 connected.fetch_add(1, Ordering::Relaxed);

@@ -52,7 +52,11 @@ struct RouteStatusLabels {
 fn route_label(template: &str) -> &'static str {
     static SEEN: std::sync::RwLock<Vec<&'static str>> = std::sync::RwLock::new(Vec::new());
     let known = |seen: &[&'static str]| seen.iter().copied().find(|t| *t == template);
-    if let Some(label) = known(&SEEN.read().unwrap_or_else(std::sync::PoisonError::into_inner)) {
+    if let Some(label) = known(
+        &SEEN
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner),
+    ) {
         return label;
     }
     let mut seen = SEEN

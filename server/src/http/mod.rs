@@ -19,10 +19,10 @@
 
 pub mod cli;
 pub mod error;
-mod limits;
 #[cfg(feature = "test-hooks")]
 #[doc(hidden)]
 pub mod hooks;
+mod limits;
 pub mod metrics;
 pub mod routes;
 pub mod serve;

@@ -252,7 +252,8 @@ fn entity(
     response
 }
 
-const HEIGHTS_SPELLING: &str = "/v1/{content_version}/tiles/{x}/{y}/heights, plain digits, no query";
+const HEIGHTS_SPELLING: &str =
+    "/v1/{content_version}/tiles/{x}/{y}/heights, plain digits, no query";
 const TEXTURE_SPELLING: &str =
     "/v1/{content_version}/tiles/{x}/{y}/texture/{level}, plain digits, no query";
 

@@ -157,9 +157,12 @@ pub async fn serve(
                 let response = router.clone().call(request);
                 async move {
                     let response = response.await?;
-                    Ok::<_, std::convert::Infallible>(
-                        response.map(|body| Body::new(BusyBody { inner: body, _busy: busy })),
-                    )
+                    Ok::<_, std::convert::Infallible>(response.map(|body| {
+                        Body::new(BusyBody {
+                            inner: body,
+                            _busy: busy,
+                        })
+                    }))
                 }
             })
         };
@@ -179,9 +182,8 @@ pub async fn serve(
             let mut drop_at: Option<tokio::time::Instant> = None;
             let result = loop {
                 let idle_for = tracker.idle_for();
-                let idle_check = tokio::time::sleep(
-                    idle_timeout.saturating_sub(idle_for.unwrap_or_default()),
-                );
+                let idle_check =
+                    tokio::time::sleep(idle_timeout.saturating_sub(idle_for.unwrap_or_default()));
                 let dropped = async {
                     match drop_at {
                         Some(at) => tokio::time::sleep_until(at).await,
@@ -472,7 +474,11 @@ impl WriteTimeout {
         }
     }
 
-    fn progressed<T>(&mut self, polled: Poll<io::Result<T>>, cx: &mut Context<'_>) -> Poll<io::Result<T>> {
+    fn progressed<T>(
+        &mut self,
+        polled: Poll<io::Result<T>>,
+        cx: &mut Context<'_>,
+    ) -> Poll<io::Result<T>> {
         match polled {
             Poll::Ready(result) => {
                 self.stalled = None;
