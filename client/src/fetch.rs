@@ -180,15 +180,7 @@ impl TileClient {
         // A weak tag (`W/"..."`) names another representation (compressed); only a strong
         // one is the hash of these bytes.
         if let Some(expected) = etag.as_deref().and_then(|tag| tag.strip_prefix('"')) {
-            let expected = expected.trim_end_matches('"');
-            let found = content_hash(&body);
-            if found != expected {
-                return Err(FetchError::HashMismatch {
-                    url,
-                    expected: expected.to_string(),
-                    found,
-                });
-            }
+            verify_hash(&url, &body, expected.trim_end_matches('"'))?;
         }
         Manifest::from_json(&body).map_err(|source| FetchError::Manifest { url, source })
     }
@@ -241,28 +233,14 @@ impl TileClient {
         let url = self.url(path);
         let body = self.get(&url).await?;
         if let Some(expected) = hash {
-            let found = content_hash(&body);
-            if found != expected {
-                return Err(FetchError::HashMismatch {
-                    url,
-                    expected: expected.to_string(),
-                    found,
-                });
-            }
+            verify_hash(&url, &body, expected)?;
         }
         Ok(body)
     }
 
     async fn get_verified(&self, url: String, blob: &Blob) -> Result<Bytes, FetchError> {
         let body = self.get(&url).await?;
-        let found = content_hash(&body);
-        if found != blob.hash {
-            return Err(FetchError::HashMismatch {
-                url,
-                expected: blob.hash.clone(),
-                found,
-            });
-        }
+        verify_hash(&url, &body, &blob.hash)?;
         Ok(body)
     }
 
@@ -358,6 +336,19 @@ fn error_body_text(body: &[u8]) -> String {
         end -= 1;
     }
     format!("{}…", text[..end].replace(['\r', '\n'], " "))
+}
+
+/// A body fetched from `url` must hash to `expected`; else it was damaged on the way.
+fn verify_hash(url: &str, body: &[u8], expected: &str) -> Result<(), FetchError> {
+    let found = content_hash(body);
+    if found != expected {
+        return Err(FetchError::HashMismatch {
+            url: url.to_string(),
+            expected: expected.to_string(),
+            found,
+        });
+    }
+    Ok(())
 }
 
 #[cfg(test)]
