@@ -10,7 +10,9 @@ pub mod manifest;
 pub mod mask;
 pub mod routes;
 pub mod tile;
+pub mod tile_blob;
 
 pub use heights::{DecodeError, EncodeError, Heights};
 pub use manifest::{Blob, Manifest, TileRecord};
 pub use tile::TileId;
+pub use tile_blob::TileBlob;

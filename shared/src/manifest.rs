@@ -1,10 +1,12 @@
 //! The manifest: the one JSON document a client fetches first (the strip-mask paper's
-//! "main file"). It describes the tile grid and carries, per tile, everything a client
-//! needs before it fetches the tile itself: bounds, roughness, per-mask-level errors and
-//! the content hash and size of every blob. `docs/manifest.md` documents every field.
+//! "main file"). It describes the pyramid of tile grids and carries, per tile, only what a
+//! client needs before it fetches the tile: bounds, roughness and the hash and size of the
+//! tile blob, which brings the rest (`crate::tile_blob`). `docs/api.md` documents every
+//! field.
 //!
-//! **Invariant:** tile records are in row-major order (`y * columns + x`); the server's
-//! pack files hold the blobs in that same order, which is how it finds them.
+//! **Invariant:** levels are listed finest first and tile records are row-major within a
+//! level (`y * columns + x`); the server's pack files hold the blobs in that same order,
+//! which is how it finds them.
 
 use crate::tile::TileId;
 use serde::{Deserialize, Serialize};
@@ -13,7 +15,7 @@ use thiserror::Error;
 /// Value of the `format` field.
 pub const FORMAT: &str = "terrain-tiles";
 /// Manifest schema version this crate writes and reads.
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 
 /// The whole description of one tile database.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -24,15 +26,16 @@ pub struct Manifest {
     pub version: u32,
     /// Short name of the dataset, e.g. `puget_sound_1k`.
     pub dataset: String,
-    /// Hash over every blob hash and the grid: changes whenever any content changes.
+    /// Hash over every tile hash and the grids: changes whenever any content changes.
     /// Tile URLs carry it, which is what lets caches keep tiles forever.
     pub content_version: String,
-    /// Size of the source raster in samples; samples beyond it in edge tiles are padding.
+    /// Size of the source raster (level 0) in samples; samples beyond it in edge tiles are
+    /// padding.
     pub raster: RasterSize,
-    /// Samples per tile side, `2^n + 1`; neighbouring tiles share a row or column.
+    /// Samples per tile side, `2^n + 1`, at every level; neighbouring tiles share a row or
+    /// column.
     pub tile_size: u32,
-    pub grid: GridSize,
-    /// Distance between samples in metres: `[east-west, north-south]`.
+    /// Distance between level-0 samples in metres: `[east-west, north-south]`.
     pub spacing_m: [f64; 2],
     /// Width and height of the real samples in metres: `(raster - 1) * spacing`.
     pub extent_m: [f64; 2],
@@ -40,8 +43,20 @@ pub struct Manifest {
     pub texture: TextureInfo,
     /// Where the raster sits on the Earth, when the source said so.
     pub georeference: Option<Georeference>,
-    /// Number of strip-mask levels per tile (`tile_size - 1`); every record has that many errors.
+    /// Number of strip-mask levels per tile (`tile_size - 1`); every tile blob has that
+    /// many errors.
     pub mask_levels: u32,
+    /// The pyramid, level 0 (full resolution) first; the last level is one tile.
+    pub levels: Vec<Level>,
+}
+
+/// One level of the pyramid: level `k` keeps every `2^k`-th sample of level 0.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Level {
+    /// Samples of this level ([`level_rasters`]).
+    pub raster: RasterSize,
+    pub grid: GridSize,
+    /// One entry per tile, row-major (`y * columns + x`).
     pub tiles: Vec<TileRecord>,
 }
 
@@ -130,28 +145,77 @@ pub struct Georeference {
     pub sample_step: [f64; 2],
 }
 
-/// Everything about one tile a client may need before it downloads it.
+/// Everything about one tile a client needs before it downloads it: what paging and culling
+/// need, and the hash that verifies the tile blob (`crate::tile_blob`), which carries the
+/// rest (mask errors, texture hashes). Serialised as a five-element array
+/// `[hash, bytes, min_m, max_m, roughness_m]` to keep the manifest small.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(from = "RecordRow", into = "RecordRow")]
 pub struct TileRecord {
-    pub x: u32,
-    pub y: u32,
-    /// Real samples in this tile `[columns, rows]`; the rest repeats the last real one.
-    pub valid: [u32; 2],
+    /// BLAKE3 of the tile blob, first 16 bytes in hex: also its entity tag.
+    pub hash: String,
+    /// Size of the tile blob.
+    pub bytes: u64,
+    /// Height bounds of the full-resolution surface under the tile, metres.
     pub min_m: f32,
     pub max_m: f32,
-    /// Mean terrain ruggedness index (Riley et al. 1999) over the tile's samples, in metres.
+    /// Mean terrain ruggedness index (Riley et al. 1999) over the tile's samples, metres.
     pub roughness_m: f32,
-    /// Per strip-mask level, the largest vertical error against the full tile, metres,
-    /// rounded up to the centimetre. Index 0 is the full tile (0).
-    pub mask_errors_m: Vec<f32>,
-    pub heights: Blob,
-    /// Texture levels, coarsest first.
-    pub texture: Vec<Blob>,
+}
+
+type RecordRow = (String, u64, f32, f32, f32);
+
+impl From<RecordRow> for TileRecord {
+    fn from((hash, bytes, min_m, max_m, roughness_m): RecordRow) -> TileRecord {
+        TileRecord {
+            hash,
+            bytes,
+            min_m,
+            max_m,
+            roughness_m,
+        }
+    }
+}
+
+impl From<TileRecord> for RecordRow {
+    fn from(r: TileRecord) -> RecordRow {
+        (r.hash, r.bytes, r.min_m, r.max_m, r.roughness_m)
+    }
 }
 
 impl TileRecord {
-    pub fn id(&self) -> TileId {
-        TileId::new(self.x, self.y)
+    /// The blob this record verifies.
+    pub fn blob(&self) -> Blob {
+        Blob {
+            hash: self.hash.clone(),
+            bytes: self.bytes,
+        }
+    }
+}
+
+/// The raster of every level of the pyramid over a `width x height` level 0: level `k + 1`
+/// keeps every other sample of level `k` (`ceil((w - 1) / 2) + 1` samples; its last sample
+/// stands on level `k`'s last one when `w - 1` is even, and one sample past it, repeating
+/// it, when odd), until a level fits in one tile of `tile_size`.
+pub fn level_rasters(raster: RasterSize, tile_size: u32) -> Vec<RasterSize> {
+    let mut levels = vec![raster];
+    let mut r = raster;
+    while (r.width > tile_size || r.height > tile_size) && levels.len() < 32 {
+        r = RasterSize {
+            width: (r.width.saturating_sub(1)).div_ceil(2) + 1,
+            height: (r.height.saturating_sub(1)).div_ceil(2) + 1,
+        };
+        levels.push(r);
+    }
+    levels
+}
+
+/// The fewest tiles of `tile_size` that cover `raster`; edge tiles are padded.
+pub fn grid_covering(raster: RasterSize, tile_size: u32) -> GridSize {
+    let step = tile_size.saturating_sub(1).max(1);
+    GridSize {
+        columns: raster.width.saturating_sub(1).div_ceil(step).max(1),
+        rows: raster.height.saturating_sub(1).div_ceil(step).max(1),
     }
 }
 
@@ -203,10 +267,10 @@ impl Manifest {
         Ok(manifest)
     }
 
-    /// Pretty JSON, as stored and served.
+    /// Compact JSON, as stored and served (a tile record is one short array).
     pub fn to_json(&self) -> Vec<u8> {
         // Serialising plain data to a Vec cannot fail.
-        serde_json::to_vec_pretty(self).unwrap_or_default()
+        serde_json::to_vec(self).unwrap_or_default()
     }
 
     /// Checks what the types cannot: counts, order and sizes agree.
@@ -227,14 +291,50 @@ impl Manifest {
                 crate::heights::MAX_SIDE
             ));
         }
-        let expected = (self.grid.columns as usize) * (self.grid.rows as usize);
-        if self.tiles.len() != expected {
+        if self.raster.width < 2 || self.raster.height < 2 {
             return bad(format!(
-                "{} tile records for a {}x{} grid",
-                self.tiles.len(),
-                self.grid.columns,
-                self.grid.rows
+                "raster of {}x{} samples",
+                self.raster.width, self.raster.height
             ));
+        }
+        let rasters = level_rasters(self.raster, n);
+        if self.levels.len() != rasters.len() {
+            return bad(format!(
+                "{} levels where a {}x{} raster in tiles of {n} has {}",
+                self.levels.len(),
+                self.raster.width,
+                self.raster.height,
+                rasters.len()
+            ));
+        }
+        for (k, (level, raster)) in self.levels.iter().zip(&rasters).enumerate() {
+            if level.raster != *raster {
+                return bad(format!(
+                    "level {k} has {}x{} samples, expected {}x{}",
+                    level.raster.width, level.raster.height, raster.width, raster.height
+                ));
+            }
+            let grid = grid_covering(*raster, n);
+            if level.grid != grid {
+                return bad(format!(
+                    "level {k} has a {}x{} grid, expected {}x{}",
+                    level.grid.columns, level.grid.rows, grid.columns, grid.rows
+                ));
+            }
+            let expected = (grid.columns as usize) * (grid.rows as usize);
+            if level.tiles.len() != expected {
+                return bad(format!(
+                    "level {k}: {} tile records for a {}x{} grid",
+                    level.tiles.len(),
+                    grid.columns,
+                    grid.rows
+                ));
+            }
+            if let Some(i) = level.tiles.iter().position(|t| {
+                t.hash.len() != 32 || !t.hash.bytes().all(|b| b.is_ascii_hexdigit())
+            }) {
+                return bad(format!("level {k}: tile record {i} has no 32-digit hash"));
+            }
         }
         if self.mask_levels != crate::mask::level_count(n) {
             return bad(format!("{} mask levels for tiles of {n}", self.mask_levels));
@@ -253,70 +353,145 @@ impl Manifest {
                 self.extent_m
             ));
         }
-        if self.texture.levels == 0 || self.texture.level_size(0) == 0 {
-            return bad("texture has no levels".into());
-        }
-        for (i, tile) in self.tiles.iter().enumerate() {
-            let (x, y) = (
-                (i % self.grid.columns as usize) as u32,
-                (i / self.grid.columns as usize) as u32,
-            );
-            if (tile.x, tile.y) != (x, y) {
-                return bad(format!(
-                    "record {i} is tile {}/{}, expected {x}/{y}",
-                    tile.x, tile.y
-                ));
-            }
-            if tile.mask_errors_m.len() != self.mask_levels as usize {
-                return bad(format!(
-                    "tile {x}/{y} has {} mask errors",
-                    tile.mask_errors_m.len()
-                ));
-            }
-            if tile.texture.len() != self.texture.levels as usize {
-                return bad(format!(
-                    "tile {x}/{y} has {} texture levels",
-                    tile.texture.len()
-                ));
-            }
-            if tile.valid[0] == 0 || tile.valid[1] == 0 || tile.valid[0] > n || tile.valid[1] > n {
-                return bad(format!("tile {x}/{y} has {:?} valid samples", tile.valid));
-            }
+        if self.texture.levels == 0 || self.texture.levels > 16 || self.texture.level_size(0) == 0
+        {
+            return bad("texture has no levels, or more than 16".into());
         }
         Ok(())
     }
 
-    /// The record of one tile, if it lies inside the grid.
+    /// Number of levels of the pyramid (at least 1).
+    pub fn level_count(&self) -> u32 {
+        self.levels.len() as u32
+    }
+
+    /// The coarsest level, which one tile covers.
+    pub fn coarsest_level(&self) -> u32 {
+        self.level_count().saturating_sub(1)
+    }
+
+    /// The tile grid of `level` (an empty grid past the last level).
+    pub fn grid(&self, level: u32) -> GridSize {
+        self.levels
+            .get(level as usize)
+            .map_or(GridSize { columns: 0, rows: 0 }, |l| l.grid)
+    }
+
+    /// Metres between the samples of `level`: level 0's spacing times `2^level`.
+    pub fn level_spacing_m(&self, level: u32) -> [f64; 2] {
+        let scale = f64::from(1u32 << level.min(31));
+        [self.spacing_m[0] * scale, self.spacing_m[1] * scale]
+    }
+
+    /// The record of one tile, if it lies inside its level's grid.
     pub fn tile(&self, id: TileId) -> Option<&TileRecord> {
-        if id.x >= self.grid.columns || id.y >= self.grid.rows {
+        self.index(id).map(|i| self.record_at(i))
+    }
+
+    /// Tiles of every level together: the length of the client's dense per-tile slices.
+    pub fn tile_count(&self) -> usize {
+        self.levels.iter().map(|l| l.tiles.len()).sum()
+    }
+
+    /// Where the tiles of `level` start in the dense order of every level (level 0 first,
+    /// each level row-major).
+    pub fn level_offset(&self, level: u32) -> usize {
+        self.levels
+            .iter()
+            .take(level as usize)
+            .map(|l| l.tiles.len())
+            .sum()
+    }
+
+    /// Position of `id` in the dense order of every level, if it lies inside its grid.
+    pub fn index(&self, id: TileId) -> Option<usize> {
+        let level = self.levels.get(id.level as usize)?;
+        if id.x >= level.grid.columns || id.y >= level.grid.rows {
             return None;
         }
-        self.tiles
-            .get(id.y as usize * self.grid.columns as usize + id.x as usize)
+        Some(
+            self.level_offset(id.level)
+                + id.y as usize * level.grid.columns as usize
+                + id.x as usize,
+        )
+    }
+
+    /// The tile at position `index` of the dense order.
+    ///
+    /// # Panics
+    ///
+    /// When `index >= tile_count()`.
+    pub fn id_at(&self, index: usize) -> TileId {
+        let mut rest = index;
+        for (k, level) in self.levels.iter().enumerate() {
+            if rest < level.tiles.len() {
+                let columns = level.grid.columns as usize;
+                return TileId::at(k as u32, (rest % columns) as u32, (rest / columns) as u32);
+            }
+            rest -= level.tiles.len();
+        }
+        panic!("tile index {index} past the {} tiles", self.tile_count())
+    }
+
+    fn record_at(&self, index: usize) -> &TileRecord {
+        let id = self.id_at(index);
+        let level = &self.levels[id.level as usize];
+        &level.tiles[id.y as usize * level.grid.columns as usize + id.x as usize]
+    }
+
+    /// Every tile of every level with its record, in the dense order.
+    pub fn tiles(&self) -> impl Iterator<Item = (TileId, &TileRecord)> + '_ {
+        self.levels.iter().enumerate().flat_map(|(k, level)| {
+            let columns = level.grid.columns as usize;
+            level.tiles.iter().enumerate().map(move |(i, record)| {
+                (
+                    TileId::at(k as u32, (i % columns) as u32, (i / columns) as u32),
+                    record,
+                )
+            })
+        })
+    }
+
+    /// Real samples `[columns, rows]` of tile `id`; the rest of its `tile_size` repeats the
+    /// last real one. Zero for a tile outside its grid.
+    pub fn valid(&self, id: TileId) -> [u32; 2] {
+        let Some(level) = self.levels.get(id.level as usize) else {
+            return [0, 0];
+        };
+        let step = self.tile_size - 1;
+        let real = |first: u32, count: u32| count.saturating_sub(first).min(self.tile_size);
+        [
+            real(id.x.saturating_mul(step), level.raster.width),
+            real(id.y.saturating_mul(step), level.raster.height),
+        ]
+    }
+
+    /// The existing tiles of the next finer level that `id` covers.
+    pub fn children(&self, id: TileId) -> Vec<TileId> {
+        id.children()
+            .map(|c| c.into_iter().filter(|c| self.index(*c).is_some()).collect())
+            .unwrap_or_default()
     }
 
     /// Position of sample `(x, y)` of tile `id` in metres from sample (0, 0) of the raster,
     /// x east, y south.
     pub fn sample_position_m(&self, id: TileId, x: u32, y: u32) -> [f64; 2] {
         let step = f64::from(self.tile_size - 1);
+        let spacing = self.level_spacing_m(id.level);
         [
-            (f64::from(id.x) * step + f64::from(x)) * self.spacing_m[0],
-            (f64::from(id.y) * step + f64::from(y)) * self.spacing_m[1],
+            (f64::from(id.x) * step + f64::from(x)) * spacing[0],
+            (f64::from(id.y) * step + f64::from(y)) * spacing[1],
         ]
     }
 
-    /// Content version computed from the grid and every blob hash, as the builder sets it.
+    /// Content version computed from the grids and every tile hash, as the builder sets it.
     pub fn compute_content_version(&self) -> String {
-        let mut text = format!(
-            "{FORMAT}/{VERSION}/{}/{}x{}",
-            self.tile_size, self.grid.columns, self.grid.rows
-        );
-        for tile in &self.tiles {
-            text.push(' ');
-            text.push_str(&tile.heights.hash);
-            for level in &tile.texture {
-                text.push(',');
-                text.push_str(&level.hash);
+        let mut text = format!("{FORMAT}/{VERSION}/{}", self.tile_size);
+        for level in &self.levels {
+            text.push_str(&format!(" {}x{}:", level.grid.columns, level.grid.rows));
+            for tile in &level.tiles {
+                text.push(' ');
+                text.push_str(&tile.hash);
             }
         }
         content_hash(text.as_bytes())[..16].to_string()
@@ -326,6 +501,33 @@ impl Manifest {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn levels_halve_until_one_tile_holds_a_level() {
+        let r = |width, height| RasterSize { width, height };
+        assert_eq!(
+            level_rasters(r(4097, 4097), 129),
+            [r(4097, 4097), r(2049, 2049), r(1025, 1025), r(513, 513), r(257, 257), r(129, 129)]
+        );
+        // 344 - 1 = 343 cells, odd: 172 at level 1 (its last sample one past, padded), 86
+        // at level 2.
+        assert_eq!(
+            level_rasters(r(403, 344), 129),
+            [r(403, 344), r(202, 173), r(102, 87)]
+        );
+        assert_eq!(level_rasters(r(100, 50), 129), [r(100, 50)]);
+        // A level's grid is its parent level's halved, rounded up.
+        for raster in [r(4097, 4097), r(403, 344), r(10801, 6001), r(130, 2000)] {
+            let rasters = level_rasters(raster, 65);
+            for pair in rasters.windows(2) {
+                let (fine, coarse) = (grid_covering(pair[0], 65), grid_covering(pair[1], 65));
+                assert_eq!(coarse.columns, fine.columns.div_ceil(2), "{raster:?}");
+                assert_eq!(coarse.rows, fine.rows.div_ceil(2), "{raster:?}");
+            }
+            let last = grid_covering(*rasters.last().unwrap(), 65);
+            assert_eq!((last.columns, last.rows), (1, 1), "{raster:?}");
+        }
+    }
 
     #[test]
     fn texture_levels_past_the_bits_of_the_size_are_empty_not_a_panic() {
