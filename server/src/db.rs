@@ -4,12 +4,14 @@
 //!
 //! ```text
 //! manifest.json   the manifest (shared::Manifest), as served
-//! heights.pack    every tile's encoded heights, back to back, in manifest tile order
+//! heights.pack    every tile's tile blob (shared::tile_blob), back to back, in manifest
+//!                 order (level 0 first, row-major within a level)
 //! textures.pack   every tile's texture levels, coarsest first, tiles in manifest order
 //! ```
 //!
-//! Nothing else locates a blob: its offset is the sum of the sizes before it in the
-//! manifest, so the manifest alone describes the packs and cannot disagree with an index.
+//! Nothing else locates a blob: a tile blob's offset is the sum of the sizes before it in
+//! the manifest, and a texture's the sum of the sizes before it in the tile blobs' tables,
+//! so the database describes itself and cannot disagree with an index.
 //! [`TileDb::open`] checks that the sizes add up to the pack lengths and, by default,
 //! that every blob matches its hash, so a damaged database is refused at start-up
 //! rather than served.
@@ -22,7 +24,7 @@ use bytes::Bytes;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use terrain_shared::manifest::{ManifestError, content_hash};
-use terrain_shared::{Blob, Manifest, TileId};
+use terrain_shared::{Blob, Manifest, TileBlob, TileId};
 use thiserror::Error;
 
 pub const MANIFEST_FILE: &str = "manifest.json";
@@ -59,6 +61,12 @@ pub enum DbError {
         what: String,
         expected: String,
         found: String,
+    },
+    #[error("the tile blob of tile {id} in {pack} is damaged: {source}")]
+    TileBlob {
+        pack: PathBuf,
+        id: TileId,
+        source: terrain_shared::tile_blob::TileBlobError,
     },
 }
 
@@ -123,25 +131,39 @@ impl TileDb {
             &heights_pack,
             &heights_path,
             manifest
-                .tiles
-                .iter()
-                .map(|t| (t.id(), "heights".to_string(), &t.heights)),
-            verify,
-        )?;
-        let flat_textures = slice_pack(
-            &textures_pack,
-            &textures_path,
-            manifest.tiles.iter().flat_map(|t| {
-                t.texture
-                    .iter()
-                    .enumerate()
-                    .map(move |(level, blob)| (t.id(), format!("texture level {level}"), blob))
-            }),
+                .tiles()
+                .map(|(id, t)| (id, "tile blob".to_string(), t.blob())),
             verify,
         )?;
         let levels = manifest.texture.levels as usize;
+        let mut texture_blobs = Vec::with_capacity(heights.len() * levels);
+        for ((id, _), stored) in manifest.tiles().zip(&heights) {
+            let head = TileBlob::head(&stored.bytes).map_err(|source| DbError::TileBlob {
+                pack: heights_path.clone(),
+                id,
+                source,
+            })?;
+            if head.texture.len() != levels || head.mask_errors_m.len() != manifest.mask_levels as usize {
+                return Err(DbError::TileBlob {
+                    pack: heights_path.clone(),
+                    id,
+                    source: terrain_shared::tile_blob::TileBlobError::TooManyLevels {
+                        mask: head.mask_errors_m.len(),
+                        texture: head.texture.len(),
+                    },
+                });
+            }
+            texture_blobs.extend(
+                head.texture
+                    .into_iter()
+                    .enumerate()
+                    .map(|(level, blob)| (id, format!("texture level {level}"), blob)),
+            );
+        }
+        let flat_textures =
+            slice_pack(&textures_pack, &textures_path, texture_blobs.into_iter(), verify)?;
         let mut flat = flat_textures.into_iter();
-        let textures = (0..manifest.tiles.len())
+        let textures = (0..heights.len())
             .map(|_| flat.by_ref().take(levels).collect())
             .collect();
 
@@ -190,7 +212,7 @@ impl TileDb {
         &self.manifest_hash
     }
 
-    /// The encoded heights of tile `id`, if it lies in the grid.
+    /// The tile blob of tile `id`, if it lies in its level's grid.
     pub fn heights(&self, id: TileId) -> Option<&StoredBlob> {
         self.heights.get(self.index(id)?)
     }
@@ -201,9 +223,7 @@ impl TileDb {
     }
 
     fn index(&self, id: TileId) -> Option<usize> {
-        let grid = self.manifest.grid;
-        (id.x < grid.columns && id.y < grid.rows)
-            .then(|| id.y as usize * grid.columns as usize + id.x as usize)
+        self.manifest.index(id)
     }
 }
 
@@ -227,10 +247,10 @@ fn map_file(path: &Path) -> Result<Bytes, DbError> {
 }
 
 /// Cuts a pack into the blobs the manifest lists, in order, checking sizes and hashes.
-fn slice_pack<'a>(
+fn slice_pack(
     pack: &Bytes,
     path: &Path,
-    blobs: impl Iterator<Item = (TileId, String, &'a Blob)>,
+    blobs: impl Iterator<Item = (TileId, String, Blob)>,
     verify: Verify,
 ) -> Result<Vec<StoredBlob>, DbError> {
     let listed: Vec<_> = blobs.collect();
@@ -467,25 +487,12 @@ impl DbWriter {
     /// Writes the manifest, syncs everything and renames the directory to its destination.
     pub fn finish(mut self, manifest: &Manifest) -> Result<PathBuf, WriteError> {
         use std::io::Write;
-        let listed_heights: u64 = manifest.tiles.iter().map(|t| t.heights.bytes).sum();
-        let listed_textures: u64 = manifest
-            .tiles
-            .iter()
-            .flat_map(|t| &t.texture)
-            .map(|b| b.bytes)
-            .sum();
+        let listed_heights: u64 = manifest.tiles().map(|(_, t)| t.bytes).sum();
         if listed_heights != self.heights_written {
             return Err(WriteError::Mismatch {
                 pack: HEIGHTS_PACK,
                 listed: listed_heights,
                 written: self.heights_written,
-            });
-        }
-        if listed_textures != self.textures_written {
-            return Err(WriteError::Mismatch {
-                pack: TEXTURES_PACK,
-                listed: listed_textures,
-                written: self.textures_written,
             });
         }
         let out = self.out.clone();

@@ -12,18 +12,19 @@ pub const MANIFEST: &str = "/v1/manifest.json";
 pub const HEALTHZ: &str = "/healthz";
 pub const METRICS: &str = "/metrics";
 
-/// Path of the heights of one tile.
+/// Path of the tile blob (`crate::tile_blob`: mask errors, texture hashes, heights) of one
+/// tile of any level of the pyramid.
 pub fn heights(content_version: &str, id: TileId) -> String {
     format!(
-        "{API_PREFIX}/{content_version}/tiles/{}/{}/heights",
-        id.x, id.y
+        "{API_PREFIX}/{content_version}/levels/{}/tiles/{}/{}/heights",
+        id.level, id.x, id.y
     )
 }
 
 /// Path of one texture level (0 = coarsest) of one tile.
 pub fn texture(content_version: &str, id: TileId, level: u32) -> String {
     format!(
-        "{API_PREFIX}/{content_version}/tiles/{}/{}/texture/{level}",
-        id.x, id.y
+        "{API_PREFIX}/{content_version}/levels/{}/tiles/{}/{}/texture/{level}",
+        id.level, id.x, id.y
     )
 }

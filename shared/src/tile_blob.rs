@@ -89,6 +89,17 @@ impl TileBlob {
 
     /// Splits a blob into its parts, checking every size.
     pub fn decode(bytes: &[u8]) -> Result<TileBlob, TileBlobError> {
+        let head = TileBlob::head(bytes)?;
+        Ok(TileBlob {
+            mask_errors_m: head.mask_errors_m,
+            texture: head.texture,
+            heights: bytes[head.heights_at..].to_vec(),
+        })
+    }
+
+    /// The blob's parts before the heights, and where the heights start: what a server
+    /// needs to locate the textures without copying the heights.
+    pub fn head(bytes: &[u8]) -> Result<TileHead, TileBlobError> {
         let header: &[u8; HEADER] = bytes
             .get(..HEADER)
             .and_then(|h| h.try_into().ok())
@@ -138,12 +149,21 @@ impl TileBlob {
             });
             at += 20;
         }
-        Ok(TileBlob {
+        Ok(TileHead {
             mask_errors_m,
             texture: levels,
-            heights: bytes[at..].to_vec(),
+            heights_at: at,
         })
     }
+}
+
+/// A tile blob's header and tables ([`TileBlob::head`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TileHead {
+    pub mask_errors_m: Vec<f32>,
+    pub texture: Vec<Blob>,
+    /// Offset of the heights blob; it runs to the end.
+    pub heights_at: usize,
 }
 
 /// The 16 bytes of a 32-digit hex hash (zeros for anything else: `Blob` hashes are always

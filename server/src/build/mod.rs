@@ -23,9 +23,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 use terrain_shared::manifest::{
-    self, Georeference, GridSize, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource,
+    self, Georeference, GridSize, HeightsInfo, Level, ImageFormat, RasterSize, TextureInfo, TextureSource,
 };
-use terrain_shared::{EncodeError, Manifest, TileRecord, heights, mask};
+use terrain_shared::{EncodeError, Manifest, TileBlob, TileRecord, heights, mask};
 use thiserror::Error;
 
 pub use input::{InputError, OutOfRange, Raster};
@@ -306,10 +306,25 @@ pub struct BuildReport {
 
 /// One tile's output, made in parallel and written in order.
 struct MadeTile {
-    record: TileRecord,
-    heights: Vec<u8>,
+    carry: Carry,
+    roughness_m: f32,
+    /// The tile blob (mask errors, texture hashes, heights).
+    blob: Vec<u8>,
+    heights_bytes: u64,
     /// Encoded texture levels, coarsest first.
     texture_levels: Vec<Vec<u8>>,
+}
+
+/// What a tile hands to its parent on the next coarser level.
+struct Carry {
+    /// Bounds of the full-resolution surface under the tile.
+    min_m: f32,
+    max_m: f32,
+    /// Largest vertical distance between the tile's own surface and the full-resolution
+    /// surface, at every full-resolution sample under it (0 at level 0).
+    deviation_m: f32,
+    /// Its finest texture, which the parent's is filtered from.
+    texture: image::RgbImage,
 }
 
 /// Progress of a build, for a bar: tiles done out of the total.
@@ -469,81 +484,168 @@ pub fn build(
         max_m,
     };
 
-    let grid = tiles::Grid::covering(width, height, n);
+    let rasters = manifest::level_rasters(RasterSize { width, height }, n);
+    let total_tiles: usize = rasters
+        .iter()
+        .map(|r| {
+            let g = manifest::grid_covering(*r, n);
+            g.columns as usize * g.rows as usize
+        })
+        .sum();
     let mut writer = DbWriter::create(&options.out, options.force)?;
     let done = AtomicUsize::new(0);
-    let mut records = Vec::with_capacity(grid.len());
-    for row in 0..grid.rows {
-        let made: Vec<Result<MadeTile, BuildError>> = (0..grid.columns)
-            .into_par_iter()
-            .map(|column| {
-                if cancel.load(Ordering::Relaxed) {
-                    return Err(BuildError::Cancelled);
-                }
-                let id = terrain_shared::TileId::new(column, row);
-                let cut = tiles::cut(&codes, width, height, grid, id, quantum_m, offset_m);
-                let encoded = cut
-                    .heights
-                    .encode_with_level(options.zstd_level)
-                    .map_err(|source| BuildError::Encode { tile: id, source })?;
-                let stats = tiles::stats(&cut);
-                let finest = match &source_image {
-                    Some(image) => texture::from_image(
-                        image,
-                        registration,
-                        (width, height),
+    let mut levels: Vec<Level> = Vec::with_capacity(rasters.len());
+    let mut heights_bytes = 0u64;
+    let mut texture_bytes = 0u64;
+    let mut tile_samples = 0u64;
+    // The level being cut, its codes, and what its tiles hand to their parents.
+    // Codes of the level being cut (above level 0) and of the one before it (above level 1).
+    let mut coarse_codes: Vec<i32> = Vec::new();
+    let mut finer_codes: Vec<i32> = Vec::new();
+    let mut finer: Option<(RasterSize, tiles::Grid, Vec<Carry>)> = None;
+    for (k, raster) in rasters.iter().enumerate() {
+        let k = k as u32;
+        if let Some((prev_raster, _, _)) = &finer {
+            let source: &[i32] = if k == 1 { &codes } else { &coarse_codes };
+            let next = tiles::decimate(source, *prev_raster, *raster);
+            finer_codes = std::mem::replace(&mut coarse_codes, next);
+        }
+        let level_codes: &[i32] = if k == 0 { &codes } else { &coarse_codes };
+        let prev_codes: &[i32] = if k == 1 { &codes } else { &finer_codes };
+        let grid = tiles::Grid::covering(raster.width, raster.height, n);
+        let mut carries = Vec::with_capacity(grid.len());
+        let mut records = Vec::with_capacity(grid.len());
+        for row in 0..grid.rows {
+            let made: Vec<Result<MadeTile, BuildError>> = (0..grid.columns)
+                .into_par_iter()
+                .map(|column| {
+                    if cancel.load(Ordering::Relaxed) {
+                        return Err(BuildError::Cancelled);
+                    }
+                    let id = terrain_shared::TileId::at(k, column, row);
+                    let cut = tiles::cut(
+                        level_codes,
+                        raster.width,
+                        raster.height,
                         grid,
                         id,
-                        texture_size,
-                    ),
-                    None => texture::generated(&field, grid, id, texture_size),
-                };
-                let levels = texture::mip_chain(finest)
-                    .iter()
-                    .map(|level| {
-                        texture::encode(level, options.texture_format, options.jpeg_quality)
+                        quantum_m,
+                        offset_m,
+                    );
+                    let encoded = cut
+                        .heights
+                        .encode_with_level(options.zstd_level)
+                        .map_err(|source| BuildError::Encode { tile: id, source })?;
+                    let mut stats = tiles::stats(&cut);
+                    // Above level 0: bounds and errors against the full-resolution surface.
+                    let finest = match &finer {
+                        None => {
+                            let finest = match &source_image {
+                                Some(image) => texture::from_image(
+                                    image,
+                                    registration,
+                                    (width, height),
+                                    grid,
+                                    id,
+                                    texture_size,
+                                ),
+                                None => texture::generated(&field, grid, id, texture_size),
+                            };
+                            (finest, 0.0f32)
+                        }
+                        Some((prev_raster, prev_grid, prev)) => {
+                            let children: Vec<&Carry> = id
+                                .children()
+                                .into_iter()
+                                .flatten()
+                                .filter(|c| c.x < prev_grid.columns && c.y < prev_grid.rows)
+                                .map(|c| &prev[c.y as usize * prev_grid.columns as usize + c.x as usize])
+                                .collect();
+                            for child in &children {
+                                stats.min_m = stats.min_m.min(child.min_m);
+                                stats.max_m = stats.max_m.max(child.max_m);
+                            }
+                            let below = children.iter().map(|c| c.deviation_m).fold(0.0, f32::max);
+                            let deviation = below
+                                + tiles::decimation_error(
+                                    prev_codes,
+                                    *prev_raster,
+                                    id,
+                                    n,
+                                    quantum_m,
+                                    offset_m,
+                                );
+                            let finest = texture::from_children(
+                                &id.children().into_iter().flatten().map(|c| {
+                                    (c.x < prev_grid.columns && c.y < prev_grid.rows).then(|| {
+                                        &prev[c.y as usize * prev_grid.columns as usize + c.x as usize]
+                                            .texture
+                                    })
+                                }).collect::<Vec<_>>(),
+                                texture_size,
+                            );
+                            (finest, deviation)
+                        }
+                    };
+                    let (finest, deviation) = finest;
+                    tiles::add_deviation(&mut stats.mask_errors_m, deviation);
+                    let levels = texture::mip_chain(finest.clone())
+                        .iter()
+                        .map(|level| {
+                            texture::encode(level, options.texture_format, options.jpeg_quality)
+                        })
+                        .collect::<Result<Vec<_>, _>>()
+                        .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
+                    let blob = TileBlob {
+                        mask_errors_m: stats.mask_errors_m,
+                        texture: levels.iter().map(|l| manifest::Blob::of(l)).collect(),
+                        heights: encoded,
+                    };
+                    progress(done.fetch_add(1, Ordering::Relaxed) + 1, total_tiles);
+                    Ok(MadeTile {
+                        carry: Carry {
+                            min_m: stats.min_m,
+                            max_m: stats.max_m,
+                            deviation_m: deviation,
+                            texture: finest,
+                        },
+                        roughness_m: stats.roughness_m,
+                        blob: blob.encode(),
+                        heights_bytes: blob.heights.len() as u64,
+                        texture_levels: levels,
                     })
-                    .collect::<Result<Vec<_>, _>>()
-                    .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
-                let record = TileRecord {
-                    x: id.x,
-                    y: id.y,
-                    valid: cut.valid,
-                    min_m: stats.min_m,
-                    max_m: stats.max_m,
-                    roughness_m: stats.roughness_m,
-                    mask_errors_m: stats.mask_errors_m,
-                    heights: manifest::Blob::of(&encoded),
-                    texture: Vec::new(),
-                };
-                progress(done.fetch_add(1, Ordering::Relaxed) + 1, grid.len());
-                Ok(MadeTile {
-                    record,
-                    heights: encoded,
-                    texture_levels: levels,
                 })
-            })
-            .collect();
-        for result in made {
-            let MadeTile {
-                mut record,
-                heights,
-                texture_levels,
-            } = result?;
-            record.heights = writer.add_heights(&heights)?;
-            for level in &texture_levels {
-                record.texture.push(writer.add_texture(level)?);
+                .collect();
+            for result in made {
+                let made = result?;
+                let stored = writer.add_heights(&made.blob)?;
+                heights_bytes += made.heights_bytes;
+                for level in &made.texture_levels {
+                    texture_bytes += writer.add_texture(level)?.bytes;
+                }
+                records.push(TileRecord {
+                    hash: stored.hash,
+                    bytes: stored.bytes,
+                    min_m: made.carry.min_m,
+                    max_m: made.carry.max_m,
+                    roughness_m: made.roughness_m,
+                });
+                carries.push(made.carry);
             }
-            records.push(record);
         }
+        tile_samples += grid.len() as u64 * u64::from(n) * u64::from(n);
+        levels.push(Level {
+            raster: *raster,
+            grid: GridSize {
+                columns: grid.columns,
+                rows: grid.rows,
+            },
+            tiles: records,
+        });
+        finer = Some((*raster, grid, carries));
     }
+    drop(finer);
 
-    let heights_bytes = records.iter().map(|r| r.heights.bytes).sum();
-    let texture_bytes = records
-        .iter()
-        .flat_map(|r| &r.texture)
-        .map(|b| b.bytes)
-        .sum();
     let name = options
         .name
         .clone()
@@ -555,10 +657,6 @@ pub fn build(
         content_version: String::new(),
         raster: RasterSize { width, height },
         tile_size: n,
-        grid: GridSize {
-            columns: grid.columns,
-            rows: grid.rows,
-        },
         spacing_m,
         extent_m: [
             f64::from(width - 1) * spacing_m[0],
@@ -584,7 +682,7 @@ pub fn build(
         },
         georeference,
         mask_levels: mask::level_count(n),
-        tiles: records,
+        levels,
     };
     manifest.content_version = manifest.compute_content_version();
     if cancel.load(Ordering::Relaxed) {
@@ -593,7 +691,7 @@ pub fn build(
     let out = writer.finish(&manifest)?;
     Ok(BuildReport {
         out,
-        tile_samples: grid.len() as u64 * u64::from(n) * u64::from(n),
+        tile_samples,
         manifest,
         warnings,
         heights_bytes,
@@ -666,11 +764,13 @@ impl fmt::Display for Summary<'_> {
         )?;
         writeln!(
             f,
-            "  tiles     {} x {} = {} tiles of {}^2 samples",
-            m.grid.columns,
-            m.grid.rows,
-            m.tiles.len(),
-            m.tile_size
+            "  tiles     {} x {} = {} tiles of {}^2 samples at level 0; {} levels, {} tiles in all",
+            m.grid(0).columns,
+            m.grid(0).rows,
+            m.levels[0].tiles.len(),
+            m.tile_size,
+            m.level_count(),
+            m.tile_count(),
         )?;
         writeln!(
             f,

@@ -106,6 +106,35 @@ fn bilinear(image: &RgbImage, x: f64, y: f64) -> Rgb<u8> {
     }))
 }
 
+/// A parent tile's finest texture, `size` texels, filtered from its children's (north-west,
+/// north-east, south-west, south-east; `None` past the grid's edge, where the nearest
+/// existing texels are repeated): the 2x2 mosaic, each output texel the mean of four.
+pub fn from_children(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
+    let child = |cx: usize, cy: usize| children.get(cy * 2 + cx).copied().flatten();
+    let texel = |px: u32, py: u32| -> [u32; 3] {
+        let (cx, cy) = ((px / size) as usize, (py / size) as usize);
+        let (ix, iy) = (px % size, py % size);
+        let found = child(cx, cy)
+            .map(|c| (c, ix, iy))
+            .or_else(|| child(0, cy).map(|c| (c, size - 1, iy)))
+            .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
+            .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)));
+        match found {
+            Some((c, x, y)) if x < c.width() && y < c.height() => c.get_pixel(x, y).0.map(u32::from),
+            _ => [0, 0, 0],
+        }
+    };
+    RgbImage::from_fn(size, size, |x, y| {
+        let (a, b, c, d) = (
+            texel(2 * x, 2 * y),
+            texel(2 * x + 1, 2 * y),
+            texel(2 * x, 2 * y + 1),
+            texel(2 * x + 1, 2 * y + 1),
+        );
+        Rgb(std::array::from_fn(|k| ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8))
+    })
+}
+
 /// The whole raster in metres, for computed textures.
 #[derive(Debug, Clone, Copy)]
 pub struct HeightField<'a> {

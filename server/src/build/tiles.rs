@@ -2,6 +2,7 @@
 //! and columns, and the per-tile metadata a client needs before the heights: bounds,
 //! roughness and the error of every strip-mask level.
 
+use terrain_shared::manifest::RasterSize;
 use terrain_shared::{Heights, TileId, mask};
 
 /// The tile grid over a raster.
@@ -78,6 +79,59 @@ pub fn cut(
     }
 }
 
+/// The next coarser level of a raster: every other sample of `source` (`from` samples),
+/// `to` samples ([`terrain_shared::manifest::level_rasters`]); a sample one past the last
+/// repeats it.
+pub fn decimate(source: &[i32], from: RasterSize, to: RasterSize) -> Vec<i32> {
+    let (fw, fh) = (from.width as usize, from.height as usize);
+    let mut out = Vec::with_capacity(to.width as usize * to.height as usize);
+    for y in 0..to.height as usize {
+        let row = &source[(2 * y).min(fh - 1) * fw..][..fw];
+        out.extend((0..to.width as usize).map(|x| row[(2 * x).min(fw - 1)]));
+    }
+    out
+}
+
+/// Largest vertical distance, metres, between tile `id` of level `k` (`k >= 1`) and the
+/// level below it (`finer`, `finer_raster` samples), over every sample of that level under
+/// the tile: the error of keeping every other sample of its `(2n - 1)^2` block. Both
+/// surfaces are triangulated the strip masks' way, and the coarse one's cells are unions of
+/// the fine one's, so the distance is largest at a fine sample: it bounds the distance
+/// everywhere, not only there.
+pub fn decimation_error(
+    finer: &[i32],
+    finer_raster: RasterSize,
+    id: TileId,
+    tile_size: u32,
+    quantum_m: f64,
+    offset_m: f64,
+) -> f32 {
+    let side = 2 * tile_size - 1;
+    let grid = Grid::covering(finer_raster.width, finer_raster.height, side);
+    let block = cut(
+        finer,
+        finer_raster.width,
+        finer_raster.height,
+        grid,
+        TileId::new(id.x, id.y),
+        quantum_m,
+        offset_m,
+    );
+    let metres = block.heights.to_metres_f32();
+    mask::max_vertical_error(&metres, side, 1)
+}
+
+/// Adds a tile's distance from the full-resolution surface to each of its mask errors (the
+/// triangle inequality: mask to tile, tile to full resolution), rounding up to the
+/// centimetre so the sums stay upper bounds.
+pub fn add_deviation(mask_errors_m: &mut [f32], deviation_m: f32) {
+    if deviation_m > 0.0 {
+        for e in mask_errors_m {
+            *e = ((*e + deviation_m) * 100.0).ceil() / 100.0;
+        }
+    }
+}
+
 /// Bounds, roughness and mask errors of one tile, all in metres.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TileStats {
@@ -139,6 +193,28 @@ fn roughness(metres: &[f32], n: usize, valid: [u32; 2]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_coarser_level_keeps_every_other_sample_and_measures_what_it_drops() {
+        let (w, h) = (9u32, 6u32);
+        let codes: Vec<i32> = (0..(w * h) as i32).collect();
+        let from = RasterSize { width: w, height: h };
+        let to = RasterSize { width: 5, height: 4 };
+        let coarse = decimate(&codes, from, to);
+        // Row 3 of the coarse level is row 6 of the fine one, past its last row 5: it repeats it.
+        assert_eq!(&coarse[..5], &[0, 2, 4, 6, 8]);
+        assert_eq!(&coarse[15..], &[45, 47, 49, 51, 53]);
+        // A plane loses nothing; a spike on a dropped sample is the whole error.
+        let plane: Vec<i32> = (0..81).map(|i| 3 * (i % 9) + 2 * (i / 9)).collect();
+        let r9 = RasterSize { width: 9, height: 9 };
+        assert_eq!(decimation_error(&plane, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0), 0.0);
+        let mut spiky = vec![0; 81];
+        spiky[3 * 9 + 5] = 7;
+        assert_eq!(decimation_error(&spiky, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0), 7.0);
+        let mut errors = vec![0.0, 0.5];
+        add_deviation(&mut errors, 7.0);
+        assert_eq!(errors, vec![7.0, 7.5]);
+    }
 
     #[test]
     fn grids_cover_rasters_with_shared_borders() {

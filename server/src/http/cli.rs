@@ -82,7 +82,8 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
         db = %args.db.display(),
         dataset = %manifest.dataset,
         content_version = %manifest.content_version,
-        tiles = manifest.tiles.len(),
+        tiles = manifest.tile_count(),
+        levels = manifest.level_count(),
         ?verify,
         elapsed_ms = started.elapsed().as_millis() as u64,
         "database opened"

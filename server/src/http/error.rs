@@ -33,8 +33,10 @@ pub enum HttpError {
         reason: &'static str,
         canonical: &'static str,
     },
-    #[error("tile {id} is outside the {columns}x{rows} grid")]
+    #[error("tile {id} is outside the {columns}x{rows} grid of its level")]
     TileOutsideGrid { id: TileId, columns: u32, rows: u32 },
+    #[error("level {level} does not exist: the pyramid has levels 0 to {last}")]
+    NoSuchLevel { level: u32, last: u32 },
     #[error("tile {id} has texture levels 0 to {last}, not {level}")]
     NoSuchTextureLevel { id: TileId, level: u32, last: u32 },
     /// The URL names a database this server does not serve (usually the previous build):
@@ -64,6 +66,7 @@ impl HttpError {
             | HttpError::MalformedPath { .. }
             | HttpError::NotCanonical { .. } => StatusCode::BAD_REQUEST,
             HttpError::TileOutsideGrid { .. }
+            | HttpError::NoSuchLevel { .. }
             | HttpError::NoSuchTextureLevel { .. }
             | HttpError::UnknownContentVersion { .. }
             | HttpError::NoRoute => StatusCode::NOT_FOUND,

@@ -78,7 +78,14 @@ impl AppState {
     }
 
     fn outside_grid(&self, id: TileId) -> HttpError {
-        let grid = self.db.manifest().grid;
+        let manifest = self.db.manifest();
+        if id.level >= manifest.level_count() {
+            return HttpError::NoSuchLevel {
+                level: id.level,
+                last: manifest.coarsest_level(),
+            };
+        }
+        let grid = manifest.grid(id.level);
         HttpError::TileOutsideGrid {
             id,
             columns: grid.columns,
@@ -97,7 +104,9 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
     let tile_api = Router::new()
         .route(MANIFEST, get(routes::manifest))
         .route(&routes::heights_template(), get(routes::heights))
-        .route(&routes::texture_template(), get(routes::texture));
+        .route(&routes::texture_template(), get(routes::texture))
+        .route(&routes::legacy_heights_template(), get(routes::legacy_tile))
+        .route(&routes::legacy_texture_template(), get(routes::legacy_tile));
     #[cfg(feature = "test-hooks")]
     let tile_api = tile_api.route(hooks::SLEEP, get(hooks::sleep));
 

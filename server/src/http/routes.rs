@@ -27,8 +27,9 @@ use std::sync::Arc;
 use terrain_shared::TileId;
 use terrain_shared::routes::API_PREFIX;
 
-/// Content type of an encoded heights tile (`terrain_shared::heights`).
-pub const HEIGHTS_CONTENT_TYPE: &str = "application/vnd.terrain.heights";
+/// Content type of a tile blob (`terrain_shared::tile_blob`: mask errors, texture hashes,
+/// heights).
+pub const HEIGHTS_CONTENT_TYPE: &str = "application/vnd.terrain.tile";
 pub const JSON_CONTENT_TYPE: &str = "application/json";
 /// Tiles never change under their URL: a year is the longest lifetime RFC 9111 caches are
 /// expected to honour, and `immutable` spares browsers the revalidation on reload.
@@ -39,17 +40,31 @@ pub const MANIFEST_CACHE_CONTROL: &str = "public, no-cache";
 /// axum route template of [`terrain_shared::routes::heights`]. Built from the same prefix;
 /// the test `templates_fill_in_to_the_shared_paths` keeps the rest in step.
 pub fn heights_template() -> String {
-    format!("{API_PREFIX}/{{content_version}}/tiles/{{x}}/{{y}}/heights")
+    format!("{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/heights")
 }
 
 /// axum route template of [`terrain_shared::routes::texture`].
 pub fn texture_template() -> String {
-    format!("{API_PREFIX}/{{content_version}}/tiles/{{x}}/{{y}}/texture/{{level}}")
+    format!(
+        "{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/texture/{{mip}}"
+    )
+}
+
+/// The level-0 spelling of the single-level API, answered with a permanent redirect to
+/// [`heights_template`] at level 0.
+pub fn legacy_heights_template() -> String {
+    format!("{API_PREFIX}/{{content_version}}/tiles/{{x}}/{{y}}/heights")
+}
+
+/// The level-0 spelling of a texture level, redirected like [`legacy_heights_template`].
+pub fn legacy_texture_template() -> String {
+    format!("{API_PREFIX}/{{content_version}}/tiles/{{x}}/{{y}}/texture/{{mip}}")
 }
 
 #[derive(Debug, Deserialize)]
 pub(super) struct HeightsPath {
     content_version: String,
+    level: String,
     x: String,
     y: String,
 }
@@ -57,9 +72,18 @@ pub(super) struct HeightsPath {
 #[derive(Debug, Deserialize)]
 pub(super) struct TexturePath {
     content_version: String,
+    level: String,
     x: String,
     y: String,
-    level: String,
+    mip: String,
+}
+
+#[derive(Debug, Deserialize)]
+pub(super) struct LegacyPath {
+    content_version: String,
+    x: String,
+    y: String,
+    mip: Option<String>,
 }
 
 /// The request's `If-None-Match`, if any, parsed from the request head without copying
@@ -149,8 +173,9 @@ pub(super) async fn heights(
 ) -> Result<Response, HttpError> {
     check_canonical(&uri, HEIGHTS_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
-    let id = parse_tile(&path.x, &path.y)?;
+    let id = parse_tile(&path.level, &path.x, &path.y)?;
     state.check_content_version(&path.content_version)?;
+    state.check_in_grid(id)?;
     let blob = state.db.heights(id).ok_or_else(|| state.outside_grid(id))?;
     Ok(entity(
         &conditional,
@@ -169,8 +194,8 @@ pub(super) async fn texture(
 ) -> Result<Response, HttpError> {
     check_canonical(&uri, TEXTURE_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
-    let id = parse_tile(&path.x, &path.y)?;
-    let level = parse_number("texture level", &path.level)?;
+    let id = parse_tile(&path.level, &path.x, &path.y)?;
+    let level = parse_number("texture level", &path.mip)?;
     state.check_content_version(&path.content_version)?;
     state.check_in_grid(id)?;
     let manifest = state.db.manifest();
@@ -190,6 +215,40 @@ pub(super) async fn texture(
         content_type,
         TILE_CACHE_CONTROL,
     ))
+}
+
+/// A level-0 tile URL of the single-level API: checked like any tile URL, then a permanent
+/// redirect (308) to its one spelling with the level, cacheable like the tile itself.
+pub(super) async fn legacy_tile(
+    State(state): State<Arc<AppState>>,
+    uri: Uri,
+    path: Result<Path<LegacyPath>, PathRejection>,
+) -> Result<Response, HttpError> {
+    let spelling = if uri.path().ends_with("/heights") {
+        HEIGHTS_SPELLING
+    } else {
+        TEXTURE_SPELLING
+    };
+    check_canonical(&uri, spelling)?;
+    let Path(path) = path.map_err(malformed_path)?;
+    let id = parse_tile("0", &path.x, &path.y)?;
+    state.check_content_version(&path.content_version)?;
+    state.check_in_grid(id)?;
+    let cv = &path.content_version;
+    let location = match &path.mip {
+        None => terrain_shared::routes::heights(cv, id),
+        Some(mip) => terrain_shared::routes::texture(cv, id, parse_number("texture level", mip)?),
+    };
+    let mut response = StatusCode::PERMANENT_REDIRECT.into_response();
+    let headers = response.headers_mut();
+    if let Ok(location) = HeaderValue::from_str(&location) {
+        headers.insert(header::LOCATION, location);
+    }
+    headers.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(TILE_CACHE_CONTROL),
+    );
+    Ok(response)
 }
 
 pub(super) async fn healthz() -> &'static str {
@@ -253,9 +312,9 @@ fn entity(
 }
 
 const HEIGHTS_SPELLING: &str =
-    "/v1/{content_version}/tiles/{x}/{y}/heights, plain digits, no query";
+    "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/heights, plain digits, no query";
 const TEXTURE_SPELLING: &str =
-    "/v1/{content_version}/tiles/{x}/{y}/texture/{level}, plain digits, no query";
+    "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/texture/{mip}, plain digits, no query";
 
 /// Refuses the spellings of a tile URL that routing alone would accept: a query string
 /// (ignored by the handler, but part of every cache's key) and percent-encoding (`%31` for
@@ -276,8 +335,9 @@ fn check_canonical(uri: &Uri, canonical: &'static str) -> Result<(), HttpError> 
     Ok(())
 }
 
-fn parse_tile(x: &str, y: &str) -> Result<TileId, HttpError> {
-    Ok(TileId::new(
+fn parse_tile(level: &str, x: &str, y: &str) -> Result<TileId, HttpError> {
+    Ok(TileId::at(
+        parse_number("level", level)?,
         parse_number("x coordinate", x)?,
         parse_number("y coordinate", y)?,
     ))
@@ -323,13 +383,14 @@ mod tests {
 
     #[test]
     fn templates_fill_in_to_the_shared_paths() {
-        let id = TileId::new(3, 4);
+        let id = TileId::at(1, 3, 4);
         let fill = |template: String| {
             template
                 .replace("{content_version}", "abc")
+                .replace("{level}", "1")
                 .replace("{x}", "3")
                 .replace("{y}", "4")
-                .replace("{level}", "2")
+                .replace("{mip}", "2")
         };
         assert_eq!(fill(heights_template()), routes::heights("abc", id));
         assert_eq!(fill(texture_template()), routes::texture("abc", id, 2));
