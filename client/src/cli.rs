@@ -88,12 +88,13 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
         server,
         dataset = manifest.dataset,
         content_version = manifest.content_version,
-        tiles = manifest.tiles.len(),
+        tiles = manifest.levels[0].tiles.len(),
         concurrency = args.concurrency,
         "fetching every tile"
     );
 
-    let total_bytes: u64 = manifest.tiles.iter().map(blob_bytes).sum();
+    // Finer texture levels add to the bar as their sizes become known (in the tile blobs).
+    let total_bytes: u64 = manifest.levels[0].tiles.iter().map(blob_bytes).sum();
     let bar = progress_bar(total_bytes);
     let fetched = fetch_all(&mut fetcher, &manifest, &bar).await;
     bar.finish_and_clear();
@@ -179,14 +180,17 @@ async fn fetch_all(
     manifest: &Manifest,
     bar: &ProgressBar,
 ) -> Result<Vec<FetchedTile>, CliError> {
-    let total = manifest.tiles.len();
+    let level0 = &manifest.levels[0];
+    let total = level0.tiles.len();
     let levels = manifest.texture.levels as usize;
     let mut arriving: HashMap<TileId, Arriving> = HashMap::with_capacity(total);
     let mut rank: HashMap<TileId, u64> = HashMap::with_capacity(total);
-    for (i, record) in manifest.tiles.iter().enumerate() {
+    for i in 0..total {
+        let columns = level0.grid.columns as usize;
+        let id = TileId::new((i % columns) as u32, (i / columns) as u32);
         // A tile's finer levels come right after it: priority (tile, level).
-        fetcher.request(record.id(), Want::Tile, (i as u64) << 8);
-        rank.insert(record.id(), i as u64);
+        fetcher.request(id, Want::Tile, (i as u64) << 8);
+        rank.insert(id, i as u64);
     }
     let mut fetched = Vec::with_capacity(total);
     while fetched.len() < total {
@@ -208,10 +212,12 @@ async fn fetch_all(
                     heights,
                     heights_bytes,
                     coarsest_texture,
+                    texture,
                     elapsed,
                     decode,
                     ..
                 } => {
+                    bar.inc_length(texture.iter().skip(1).map(|b| b.bytes).sum());
                     bar.inc(heights_bytes + coarsest_texture.len() as u64);
                     tile.heights = Some((heights, heights_bytes));
                     if let Some(slot) = tile.textures.first_mut() {
@@ -219,9 +225,9 @@ async fn fetch_all(
                     }
                     tile.fetch += elapsed.saturating_sub(decode);
                     tile.decode = decode;
-                    for level in 1..levels as u32 {
-                        let priority = (rank[&id] << 8) | u64::from(level);
-                        fetcher.request(id, Want::TextureLevel(level), priority);
+                    for (level, blob) in texture.into_iter().enumerate().skip(1) {
+                        let priority = (rank[&id] << 8) | level as u64;
+                        fetcher.request_texture(id, level as u32, blob, priority);
                     }
                 }
                 FetchEvent::TextureLevel {
@@ -270,8 +276,8 @@ fn finish_tile(
 ) -> Result<FetchedTile, FetchError> {
     let record = manifest.tile(id).ok_or(FetchError::NotInGrid {
         id,
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
+        columns: manifest.grid(0).columns,
+        rows: manifest.grid(0).rows,
     })?;
     let (min_code, max_code) = heights.code_range();
     let to_metres = |code: i32| heights.offset_m + heights.quantum_m * f64::from(code);
@@ -307,7 +313,7 @@ fn finish_tile(
 }
 
 fn blob_bytes(tile: &TileRecord) -> u64 {
-    tile.heights.bytes + tile.texture.iter().map(|blob| blob.bytes).sum::<u64>()
+    tile.bytes + tile.coarsest_texture_bytes
 }
 
 /// Counts bytes rather than tiles: tiles differ in size by orders of magnitude (a flat sea

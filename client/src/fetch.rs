@@ -10,7 +10,8 @@
 use bytes::Bytes;
 use std::time::{Duration, Instant};
 use terrain_shared::manifest::{ManifestError, content_hash};
-use terrain_shared::{Blob, DecodeError, Heights, Manifest, TileId, routes};
+use terrain_shared::tile_blob::TileBlobError;
+use terrain_shared::{Blob, DecodeError, Heights, Manifest, TileBlob, TileId, routes};
 use thiserror::Error;
 
 /// Longest wait for a TCP connection. A tile server is usually near (same host, LAN or a
@@ -36,8 +37,8 @@ const USER_AGENT: &str = concat!("terrain-client/", env!("CARGO_PKG_VERSION"));
 ///
 /// let client = TileClient::new("http://127.0.0.1:8080")?;
 /// let manifest = client.manifest().await?;
-/// let heights = client.heights(&manifest, TileId::new(0, 0)).await?;
-/// let coarsest = client.texture(&manifest, TileId::new(0, 0), 0).await?;
+/// let tile = client.tile(&manifest, TileId::new(0, 0)).await?;
+/// let coarsest = client.texture(&manifest, TileId::new(0, 0), 0, Some(&tile.texture[0])).await?;
 /// # Ok(()) }
 /// ```
 #[derive(Debug, Clone)]
@@ -85,13 +86,19 @@ pub enum FetchError {
         #[source]
         source: DecodeError,
     },
+    #[error("GET {url}: body is not a valid tile blob")]
+    TileBlob {
+        url: String,
+        #[source]
+        source: TileBlobError,
+    },
     #[error("GET {url}: unusable manifest")]
     Manifest {
         url: String,
         #[source]
         source: ManifestError,
     },
-    #[error("tile {id} is not in the {columns}x{rows} grid")]
+    #[error("tile {id} is not in the {columns}x{rows} grid of its level")]
     NotInGrid { id: TileId, columns: u32, rows: u32 },
     #[error("tile {id} has texture levels 0 to {}, not {level}", levels.saturating_sub(1))]
     NoSuchTextureLevel { id: TileId, level: u32, levels: u32 },
@@ -185,46 +192,49 @@ impl TileClient {
         Manifest::from_json(&body).map_err(|source| FetchError::Manifest { url, source })
     }
 
-    /// Fetches one tile's heights, verifies them and decodes them off the async threads.
-    pub async fn heights(&self, manifest: &Manifest, id: TileId) -> Result<Heights, FetchError> {
-        let body = self.heights_bytes(manifest, id).await?;
-        decode_heights(
+    /// Fetches one tile's blob, verifies it and decodes it (mask errors, texture hashes,
+    /// heights) off the async threads.
+    pub async fn tile(&self, manifest: &Manifest, id: TileId) -> Result<FetchedTile, FetchError> {
+        let body = self.tile_bytes(manifest, id).await?;
+        decode_tile(
             self.url(&routes::heights(&manifest.content_version, id)),
             body,
         )
         .await
     }
 
-    /// Fetches one tile's encoded heights and verifies their hash, without decoding: for
-    /// callers that decode elsewhere or time the two steps apart.
-    pub async fn heights_bytes(
-        &self,
-        manifest: &Manifest,
-        id: TileId,
-    ) -> Result<Bytes, FetchError> {
-        let blob = &record(manifest, id)?.heights;
+    /// Fetches one tile's blob and verifies its hash, without decoding: for callers that
+    /// decode elsewhere or time the two steps apart.
+    pub async fn tile_bytes(&self, manifest: &Manifest, id: TileId) -> Result<Bytes, FetchError> {
+        let blob = record(manifest, id)?.blob();
         let url = self.url(&routes::heights(&manifest.content_version, id));
-        self.get_verified(url, blob).await
+        self.get_verified(url, &blob).await
     }
 
-    /// Fetches one texture level (0 = coarsest) of one tile and verifies its hash. Returns
-    /// the encoded image, in the manifest's `texture.format`.
+    /// Fetches one texture level (0 = coarsest) of one tile and verifies it against
+    /// `expected`, the tile blob's entry for it ([`FetchedTile::texture`]); `None` fetches
+    /// it unverified, for a caller that verifies it once the tile blob is in
+    /// ([`verify_hash`]). Returns the encoded image, in the manifest's `texture.format`.
     pub async fn texture(
         &self,
         manifest: &Manifest,
         id: TileId,
         level: u32,
+        expected: Option<&Blob>,
     ) -> Result<Bytes, FetchError> {
-        let tile = record(manifest, id)?;
-        let Some(blob) = tile.texture.get(level as usize) else {
+        record(manifest, id)?;
+        if level >= manifest.texture.levels {
             return Err(FetchError::NoSuchTextureLevel {
                 id,
                 level,
-                levels: tile.texture.len() as u32,
+                levels: manifest.texture.levels,
             });
-        };
+        }
         let url = self.url(&routes::texture(&manifest.content_version, id, level));
-        self.get_verified(url, blob).await
+        match expected {
+            Some(blob) => self.get_verified(url, blob).await,
+            None => self.get(&url).await,
+        }
     }
 
     /// Fetches the body at `path` (a route of [`terrain_shared::routes`]), verified against
@@ -301,23 +311,52 @@ pub fn cause_chain(error: &(dyn std::error::Error + 'static)) -> String {
     text
 }
 
-/// Decodes heights fetched from `url` on tokio's blocking pool: a large tile takes
+/// A tile blob, decoded: what a tile brings besides its bounds in the manifest.
+#[derive(Debug, Clone)]
+pub struct FetchedTile {
+    /// Per strip-mask level, its error against the full-resolution surface, metres.
+    pub mask_errors_m: Vec<f32>,
+    /// Hash and size of each texture level, coarsest first: what the texture bodies are
+    /// checked against.
+    pub texture: Vec<Blob>,
+    pub heights: Heights,
+}
+
+/// Decodes a tile blob fetched from `url` on tokio's blocking pool: a large tile takes
 /// milliseconds of CPU, which would stall every other request sharing the async thread.
-pub async fn decode_heights(url: String, body: Bytes) -> Result<Heights, FetchError> {
-    match tokio::task::spawn_blocking(move || Heights::decode(&body)).await {
-        Ok(decoded) => decoded.map_err(|source| FetchError::Decode { url, source }),
+pub async fn decode_tile(url: String, body: Bytes) -> Result<FetchedTile, FetchError> {
+    let decode = move || -> Result<FetchedTile, FetchError> {
+        let blob = TileBlob::head(&body).map_err(|source| FetchError::TileBlob {
+            url: url.clone(),
+            source,
+        })?;
+        let heights = Heights::decode(&body[blob.heights_at..])
+            .map_err(|source| FetchError::Decode { url, source })?;
+        Ok(FetchedTile {
+            mask_errors_m: blob.mask_errors_m,
+            texture: blob.texture,
+            heights,
+        })
+    };
+    match tokio::task::spawn_blocking(decode).await {
+        Ok(decoded) => decoded,
         Err(join) => match join.try_into_panic() {
             Ok(panic) => std::panic::resume_unwind(panic),
-            Err(_) => Err(FetchError::Cancelled { url }),
+            Err(_) => Err(FetchError::Cancelled {
+                url: "a tile blob being decoded".into(),
+            }),
         },
     }
 }
 
 fn record(manifest: &Manifest, id: TileId) -> Result<&terrain_shared::TileRecord, FetchError> {
-    manifest.tile(id).ok_or(FetchError::NotInGrid {
-        id,
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
+    manifest.tile(id).ok_or_else(|| {
+        let grid = manifest.grid(id.level);
+        FetchError::NotInGrid {
+            id,
+            columns: grid.columns,
+            rows: grid.rows,
+        }
     })
 }
 
@@ -339,7 +378,7 @@ fn error_body_text(body: &[u8]) -> String {
 }
 
 /// A body fetched from `url` must hash to `expected`; else it was damaged on the way.
-fn verify_hash(url: &str, body: &[u8], expected: &str) -> Result<(), FetchError> {
+pub fn verify_hash(url: &str, body: &[u8], expected: &str) -> Result<(), FetchError> {
     let found = content_hash(body);
     if found != expected {
         return Err(FetchError::HashMismatch {

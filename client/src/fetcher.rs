@@ -19,7 +19,7 @@
 //! finished: each running request carries a ticket, and a result whose ticket is no longer
 //! current is dropped in [`Fetcher::poll`].
 
-use crate::fetch::{FetchError, TileClient, decode_heights};
+use crate::fetch::{FetchError, FetchedTile, TileClient, decode_tile, verify_hash};
 use bytes::Bytes;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::hash::BuildHasher;
@@ -97,8 +97,13 @@ pub enum FetchEvent {
     Tile {
         id: TileId,
         heights: Heights,
-        /// Size of the encoded heights as received.
+        /// Size of the tile blob as received.
         heights_bytes: u64,
+        /// Per strip-mask level, its error against the full-resolution surface, metres.
+        mask_errors_m: Vec<f32>,
+        /// Hash and size of each texture level, coarsest first, for
+        /// [`Fetcher::request_texture`].
+        texture: Vec<terrain_shared::Blob>,
         coarsest_texture: Bytes,
         /// Tries of the blob that needed most (1: nothing was retried).
         attempts: u32,
@@ -173,6 +178,8 @@ pub struct Fetcher {
     pending_tiles: HashMap<TileId, u32>,
     /// Where each [`Want::Data`] request's body lives, until it ends.
     data: HashMap<(TileId, u32), DataSource>,
+    /// The hash each [`Want::TextureLevel`] request's body must have, until it ends.
+    textures: HashMap<(TileId, u32), terrain_shared::Blob>,
     finished_sender: mpsc::UnboundedSender<Finished>,
     finished: mpsc::UnboundedReceiver<Finished>,
     counters: Arc<Counters>,
@@ -204,6 +211,7 @@ impl Fetcher {
             running: HashMap::new(),
             pending_tiles: HashMap::new(),
             data: HashMap::new(),
+            textures: HashMap::new(),
             finished_sender,
             finished,
             counters: Arc::new(Counters::default()),
@@ -266,6 +274,20 @@ impl Fetcher {
     ) {
         self.data.insert((id, key), DataSource { path, hash });
         self.request(id, Want::Data(key), priority);
+    }
+
+    /// Queues a request for texture `level` of tile `id`, whose body must match `blob` (the
+    /// tile blob's entry for it, [`FetchEvent::Tile`]'s `texture`). Otherwise as
+    /// [`Fetcher::request`].
+    pub fn request_texture(
+        &mut self,
+        id: TileId,
+        level: u32,
+        blob: terrain_shared::Blob,
+        priority: u64,
+    ) {
+        self.textures.insert((id, level), blob);
+        self.request(id, Want::TextureLevel(level), priority);
     }
 
     /// Drops every queued request for these tiles and aborts their running ones: none of
@@ -363,16 +385,12 @@ impl Fetcher {
         self.pending_tiles.len()
     }
 
-    /// Sets `out[y * columns + x]` to whether tile `(x, y)` is pending, every other entry
-    /// to false. Tiles beyond `out` or `columns` are left out.
-    pub fn mark_pending(&self, out: &mut [bool], columns: u32) {
+    /// Sets `out[manifest.index(id)]` to whether tile `id` is pending, every other entry
+    /// to false. Tiles outside the manifest's grids or beyond `out` are left out.
+    pub fn mark_pending(&self, out: &mut [bool], manifest: &Manifest) {
         out.fill(false);
         for id in self.pending_tiles.keys() {
-            if id.x >= columns {
-                continue;
-            }
-            let index = id.y as usize * columns as usize + id.x as usize;
-            if let Some(slot) = out.get_mut(index) {
+            if let Some(slot) = manifest.index(*id).and_then(|i| out.get_mut(i)) {
                 *slot = true;
             }
         }
@@ -407,6 +425,10 @@ impl Fetcher {
                 Want::Data(key) => self.data.get(&(request.id, key)).cloned(),
                 _ => None,
             },
+            texture_blob: match request.want {
+                Want::TextureLevel(level) => self.textures.get(&(request.id, level)).cloned(),
+                _ => None,
+            },
             request,
             jitter_seed: mix(self.jitter_seed ^ mix(ticket)),
         };
@@ -429,6 +451,7 @@ impl Fetcher {
             if *count == 0 {
                 self.pending_tiles.remove(&id);
                 self.data.retain(|(tile, _), _| *tile != id);
+                self.textures.retain(|(tile, _), _| *tile != id);
             }
         }
     }
@@ -514,6 +537,7 @@ impl FailureKind {
         match error {
             FetchError::HashMismatch { .. }
             | FetchError::Decode { .. }
+            | FetchError::TileBlob { .. }
             | FetchError::Manifest { .. } => FailureKind::Corrupt,
             _ => FailureKind::Permanent,
         }
@@ -673,6 +697,8 @@ struct Job {
     request: Request,
     /// For [`Want::Data`]: where the body lives.
     data: Option<DataSource>,
+    /// For [`Want::TextureLevel`]: the hash its body must have.
+    texture_blob: Option<terrain_shared::Blob>,
     jitter_seed: u64,
 }
 
@@ -683,7 +709,9 @@ impl Job {
         let result = match want {
             Want::Tile => self.tile(started).await,
             Want::TextureLevel(level) => self
-                .with_retries(Part::Texture(level), || self.texture(level))
+                .with_retries(Part::Texture(level), || {
+                    self.texture(level, Some(self.texture_blob.as_ref().unwrap_or(&NO_HASH)))
+                })
                 .await
                 .map(|(bytes, _)| FetchEvent::TextureLevel {
                     id,
@@ -707,19 +735,50 @@ impl Job {
         })
     }
 
-    /// The heights and the coarsest texture level, fetched side by side: one after the
+    /// The tile blob and the coarsest texture level, fetched side by side: one after the
     /// other, a tile took two round trips, and on a slow link (2 s a request) the viewpoint
-    /// had moved on before it landed.
+    /// had moved on before it landed. The texture's hash is in the tile blob, so it is
+    /// checked when both are in; a texture that fails is fetched again, verified.
     async fn tile(&self, started: Instant) -> Result<FetchEvent, (FetchError, u32)> {
-        let (((heights, heights_bytes, decode), heights_tries), (coarsest_texture, texture_tries)) =
+        let (((tile, heights_bytes, decode), heights_tries), (texture, texture_tries)) =
             tokio::try_join!(
                 self.with_retries(Part::Heights, || self.heights()),
-                self.with_retries(Part::Texture(0), || self.texture(0)),
+                self.with_retries(Part::Texture(0), || self.texture(0, None)),
             )?;
+        let Some(coarsest) = tile.texture.first() else {
+            return Err((
+                FetchError::NoSuchTextureLevel {
+                    id: self.request.id,
+                    level: 0,
+                    levels: 0,
+                },
+                heights_tries,
+            ));
+        };
+        let url = self.client.url(&routes::texture(
+            &self.manifest.content_version,
+            self.request.id,
+            0,
+        ));
+        let (coarsest_texture, texture_tries) = match verify_hash(&url, &texture, &coarsest.hash) {
+            Ok(()) => (texture, texture_tries),
+            Err(error) => {
+                self.counters
+                    .corrupt_refetches
+                    .fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(tile = %self.request.id, %error, "coarsest texture refetched");
+                let (texture, tries) = self
+                    .with_retries(Part::Texture(0), || self.texture(0, Some(coarsest)))
+                    .await?;
+                (texture, texture_tries + tries)
+            }
+        };
         Ok(FetchEvent::Tile {
             id: self.request.id,
-            heights,
+            heights: tile.heights,
             heights_bytes,
+            mask_errors_m: tile.mask_errors_m,
+            texture: tile.texture,
             coarsest_texture,
             attempts: heights_tries.max(texture_tries),
             elapsed: started.elapsed(),
@@ -766,27 +825,31 @@ impl Job {
         }
     }
 
-    /// One try of the heights: fetched, verified, decoded; with their encoded size.
-    async fn heights(&self) -> Result<(Heights, u64, Duration), FetchError> {
+    /// One try of the tile blob: fetched, verified, decoded; with its size.
+    async fn heights(&self) -> Result<(FetchedTile, u64, Duration), FetchError> {
         let (manifest, id) = (&*self.manifest, self.request.id);
         let body = self
-            .counted(Part::Heights, self.client.heights_bytes(manifest, id))
+            .counted(Part::Heights, self.client.tile_bytes(manifest, id))
             .await?;
         let bytes = body.len() as u64;
         let url = self
             .client
             .url(&routes::heights(&manifest.content_version, id));
         let decoding = Instant::now();
-        let heights = decode_heights(url, body).await?;
-        Ok((heights, bytes, decoding.elapsed()))
+        let tile = decode_tile(url, body).await?;
+        Ok((tile, bytes, decoding.elapsed()))
     }
 
-    /// One try of a texture level: fetched and verified.
-    async fn texture(&self, level: u32) -> Result<Bytes, FetchError> {
+    /// One try of a texture level: fetched, and verified against `expected` when given.
+    async fn texture(
+        &self,
+        level: u32,
+        expected: Option<&terrain_shared::Blob>,
+    ) -> Result<Bytes, FetchError> {
         let (manifest, id) = (&*self.manifest, self.request.id);
         self.counted(
             Part::Texture(level),
-            self.client.texture(manifest, id, level),
+            self.client.texture(manifest, id, level, expected),
         )
         .await
     }
@@ -814,7 +877,12 @@ impl Job {
     ) -> Result<Bytes, FetchError> {
         // Refusals that need no request (not in the grid, no such level) come back here
         // as they would from the client, before anything is counted.
-        let expected = expected_bytes(&self.manifest, self.request.id, part)?;
+        let expected = expected_bytes(
+            &self.manifest,
+            self.request.id,
+            part,
+            self.texture_blob.as_ref(),
+        )?;
         self.counters
             .requests_started
             .fetch_add(1, Ordering::Relaxed);
@@ -831,23 +899,39 @@ impl Job {
     }
 }
 
-/// The manifest's size of a blob, or the error [`TileClient`] would give without a request.
-fn expected_bytes(manifest: &Manifest, id: TileId, part: Part) -> Result<u64, FetchError> {
-    let record = manifest.tile(id).ok_or(FetchError::NotInGrid {
-        id,
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
+/// A texture request made without its hash ([`Fetcher::request`] rather than
+/// [`Fetcher::request_texture`]): no body matches it, so it fails as corrupt, never passes.
+static NO_HASH: terrain_shared::Blob = terrain_shared::Blob {
+    hash: String::new(),
+    bytes: 0,
+};
+
+/// The known size of a blob, or the error [`TileClient`] would give without a request.
+fn expected_bytes(
+    manifest: &Manifest,
+    id: TileId,
+    part: Part,
+    texture: Option<&terrain_shared::Blob>,
+) -> Result<u64, FetchError> {
+    let record = manifest.tile(id).ok_or_else(|| {
+        let grid = manifest.grid(id.level);
+        FetchError::NotInGrid {
+            id,
+            columns: grid.columns,
+            rows: grid.rows,
+        }
     })?;
     match part {
-        Part::Heights => Ok(record.heights.bytes),
-        Part::Texture(level) => match record.texture.get(level as usize) {
-            Some(blob) => Ok(blob.bytes),
-            None => Err(FetchError::NoSuchTextureLevel {
+        Part::Heights => Ok(record.bytes),
+        Part::Texture(level) if level >= manifest.texture.levels => {
+            Err(FetchError::NoSuchTextureLevel {
                 id,
                 level,
-                levels: record.texture.len() as u32,
-            }),
-        },
+                levels: manifest.texture.levels,
+            })
+        }
+        // The coarsest level's size is known once the tile blob is in.
+        Part::Texture(_) => Ok(texture.map_or(0, |b| b.bytes)),
         // The manifest does not know a method's data.
         Part::Data(_) => Ok(0),
     }

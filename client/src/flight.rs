@@ -691,8 +691,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                     Ok(Some((change, reshaped))) => {
                         if let Some(manifest) = reshaped {
                             let pager = crate::page::PagerConfig {
-                                columns: manifest.grid.columns,
-                                rows: manifest.grid.rows,
+                                columns: manifest.grid(0).columns,
+                                rows: manifest.grid(0).rows,
                                 memory_limit: budget.limit_bytes(),
                                 nearest_when_outside: !args.no_nearest_when_outside,
                             };
@@ -817,7 +817,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     if let Some(error) = stopped {
         return Err(error);
     }
-    if scene.tiles_fetched == 0 && !manifest.tiles.is_empty() {
+    if scene.tiles_fetched == 0 && manifest.tile_count() > 0 {
         return Err(FlightError::NothingLoaded {
             wall_s: started.elapsed().as_secs_f64(),
             requests: stats.requests_started,

@@ -63,11 +63,11 @@ pub fn mosaic<B: AsRef<[u8]>>(
     let mut canvas = RgbImage::new(out.0, out.1);
     for (id, bytes) in finest_levels {
         let id = *id;
-        if manifest.tile(id).is_none() {
+        if id.level != 0 || manifest.tile(id).is_none() {
             return Err(OverviewError::NotInGrid {
                 id,
-                columns: manifest.grid.columns,
-                rows: manifest.grid.rows,
+                columns: manifest.grid(0).columns,
+                rows: manifest.grid(0).rows,
             });
         }
         let decoded = image::load_from_memory_with_format(bytes.as_ref(), image_format(format))
@@ -115,22 +115,13 @@ pub fn image_format(format: ImageFormat) -> image::ImageFormat {
 
 /// Texels of real terrain in the full-resolution mosaic, `(width, height)`.
 fn real_extent(manifest: &Manifest) -> Result<(u32, u32), OverviewError> {
-    let (columns, rows) = (manifest.grid.columns, manifest.grid.rows);
-    if columns == 0 || rows == 0 || manifest.tiles.is_empty() {
+    let grid = manifest.grid(0);
+    let (columns, rows) = (grid.columns, grid.rows);
+    if columns == 0 || rows == 0 {
         return Err(OverviewError::EmptyGrid);
     }
-    // Every tile of the last column has the same valid width (and of the last row the same
-    // height); the maximum is robust to a record that says less.
-    let last_column = manifest
-        .tiles
-        .iter()
-        .filter(|t| t.x == columns - 1)
-        .map(|t| t.valid[0]);
-    let last_row = manifest
-        .tiles
-        .iter()
-        .filter(|t| t.y == rows - 1)
-        .map(|t| t.valid[1]);
+    let last = manifest.valid(TileId::new(columns - 1, rows - 1));
+    let (last_column, last_row) = (std::iter::once(last[0]), std::iter::once(last[1]));
     let axis = |count: u32, last_valid: u32| {
         let size = u64::from(manifest.texture.size);
         let cells = u64::from(manifest.tile_size.saturating_sub(1).max(1));
@@ -172,64 +163,34 @@ mod tests {
     use super::*;
     use image::Rgb;
     use std::io::Cursor;
-    use terrain_shared::manifest::{
-        FORMAT, GridSize, HeightsInfo, RasterSize, TextureInfo, TextureSource, VERSION,
-    };
-    use terrain_shared::{Blob, TileRecord};
+    use terrain_shared::TileRecord;
+    use terrain_shared::manifest::{RasterSize, TextureInfo, TextureSource};
 
-    /// A 2x2 grid of 3-sample tiles over a `raster` of samples, textures of `size` texels.
+    /// 3-sample tiles over a `raster` of samples, textures of `size` texels.
     fn manifest(raster: (u32, u32), size: u32) -> Manifest {
-        let tile_size = 3;
-        let columns = (raster.0 - 1).div_ceil(tile_size - 1);
-        let rows = (raster.1 - 1).div_ceil(tile_size - 1);
-        let mut tiles = Vec::new();
-        for y in 0..rows {
-            for x in 0..columns {
-                let valid = |raster: u32, i: u32| (raster - i * (tile_size - 1)).min(tile_size);
-                tiles.push(TileRecord {
-                    x,
-                    y,
-                    valid: [valid(raster.0, x), valid(raster.1, y)],
-                    min_m: 0.0,
-                    max_m: 0.0,
-                    roughness_m: 0.0,
-                    mask_errors_m: vec![0.0; 2],
-                    heights: Blob::of(b""),
-                    texture: vec![Blob::of(b"")],
-                });
-            }
-        }
-        Manifest {
-            format: FORMAT.into(),
-            version: VERSION,
-            dataset: "test".into(),
-            content_version: "0".into(),
-            raster: RasterSize {
+        Manifest::with_geometry(
+            "test",
+            RasterSize {
                 width: raster.0,
                 height: raster.1,
             },
-            tile_size,
-            grid: GridSize { columns, rows },
-            spacing_m: [1.0, 1.0],
-            extent_m: [f64::from(raster.0 - 1), f64::from(raster.1 - 1)],
-            heights: HeightsInfo {
-                codec: "planar-zstd/1".into(),
-                quantum_m: 1.0,
-                offset_m: 0.0,
-                min_m: 0.0,
-                max_m: 0.0,
-                filled_voids: 0,
-            },
-            texture: TextureInfo {
+            3,
+            [1.0, 1.0],
+            TextureInfo {
                 format: ImageFormat::Png,
                 source: TextureSource::Generated,
                 size,
                 levels: 1,
             },
-            georeference: None,
-            mask_levels: 2,
-            tiles,
-        }
+            |_| TileRecord {
+                hash: "0".repeat(32),
+                bytes: 0,
+                coarsest_texture_bytes: 0,
+                min_m: 0.0,
+                max_m: 0.0,
+                roughness_m: 0.0,
+            },
+        )
     }
 
     /// A solid `size`-square PNG whose colour names the tile: red = 60 x + 10, green = 60 y + 10.
@@ -248,9 +209,9 @@ mod tests {
 
     fn all_textures(manifest: &Manifest) -> Vec<(TileId, Vec<u8>)> {
         manifest
-            .tiles
-            .iter()
-            .map(|t| (t.id(), texture(t.id(), manifest.texture.size)))
+            .tiles()
+            .filter(|(id, _)| id.level == 0)
+            .map(|(id, _)| (id, texture(id, manifest.texture.size)))
             .collect()
     }
 
@@ -303,7 +264,7 @@ mod tests {
         // 4 samples wide: the second column holds 2 valid samples, 1 of its 2 cells, so half
         // of its texture (2 of 4 texels) is terrain. 5 samples high fill 2 rows exactly.
         let m = manifest((4, 5), 4);
-        assert_eq!(m.tiles[1].valid, [2, 3]);
+        assert_eq!(m.valid(TileId::new(1, 0)), [2, 3]);
         check(
             &m,
             1024,

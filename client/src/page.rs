@@ -432,6 +432,29 @@ pub fn square_tiles(
     (y0..=y1).flat_map(move |y| (x0..=x1).map(move |x| TileId::new(x as u32, y as u32)))
 }
 
+/// How the memory limit is shared between the levels of a pyramid, each of which runs
+/// [`decide`] on its own grid within its share: `whole[k]` is what level `k` holds with
+/// every tile resident (level 0 first). Coarsest first, each level gets an equal part of
+/// what the coarser levels left, but no more than its whole grid needs; what it does not
+/// need goes to the finer levels. So the coarsest level (one tile) is whole before any
+/// other gets a byte, and there is always something to draw.
+///
+/// Equal parts: seen in perspective, a tile at distance `d` needs samples about `d` apart,
+/// so level `k` serves the ring from `2^k` to `2^(k+1)` units of distance, whose area is
+/// `4^k` times level 0's and whose tiles are `4^k` times larger: every level needs the same
+/// number of tiles for its ring, as in geometry clipmaps, where every level is a square of
+/// the same size.
+pub fn level_shares(limit: u64, whole: &[u64]) -> Vec<u64> {
+    let mut shares = vec![0; whole.len()];
+    let mut left = limit;
+    for (k, need) in whole.iter().enumerate().rev() {
+        let share = (left / (k as u64 + 1)).min(*need);
+        shares[k] = share;
+        left -= share;
+    }
+    shares
+}
+
 /// In-flight flags OR-ed together before looking at any one of them; 64 bytes, a cache line.
 const IN_FLIGHT_BLOCK: usize = 64;
 

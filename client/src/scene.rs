@@ -39,6 +39,16 @@ pub const TILE_REQUESTS_BEFORE_GIVING_UP: u32 = 4;
 /// first failed.
 pub const TILE_RETRY_DELAY: Duration = Duration::from_secs(1);
 
+/// One level's paging in a frame.
+#[derive(Debug, Clone)]
+pub struct LevelDecision {
+    pub level: u32,
+    /// The level's grid and its share of the limit ([`page::level_shares`]).
+    pub pager: PagerConfig,
+    /// Its decision; its tile ids are of level 0 numbering, `level` says which level.
+    pub decision: Decision,
+}
+
 /// Why a scene cannot go on.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
@@ -101,6 +111,11 @@ impl Default for RenderConfig {
 struct ResidentTile {
     /// Shared with the renderer, which makes samples of them when it draws the tile.
     heights: Arc<terrain_shared::Heights>,
+    /// Suffix minima of its per-mask errors against the full-resolution surface
+    /// ([`crate::lod::needed`]): from its tile blob.
+    error_minima: Vec<f32>,
+    /// Hash and size of each texture level, coarsest first: from its tile blob.
+    texture_blobs: Vec<terrain_shared::Blob>,
     /// Encoded texture levels held, coarsest first.
     textures: Vec<bytes::Bytes>,
     /// Levels of `textures` on the GPU (0 before the first upload).
@@ -117,7 +132,10 @@ struct ResidentTile {
 /// What [`Scene::update`] decided this frame.
 #[derive(Debug, Clone)]
 pub struct Update {
+    /// Level 0's decision (the full-resolution square).
     pub decision: Decision,
+    /// Every paged level's decision, level 0 first, with its share of the limit.
+    pub levels: Vec<LevelDecision>,
     /// Bytes the texture budget had this frame.
     pub texture_budget: u64,
 }
@@ -198,7 +216,8 @@ struct Rendering {
     texture_target: Vec<u32>,
     /// Importance per tile in the last planned frame (0 when not visible).
     importance: Vec<f64>,
-    /// Per tile, the extra bytes of each texture level ([`extra_costs`]), from the manifest.
+    /// Per tile, the extra bytes of each texture level ([`extra_costs`]), from its tile
+    /// blob (empty while not resident).
     texture_costs: Vec<Vec<u64>>,
 }
 
@@ -234,14 +253,17 @@ pub enum Reconciled {
 pub struct Scene {
     manifest: Arc<Manifest>,
     layout: Layout,
+    /// Level 0's grid and the whole limit; each level's share is worked out per frame.
     pager: PagerConfig,
+    /// Levels paged and drawn: 1 is level 0 alone (the strip-mask paper's single
+    /// resolution), the manifest's level count the whole pyramid.
+    levels_used: u32,
+    /// Per tile of every level (the manifest's dense order), as below.
     tiles: Vec<Option<ResidentTile>>,
     /// Bytes per tile at the coarsest texture (what the pager sees).
     base_bytes: Vec<u64>,
     expected_bytes: Vec<u64>,
     in_flight: Vec<bool>,
-    /// Per tile, the suffix minima of its per-mask errors ([`crate::lod::needed`]).
-    error_minima: Vec<Vec<f32>>,
     pub tiles_fetched: u64,
     pub evicted_unused_bytes: u64,
     /// Per tile, whether it is in the square of complete belts (as of the last update).
@@ -273,9 +295,10 @@ impl Connection {
         nearest_when_outside: bool,
         render: Option<(Gpu, wgpu::TextureFormat, RenderConfig)>,
     ) -> Scene {
+        let grid = self.manifest.grid(0);
         let pager = PagerConfig {
-            columns: self.manifest.grid.columns,
-            rows: self.manifest.grid.rows,
+            columns: grid.columns,
+            rows: grid.rows,
             memory_limit,
             nearest_when_outside,
         };
@@ -305,7 +328,7 @@ impl Scene {
         pager: PagerConfig,
         render: Option<(Gpu, wgpu::TextureFormat, RenderConfig)>,
     ) -> Scene {
-        let count = manifest.tiles.len();
+        let count = manifest.tile_count();
         let layout = Layout::of(&manifest);
         let rendering = render.map(|(gpu, format, config)| {
             let renderer = Renderer::new(&gpu, format, layout);
@@ -318,15 +341,14 @@ impl Scene {
                 config,
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
-                texture_costs: Vec::new(),
+                texture_costs: vec![Vec::new(); count],
             };
             r.set_texture_blocks(&manifest);
             r
         });
         let expected_bytes = manifest
-            .tiles
-            .iter()
-            .map(|t| match &rendering {
+            .tiles()
+            .map(|(_, t)| match &rendering {
                 Some(r) => r.expected_tile_bytes(&manifest, t).total(),
                 None => expected_tile_bytes(&manifest, t, 0).total(),
             })
@@ -335,14 +357,10 @@ impl Scene {
             expected_bytes,
             layout,
             pager,
+            levels_used: manifest.level_count(),
             tiles: vec![None; count],
             base_bytes: vec![0; count],
             in_flight: vec![false; count],
-            error_minima: manifest
-                .tiles
-                .iter()
-                .map(|t| crate::lod::needed::suffix_minima(&t.mask_errors_m))
-                .collect(),
             tiles_fetched: 0,
             evicted_unused_bytes: 0,
             in_square: vec![false; count],
@@ -361,11 +379,13 @@ impl Scene {
     /// of another shape cannot be taken: [`Reconciled::Reshaped`], and nothing changes.
     pub fn replace_manifest(&mut self, manifest: Arc<Manifest>) -> Reconciled {
         let old = &self.manifest;
-        let same_shape = old.grid.columns == manifest.grid.columns
-            && old.grid.rows == manifest.grid.rows
+        let same_shape = old.levels.len() == manifest.levels.len()
+            && old
+                .levels
+                .iter()
+                .zip(&manifest.levels)
+                .all(|(a, b)| a.grid == b.grid && a.raster == b.raster)
             && old.tile_size == manifest.tile_size
-            && old.raster.width == manifest.raster.width
-            && old.raster.height == manifest.raster.height
             && old.spacing_m == manifest.spacing_m
             && old.mask_levels == manifest.mask_levels
             && old.texture.size == manifest.texture.size
@@ -375,33 +395,29 @@ impl Scene {
             return Reconciled::Reshaped;
         }
         let (mut kept, mut dropped) = (0, 0);
-        for i in 0..self.tiles.len() {
-            let Some(tile) = &self.tiles[i] else {
-                continue;
-            };
-            let (before, after) = (&self.manifest.tiles[i], &manifest.tiles[i]);
-            let held = tile.textures.len();
-            let same = before.heights.hash == after.heights.hash
-                && before.texture.len() >= held
-                && after.texture.len() >= held
-                && before.texture[..held]
-                    .iter()
-                    .zip(&after.texture[..held])
-                    .all(|(a, b)| a.hash == b.hash);
-            if same {
-                kept += 1;
-            } else {
-                dropped += 1;
-                self.drop_tile(before.id());
-            }
+        let changed: Vec<TileId> = self
+            .manifest
+            .tiles()
+            .zip(manifest.tiles())
+            .zip(&self.tiles)
+            .filter(|(_, tile)| tile.is_some())
+            .filter_map(|(((id, before), (_, after)), _)| {
+                // The tile blob's hash covers its heights, its errors and its textures'
+                // hashes: the same hash, the same tile.
+                if before.hash == after.hash {
+                    kept += 1;
+                    None
+                } else {
+                    dropped += 1;
+                    Some(id)
+                }
+            })
+            .collect();
+        for id in changed {
+            self.drop_tile(id);
         }
         self.manifest = Arc::clone(&manifest);
         self.layout = Layout::of(&manifest);
-        self.error_minima = manifest
-            .tiles
-            .iter()
-            .map(|t| crate::lod::needed::suffix_minima(&t.mask_errors_m))
-            .collect();
         self.failing.clear();
         self.unavailable.clear();
         match &self.rendering {
@@ -412,7 +428,8 @@ impl Scene {
                 self.install(method);
             }
             None => {
-                for (expected, record) in self.expected_bytes.iter_mut().zip(&manifest.tiles) {
+                for (expected, (_, record)) in self.expected_bytes.iter_mut().zip(manifest.tiles())
+                {
                     *expected = expected_tile_bytes(&manifest, record, 0).total();
                 }
             }
@@ -420,9 +437,33 @@ impl Scene {
         Reconciled::Kept { kept, dropped }
     }
 
+    /// Pages and draws level 0 alone (`false`: the strip-mask paper's single resolution,
+    /// what a one-level database does anyway) or the whole pyramid (`true`, the default).
+    /// Tiles of the levels left out are dropped.
+    pub fn use_levels(&mut self, all: bool) {
+        self.levels_used = if all { self.manifest.level_count() } else { 1 };
+        let coarser: Vec<TileId> = self
+            .manifest
+            .tiles()
+            .zip(&self.tiles)
+            .filter(|((id, _), tile)| id.level >= self.levels_used && tile.is_some())
+            .map(|((id, _), _)| id)
+            .collect();
+        for id in coarser {
+            self.drop_tile(id);
+        }
+    }
+
+    /// Levels paged and drawn (see [`Scene::use_levels`]).
+    pub fn levels_used(&self) -> u32 {
+        self.levels_used
+    }
+
     /// Drops resident tile `id`, everywhere it is held.
     fn drop_tile(&mut self, id: TileId) {
-        let i = self.index(id);
+        let Some(i) = self.manifest.index(id) else {
+            return;
+        };
         if let Some(tile) = self.tiles[i].take()
             && !tile.used
         {
@@ -430,6 +471,7 @@ impl Scene {
         }
         self.base_bytes[i] = 0;
         if let Some(r) = &mut self.rendering {
+            r.texture_costs[i] = Vec::new();
             r.renderer.tiles.remove_tile(id);
             r.method.tile_evicted(id);
             r.data_pending.retain(|(tile, _)| *tile != id);
@@ -441,13 +483,15 @@ impl Scene {
     pub fn largest_tile(&self) -> Option<(TileId, u64)> {
         self.expected_bytes
             .iter()
-            .zip(&self.manifest.tiles)
-            .map(|(&bytes, record)| (record.id(), bytes))
+            .zip(self.manifest.tiles())
+            .map(|(&bytes, (id, _))| (id, bytes))
             .max_by_key(|&(_, bytes)| bytes)
     }
 
+    /// Position of `id` in the dense per-tile vectors (`usize::MAX`, which no vector
+    /// holds, for a tile outside the grids: `get` then finds nothing).
     fn index(&self, id: TileId) -> usize {
-        id.y as usize * self.manifest.grid.columns as usize + id.x as usize
+        self.manifest.index(id).unwrap_or(usize::MAX)
     }
 
     /// Bytes the scene holds for the terrain, as the memory limit counts them: every
@@ -512,9 +556,10 @@ impl Scene {
             samples: self.resident_tiles() * u64::from(self.manifest.tile_size).pow(2),
             cpu_heights: resident.map(|t| t.bytes.decoded_heights).sum(),
             cpu_lod: self
-                .error_minima
+                .tiles
                 .iter()
-                .map(|m| 4 * m.len() as u64)
+                .flatten()
+                .map(|t| 4 * t.error_minima.len() as u64)
                 .sum::<u64>()
                 + self.rendering.as_ref().map_or(0, |r| {
                     let per_tile: u64 = self.tiles.iter().flatten().map(|t| t.bytes.method).sum();
@@ -588,9 +633,9 @@ impl Scene {
         r.method = method;
         r.data_pending.clear();
         let gpu = r.renderer.gpu().clone();
-        for (record, tile) in self.manifest.tiles.iter().zip(&self.tiles) {
+        for ((id, _), tile) in self.manifest.tiles().zip(&self.tiles) {
             if let Some(tile) = tile {
-                r.method.tile_resident(&gpu, record.id(), &tile.heights);
+                r.method.tile_resident(&gpu, id, &tile.heights);
             }
         }
         self.recount();
@@ -603,12 +648,13 @@ impl Scene {
             return;
         };
         r.set_texture_blocks(&self.manifest);
+        let copies = r.config.method_config().texture_copies();
         // What each tile is charged, and what the pager expects of each, follow the method
         // and the copies of each GPU texture.
-        for (i, (record, tile)) in self.manifest.tiles.iter().zip(&mut self.tiles).enumerate() {
+        for (i, ((id, record), tile)) in self.manifest.tiles().zip(&mut self.tiles).enumerate() {
             self.expected_bytes[i] = r.expected_tile_bytes(&self.manifest, record).total();
             if let Some(tile) = tile {
-                let id = record.id();
+                r.texture_costs[i] = extra_costs(&self.manifest, &tile.texture_blobs, copies);
                 tile.bytes.gpu = r.renderer.tiles.tile_bytes(id);
                 tile.bytes.method = r.method.tile_bytes(id);
                 self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
@@ -663,14 +709,15 @@ impl Scene {
         if !(sx >= 0.0 && sy >= 0.0) {
             return None;
         }
-        let (columns, rows) = (self.manifest.grid.columns, self.manifest.grid.rows);
+        let grid = self.manifest.grid(0);
+        let (columns, rows) = (grid.columns, grid.rows);
         let tx = ((sx / cells).floor() as u32).min(columns.saturating_sub(1));
         let ty = ((sy / cells).floor() as u32).min(rows.saturating_sub(1));
         let (u, v) = (sx - f64::from(tx) * cells, sy - f64::from(ty) * cells);
         if u > cells || v > cells {
             return None;
         }
-        let tile = self.tiles[self.index(TileId::new(tx, ty))].as_ref()?;
+        let tile = self.tiles.get(self.index(TileId::new(tx, ty)))?.as_ref()?;
         let last = self.layout.tile_size as usize - 1;
         let (c0, r0) = (
             (u.floor() as usize).min(last - 1),
@@ -698,55 +745,101 @@ impl Scene {
         for event in fetcher.poll() {
             self.deliver(event)?;
         }
-        fetcher.mark_pending(&mut self.in_flight, self.manifest.grid.columns);
+        fetcher.mark_pending(&mut self.in_flight, &self.manifest);
         // A resident tile waiting for a finer texture is not "in flight" for the pager.
         for (flag, tile) in self.in_flight.iter_mut().zip(&self.tiles) {
             *flag &= tile.is_none();
         }
-        let extent = self.layout.tile_extent_m();
-        let view = PagerView {
-            viewpoint: [position[0] / extent[0], position[1] / extent[1]],
-            resident_bytes: &self.base_bytes,
-            in_flight: &self.in_flight,
-            expected_bytes: Some(&self.expected_bytes),
-        };
-        // What the method holds for no tile in particular comes off the tiles' share.
-        let pager = PagerConfig {
-            memory_limit: self.pager.memory_limit.saturating_sub(self.shared_bytes()),
-            ..self.pager
-        };
-        let decision = page::decide(&pager, &view);
-        fetcher.cancel(&decision.cancel);
-        fetcher.cancel(&decision.evict);
-        for &id in &decision.evict {
-            self.drop_tile(id);
-        }
+        // What the method holds for no tile in particular comes off the tiles' share, and
+        // what is left is shared between the levels.
+        let limit = self.pager.memory_limit.saturating_sub(self.shared_bytes());
+        let ranges: Vec<std::ops::Range<usize>> = (0..self.levels_used)
+            .map(|k| {
+                let start = self.manifest.level_offset(k);
+                start..start + self.manifest.levels[k as usize].tiles.len()
+            })
+            .collect();
+        let whole: Vec<u64> = ranges
+            .iter()
+            .map(|r| self.expected_bytes[r.clone()].iter().sum())
+            .collect();
+        let shares = page::level_shares(limit, &whole);
         let now = Instant::now();
-        for (rank, &id) in decision.fetch.iter().enumerate() {
-            // A tile that failed waits out its delay; one given up is not asked for again.
-            if let Some(failing) = self.failing.get(&id) {
-                if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP || now < failing.retry_at {
-                    continue;
-                }
-                self.requests_repeated += 1;
-            }
-            // Earlier frames' requests go first; within a frame, the pager's order.
-            fetcher.request(id, Want::Tile, (frame << 20) | rank as u64);
-            let i = self.index(id);
-            self.in_flight[i] = true;
-        }
         self.in_square.fill(false);
-        for id in page::square_tiles(&self.pager, decision.current, decision.complete_belts) {
-            let i = self.index(id);
-            self.in_square[i] = true;
-            if let Some(tile) = &mut self.tiles[i] {
-                tile.used = true;
+        let mut levels = Vec::with_capacity(ranges.len());
+        for (k, range) in ranges.into_iter().enumerate() {
+            let level = k as u32;
+            let grid = self.manifest.grid(level);
+            let pager = PagerConfig {
+                columns: grid.columns,
+                rows: grid.rows,
+                memory_limit: shares[k],
+                ..self.pager
+            };
+            let extent = self.layout.tile_extent_m_at(level);
+            let view = PagerView {
+                viewpoint: [position[0] / extent[0], position[1] / extent[1]],
+                resident_bytes: &self.base_bytes[range.clone()],
+                in_flight: &self.in_flight[range.clone()],
+                expected_bytes: Some(&self.expected_bytes[range.clone()]),
+            };
+            let decision = page::decide(&pager, &view);
+            let tag = |ids: &[TileId]| -> Vec<TileId> {
+                ids.iter().map(|id| id.with_level(level)).collect()
+            };
+            fetcher.cancel(&tag(&decision.cancel));
+            let evict = tag(&decision.evict);
+            fetcher.cancel(&evict);
+            for id in evict {
+                self.drop_tile(id);
             }
+            for (rank, id) in tag(&decision.fetch).into_iter().enumerate() {
+                // A tile that failed waits out its delay; one given up is not asked for again.
+                if let Some(failing) = self.failing.get(&id) {
+                    if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP
+                        || now < failing.retry_at
+                    {
+                        continue;
+                    }
+                    self.requests_repeated += 1;
+                }
+                // Earlier frames' requests go first; within a frame, coarser levels first
+                // (they cover the most screen), then the pager's order.
+                let order = (u64::from(self.levels_used - level) << 16) | rank as u64;
+                fetcher.request(id, Want::Tile, (frame << 20) | order.min((1 << 18) - 1));
+                if let Some(i) = self.manifest.index(id) {
+                    self.in_flight[i] = true;
+                }
+            }
+            for id in page::square_tiles(&pager, decision.current, decision.complete_belts) {
+                let i = self.index(id.with_level(level));
+                if let Some(flag) = self.in_square.get_mut(i) {
+                    *flag = true;
+                }
+                if let Some(Some(tile)) = self.tiles.get_mut(i) {
+                    tile.used = true;
+                }
+            }
+            levels.push(LevelDecision {
+                level,
+                pager,
+                decision,
+            });
         }
+        let decision = levels
+            .first()
+            .map(|l| l.decision.clone())
+            .unwrap_or_else(|| page::decide(&self.pager, &PagerView {
+                viewpoint: [0.0, 0.0],
+                resident_bytes: &[],
+                in_flight: &[],
+                expected_bytes: None,
+            }));
         self.request_method_data(fetcher, frame);
         let texture_budget = self.share_textures(fetcher, frame);
         Ok(Update {
             decision,
+            levels,
             texture_budget,
         })
     }
@@ -764,7 +857,7 @@ impl Scene {
             return;
         };
         for want in r.method.wants() {
-            let i = want.id.y as usize * self.manifest.grid.columns as usize + want.id.x as usize;
+            let i = self.manifest.index(want.id).unwrap_or(usize::MAX);
             if self.tiles.get(i).is_none_or(Option::is_none)
                 || !r.data_pending.insert((want.id, want.key))
             {
@@ -782,13 +875,19 @@ impl Scene {
                 id,
                 heights,
                 heights_bytes,
+                mask_errors_m,
+                texture,
                 coarsest_texture,
                 ..
             } => {
-                let i = self.index(id);
+                let Some(i) = self.manifest.index(id) else {
+                    return Ok(());
+                };
                 let heights = Arc::new(heights);
+                let error_minima = crate::lod::needed::suffix_minima(&mask_errors_m);
                 let mut bytes = TileBytes {
-                    decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64,
+                    decoded_heights: std::mem::size_of_val(heights.codes.as_slice()) as u64
+                        + error_table_bytes(&self.manifest),
                     textures: coarsest_texture.len() as u64,
                     ..TileBytes::default()
                 };
@@ -803,10 +902,14 @@ impl Scene {
                     }
                     bytes.gpu = r.renderer.tiles.tile_bytes(id);
                     bytes.method = r.method.tile_bytes(id);
+                    let copies = r.config.method_config().texture_copies();
+                    r.texture_costs[i] = extra_costs(&self.manifest, &texture, copies);
                 }
                 self.base_bytes[i] = bytes.total();
                 self.tiles[i] = Some(ResidentTile {
                     heights,
+                    error_minima,
+                    texture_blobs: texture,
                     downloaded: heights_bytes + coarsest_texture.len() as u64,
                     textures: vec![coarsest_texture],
                     uploaded_levels,
@@ -821,7 +924,9 @@ impl Scene {
             FetchEvent::TextureLevel {
                 id, level, bytes, ..
             } => {
-                let i = self.index(id);
+                let Some(i) = self.manifest.index(id) else {
+                    return Ok(());
+                };
                 let target = self.rendering.as_ref().map_or(0, |r| r.texture_target[i]);
                 if let Some(tile) = &mut self.tiles[i]
                     && level as usize == tile.textures.len()
@@ -833,7 +938,9 @@ impl Scene {
                 }
             }
             FetchEvent::Data { id, key, bytes } => {
-                let i = self.index(id);
+                let Some(i) = self.manifest.index(id) else {
+                    return Ok(());
+                };
                 if let (Some(r), Some(tile)) = (&mut self.rendering, &mut self.tiles[i])
                     && r.data_pending.remove(&(id, key))
                 {
@@ -964,7 +1071,7 @@ impl Scene {
             let Some(tile) = &mut self.tiles[i] else {
                 continue;
             };
-            let id = self.manifest.tiles[i].id();
+            let id = self.manifest.id_at(i);
             let kept = keep[k] as usize + 1;
             let mut changed = false;
             if tile.textures.len() > kept {
@@ -980,7 +1087,9 @@ impl Scene {
             {
                 let next = tile.textures.len() as u32;
                 let priority = (frame << 20) | (1 << 19) | (candidates.len() as u64 - 1);
-                fetcher.request(id, Want::TextureLevel(next), priority);
+                if let Some(blob) = tile.texture_blobs.get(next as usize) {
+                    fetcher.request_texture(id, next, blob.clone(), priority);
+                }
             }
             if changed {
                 // The kept levels are on the GPU already: copy them there.
@@ -1034,16 +1143,37 @@ impl Scene {
     ) -> Option<DrawReport> {
         let r = self.rendering.as_mut()?;
         let started = Instant::now();
-        let candidates: Vec<Candidate> = self
-            .tiles
+        let size = target.texture().size();
+        let levels_drawn = if r.method.full_resolution_only() {
+            1
+        } else {
+            self.levels_used
+        };
+        let chosen = crate::lod::levels::choose(
+            &self.manifest,
+            &self.layout,
+            levels_drawn,
+            camera,
+            [size.width, size.height],
+            r.config.lod.max_error_px,
+            |id| {
+                let i = self.manifest.index(id)?;
+                let tile = self.tiles[i].as_ref()?;
+                let record = self.manifest.tile(id)?;
+                (self.in_square[i] || !r.config.square_only).then(|| crate::lod::levels::Held {
+                    min_m: f64::from(record.min_m),
+                    max_m: f64::from(record.max_m),
+                    deviation_m: tile.error_minima.first().copied().unwrap_or(0.0),
+                })
+            },
+        );
+        let candidates: Vec<Candidate> = chosen
             .iter()
-            .zip(&self.manifest.tiles)
-            .zip(&self.error_minima)
-            .zip(&self.in_square)
-            .filter(|(((t, _), _), in_square)| {
-                t.is_some() && (**in_square || !r.config.square_only)
+            .filter_map(|&id| {
+                let i = self.manifest.index(id)?;
+                let tile = self.tiles[i].as_ref()?;
+                Some(Candidate::new(id, self.manifest.tile(id)?, &tile.error_minima))
             })
-            .map(|(((_, record), minima), _)| Candidate::new(record, minima))
             .collect();
         let input = MethodInput {
             layout: &self.layout,
@@ -1055,10 +1185,9 @@ impl Scene {
         let stats = frame.finish();
         let (plan, lod_ms) = (out.plan, out.lod_ms);
         r.importance.fill(0.0);
-        let columns = self.manifest.grid.columns as usize;
         for (id, importance) in out.importance {
-            if id.x < self.manifest.grid.columns && id.y < self.manifest.grid.rows {
-                r.importance[id.y as usize * columns + id.x as usize] = importance;
+            if let Some(i) = self.manifest.index(id) {
+                r.importance[i] = importance;
             }
         }
         // A method's index sets and buffers grow as frames need them: what they took past
@@ -1099,7 +1228,7 @@ impl Scene {
             let Some(tile) = &mut self.tiles[i] else {
                 continue;
             };
-            let id = self.manifest.tiles[i].id();
+            let id = self.manifest.id_at(i);
             while over > 0 && tile.textures.len() > 1 {
                 let before = tile.bytes.total();
                 if let Some(dropped) = tile.textures.pop() {
@@ -1117,22 +1246,26 @@ impl Scene {
         }
     }
 
-    /// Height of the nearest sample under `position`, if its tile is resident.
+    /// Height of the nearest sample under `position` of the finest resident level there.
     pub fn ground_under(&self, position: [f64; 3]) -> Option<f64> {
-        let extent = self.layout.tile_extent_m();
         let cells = f64::from(self.layout.tile_size - 1);
-        let (tx, ty) = (position[0] / extent[0], position[1] / extent[1]);
-        if tx < 0.0
-            || ty < 0.0
-            || tx >= f64::from(self.manifest.grid.columns)
-            || ty >= f64::from(self.manifest.grid.rows)
-        {
-            return None;
-        }
-        let tile = self.tiles[self.index(TileId::new(tx as u32, ty as u32))].as_ref()?;
-        let x = ((tx - tx.floor()) * cells).round() as usize;
-        let y = ((ty - ty.floor()) * cells).round() as usize;
-        Some(tile.heights.metres(x, y))
+        (0..self.levels_used).find_map(|level| {
+            let extent = self.layout.tile_extent_m_at(level);
+            let (tx, ty) = (position[0] / extent[0], position[1] / extent[1]);
+            let grid = self.manifest.grid(level);
+            if tx < 0.0
+                || ty < 0.0
+                || tx >= f64::from(grid.columns)
+                || ty >= f64::from(grid.rows)
+            {
+                return None;
+            }
+            let id = TileId::at(level, tx as u32, ty as u32);
+            let tile = self.tiles.get(self.index(id))?.as_ref()?;
+            let x = ((tx - tx.floor()) * cells).round() as usize;
+            let y = ((ty - ty.floor()) * cells).round() as usize;
+            Some(tile.heights.metres(x, y))
+        })
     }
 }
 
@@ -1189,8 +1322,9 @@ impl Rendering {
     fn set_texture_blocks(&mut self, manifest: &Manifest) {
         let blocks = self.config.method_config().uses_texture_blocks();
         self.renderer.tiles.set_texture_blocks(blocks.then(|| {
+            let grid = manifest.grid(0);
             crate::render::blocks::BlockLayout::new(
-                [manifest.grid.columns, manifest.grid.rows],
+                [grid.columns, grid.rows],
                 manifest
                     .texture
                     .level_size(manifest.texture.levels.saturating_sub(1)),
@@ -1199,12 +1333,6 @@ impl Rendering {
                     .unwrap_or(self.renderer.tiles.max_texture_side()),
             )
         }));
-        let copies = self.config.method_config().texture_copies();
-        self.texture_costs = manifest
-            .tiles
-            .iter()
-            .map(|t| extra_costs(manifest, t, copies))
-            .collect();
     }
 }
 
@@ -1232,8 +1360,8 @@ pub fn expected_tile_bytes(
 ) -> TileBytes {
     let samples = u64::from(manifest.tile_size).pow(2);
     TileBytes {
-        decoded_heights: samples * std::mem::size_of::<i32>() as u64,
-        textures: tile.texture.first().map_or(0, |level| level.bytes),
+        decoded_heights: samples * std::mem::size_of::<i32>() as u64 + error_table_bytes(manifest),
+        textures: tile.coarsest_texture_bytes,
         method: 0,
         gpu: if gpu_texture_copies > 0 {
             samples * size_of::<terrain_shaders::Sample>() as u64
@@ -1242,6 +1370,12 @@ pub fn expected_tile_bytes(
             0
         },
     }
+}
+
+/// Bytes of a resident tile's error table (the suffix minima of its mask errors, `f32`),
+/// counted with its heights.
+fn error_table_bytes(manifest: &Manifest) -> u64 {
+    4 * u64::from(manifest.mask_levels)
 }
 
 /// GPU bytes of a tile's coarsest texture level as RGBA.

@@ -418,7 +418,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         "viewing {} ({} tiles, {:.0} x {:.0} m) from {}; memory limit {:.1} MiB; start at \
          {:.0},{:.0},{:.0} m, {:.0} m/s",
         manifest.dataset,
-        manifest.tiles.len(),
+        manifest.levels[0].tiles.len(),
         manifest.extent_m[0],
         manifest.extent_m[1],
         args.stream.server,
@@ -685,7 +685,7 @@ impl App {
             triangles,
             visible_tiles,
             resident_tiles: view.scene.resident_tiles(),
-            total_tiles: self.manifest.tiles.len(),
+            total_tiles: self.manifest.tile_count(),
             resident_bytes: view.scene.resident_bytes(),
             memory_limit: view.scene.memory_limit(),
         };

@@ -147,8 +147,9 @@ pub struct Georeference {
 
 /// Everything about one tile a client needs before it downloads it: what paging and culling
 /// need, and the hash that verifies the tile blob (`crate::tile_blob`), which carries the
-/// rest (mask errors, texture hashes). Serialised as a five-element array
-/// `[hash, bytes, min_m, max_m, roughness_m]` to keep the manifest small.
+/// rest (mask errors, texture hashes). Serialised as a six-element array
+/// `[hash, bytes, coarsest_texture_bytes, min_m, max_m, roughness_m]` to keep the manifest
+/// small.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(from = "RecordRow", into = "RecordRow")]
 pub struct TileRecord {
@@ -156,6 +157,9 @@ pub struct TileRecord {
     pub hash: String,
     /// Size of the tile blob.
     pub bytes: u64,
+    /// Size of the coarsest texture level, fetched with the tile: with `bytes`, what a
+    /// client will hold for the tile before it asks for it.
+    pub coarsest_texture_bytes: u64,
     /// Height bounds of the full-resolution surface under the tile, metres.
     pub min_m: f32,
     pub max_m: f32,
@@ -163,13 +167,14 @@ pub struct TileRecord {
     pub roughness_m: f32,
 }
 
-type RecordRow = (String, u64, f32, f32, f32);
+type RecordRow = (String, u64, u64, f32, f32, f32);
 
 impl From<RecordRow> for TileRecord {
-    fn from((hash, bytes, min_m, max_m, roughness_m): RecordRow) -> TileRecord {
+    fn from((hash, bytes, coarsest_texture_bytes, min_m, max_m, roughness_m): RecordRow) -> TileRecord {
         TileRecord {
             hash,
             bytes,
+            coarsest_texture_bytes,
             min_m,
             max_m,
             roughness_m,
@@ -179,7 +184,14 @@ impl From<RecordRow> for TileRecord {
 
 impl From<TileRecord> for RecordRow {
     fn from(r: TileRecord) -> RecordRow {
-        (r.hash, r.bytes, r.min_m, r.max_m, r.roughness_m)
+        (
+            r.hash,
+            r.bytes,
+            r.coarsest_texture_bytes,
+            r.min_m,
+            r.max_m,
+            r.roughness_m,
+        )
     }
 }
 
@@ -358,6 +370,62 @@ impl Manifest {
             return bad("texture has no levels, or more than 16".into());
         }
         Ok(())
+    }
+
+    /// A manifest of the pyramid over a `raster` cut into tiles of `tile_size`, every tile's
+    /// record made by `record`, its content version computed: for tests and tools that need
+    /// the geometry (a database's is written by the builder).
+    pub fn with_geometry(
+        dataset: &str,
+        raster: RasterSize,
+        tile_size: u32,
+        spacing_m: [f64; 2],
+        texture: TextureInfo,
+        record: impl Fn(TileId) -> TileRecord,
+    ) -> Manifest {
+        let levels = level_rasters(raster, tile_size)
+            .into_iter()
+            .enumerate()
+            .map(|(k, raster)| {
+                let grid = grid_covering(raster, tile_size);
+                let tiles = (0..grid.rows)
+                    .flat_map(|y| (0..grid.columns).map(move |x| (x, y)))
+                    .map(|(x, y)| record(TileId::at(k as u32, x, y)))
+                    .collect();
+                Level {
+                    raster,
+                    grid,
+                    tiles,
+                }
+            })
+            .collect();
+        let mut manifest = Manifest {
+            format: FORMAT.into(),
+            version: VERSION,
+            dataset: dataset.into(),
+            content_version: String::new(),
+            raster,
+            tile_size,
+            spacing_m,
+            extent_m: [
+                f64::from(raster.width.saturating_sub(1)) * spacing_m[0],
+                f64::from(raster.height.saturating_sub(1)) * spacing_m[1],
+            ],
+            heights: HeightsInfo {
+                codec: crate::heights::CODEC_NAME.into(),
+                quantum_m: 1.0,
+                offset_m: 0.0,
+                min_m: 0.0,
+                max_m: 0.0,
+                filled_voids: 0,
+            },
+            texture,
+            georeference: None,
+            mask_levels: crate::mask::level_count(tile_size),
+            levels,
+        };
+        manifest.content_version = manifest.compute_content_version();
+        manifest
     }
 
     /// Number of levels of the pyramid (at least 1).

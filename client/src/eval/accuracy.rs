@@ -185,11 +185,11 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     let settled = session
         .settle(centre, &cameras[0], Duration::from_secs(600))
         .await?;
-    if !settled || session.scene.resident_tiles() as usize != manifest.tiles.len() {
+    if !settled || session.scene.resident_tiles() as usize != manifest.tile_count() {
         return Err(FlightError::BadOption(format!(
             "the database did not load whole within 10 minutes ({} of {} tiles resident)",
             session.scene.resident_tiles(),
-            manifest.tiles.len()
+            manifest.tile_count()
         )));
     }
     bar.set_message("measuring");
@@ -238,7 +238,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         size: args.size,
         threshold_px: lod.max_error_px,
         cameras: args.cameras,
-        tiles: manifest.tiles.len(),
+        tiles: manifest.tile_count(),
         resident_bytes: session.scene.resident_bytes(),
         downloaded_bytes: stats.bytes_downloaded,
         reference_triangles: reference_triangles.iter().sum::<f64>()

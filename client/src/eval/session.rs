@@ -8,7 +8,6 @@ use crate::flight::FlightError;
 use crate::lod::budget::BudgetMode;
 use crate::method::CrackFiller;
 use crate::method::MethodKind;
-use crate::render::textures::extra_costs;
 use crate::render::{Camera, Gpu, Offscreen};
 use crate::scene::{DrawReport, RenderConfig, Scene, Update, expected_tile_bytes};
 use std::sync::Arc;
@@ -43,15 +42,20 @@ pub struct Measured {
 /// method with MapBlocks (the most any method holds).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
     let copies = crate::render::blocks::TEXTURE_COPIES;
+    // The finer texture levels' sizes are in the tile blobs: the coarsest's, doubled per
+    // level, is a bound JPEG and PNG keep well within (a finer level of the same texels
+    // compresses at least as well per texel), and the RGBA mips are exact.
+    let levels = manifest.texture.levels;
     manifest
-        .tiles
-        .iter()
-        .map(|t| {
-            expected_tile_bytes(manifest, t, copies).total()
-                + extra_costs(manifest, t, copies)
-                    .last()
-                    .copied()
-                    .unwrap_or(0)
+        .tiles()
+        .map(|(_, t)| {
+            let encoded: u64 = (1..levels)
+                .map(|l| t.coarsest_texture_bytes << (2 * l))
+                .sum();
+            let rgba: u64 = (1..levels)
+                .map(|l| u64::from(manifest.texture.level_size(l)).pow(2) * 4 * copies)
+                .sum();
+            expected_tile_bytes(manifest, t, copies).total() + encoded + rgba
         })
         .sum()
 }
@@ -255,7 +259,7 @@ impl Session {
 
     /// Stops every request in flight.
     pub fn close(&mut self) {
-        let all: Vec<_> = self.manifest.tiles.iter().map(|t| t.id()).collect();
+        let all: Vec<_> = self.manifest.tiles().map(|(id, _)| id).collect();
         self.fetcher.cancel(&all);
     }
 }

@@ -359,15 +359,16 @@ pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
     let cells = f64::from(manifest.tile_size - 1);
     let (tile_x, tile_y) = (cells * manifest.spacing_m[0], cells * manifest.spacing_m[1]);
     let tile_m = tile_x.min(tile_y);
-    let centre_of = |t: &terrain_shared::TileRecord| {
+    let grid = manifest.grid(0);
+    let centre_of = |(t, _): (terrain_shared::TileId, &terrain_shared::TileRecord)| {
         [
             (f64::from(t.x) + 0.5) * tile_x,
             (f64::from(t.y) + 0.5) * tile_y,
         ]
     };
     let under = |x: f64, y: f64| {
-        let tx = ((x / tile_x) as u32).min(manifest.grid.columns - 1);
-        let ty = ((y / tile_y) as u32).min(manifest.grid.rows - 1);
+        let tx = ((x / tile_x) as u32).min(grid.columns - 1);
+        let ty = ((y / tile_y) as u32).min(grid.rows - 1);
         manifest.tile(terrain_shared::TileId::new(tx, ty))
     };
     let f = |i: u32| f64::from(i) / f64::from(frames.max(2) - 1);
@@ -416,9 +417,9 @@ pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
             }
             Kind::Relief => {
                 let peak = manifest
-                    .tiles
-                    .iter()
-                    .max_by(|a, b| a.max_m.total_cmp(&b.max_m))
+                    .tiles()
+                    .filter(|(id, _)| id.level == 0)
+                    .max_by(|(_, a), (_, b)| a.max_m.total_cmp(&b.max_m))
                     .map_or([0.5 * w, 0.5 * h], centre_of);
                 // A third of a tile south of the highest tile's centre, 500 m above the
                 // highest point, sweeping a fifth of a tile west to east.
@@ -432,13 +433,13 @@ pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
                 )
             }
             Kind::FlatSea => {
+                // A flat tile: its bounds are one height, so every mask's error is 0.
                 let flat = manifest
-                    .tiles
-                    .iter()
-                    .filter(|t| t.mask_errors_m.iter().all(|&e| e == 0.0))
-                    .min_by_key(|t| {
-                        let (cx, cy) = (manifest.grid.columns / 2, manifest.grid.rows / 2);
-                        t.x.abs_diff(cx) + t.y.abs_diff(cy)
+                    .tiles()
+                    .filter(|(id, t)| id.level == 0 && t.min_m == t.max_m)
+                    .min_by_key(|(id, _)| {
+                        let (cx, cy) = (grid.columns / 2, grid.rows / 2);
+                        id.x.abs_diff(cx) + id.y.abs_diff(cy)
                     })
                     .map_or([0.5 * w, 0.5 * h], centre_of);
                 Camera::looking_at(
@@ -476,9 +477,8 @@ async fn run_one(
     let database = whole_database_bytes(&manifest);
     let limit = if scenario.kind == Kind::MemoryBelowOneBelt {
         let one = manifest
-            .tiles
-            .iter()
-            .map(|t| {
+            .tiles()
+            .map(|(_, t)| {
                 expected_tile_bytes(&manifest, t, config.method_config().texture_copies()).total()
             })
             .max()
@@ -524,7 +524,7 @@ async fn run_one(
     let mut flat = (0, 0);
     for d in &plan.draws {
         if let Some(t) = session.manifest.tile(d.id)
-            && t.mask_errors_m.iter().all(|&e| e == 0.0)
+            && t.min_m == t.max_m
         {
             flat.0 += 1;
             flat.1 += u32::from(d.level == coarsest(d));

@@ -12,7 +12,8 @@
 //!    lazily, and the choice of the finest mask that fits a tile's budget (section 5.1).
 //!
 //! Beside them, [`needed`] measures a frame against what it needs: per tile, the coarsest
-//! mask whose projected error stays within a pixel threshold; [`geomipmap`] makes the
+//! mask whose projected error stays within a pixel threshold; [`levels`] chooses which
+//! level of the pyramid draws each part of the terrain; [`geomipmap`] makes the
 //! GeoMipMaps' stitched index sets and their level errors; [`plan`] culls a frame's tiles,
 //! ranks them and makes the strip-mask plan (steps 1 to 3 together).
 //!
@@ -23,6 +24,7 @@
 pub mod budget;
 pub mod geomipmap;
 pub mod importance;
+pub mod levels;
 pub mod needed;
 pub mod plan;
 pub mod strips;

@@ -24,10 +24,14 @@ pub struct Candidate<'a> {
 }
 
 impl<'a> Candidate<'a> {
-    /// The candidate of `record`, as the manifest describes it, with its error minima.
-    pub fn new(record: &terrain_shared::TileRecord, error_minima_m: &'a [f32]) -> Candidate<'a> {
+    /// The candidate of tile `id`, as the manifest describes it, with its error minima.
+    pub fn new(
+        id: TileId,
+        record: &terrain_shared::TileRecord,
+        error_minima_m: &'a [f32],
+    ) -> Candidate<'a> {
         Candidate {
-            id: record.id(),
+            id,
             min_m: f64::from(record.min_m),
             max_m: f64::from(record.max_m),
             roughness_m: f64::from(record.roughness_m),
@@ -112,10 +116,10 @@ pub fn visible_tiles(
 ) -> Vec<usize> {
     let frustum = camera.frustum(aspect);
     let eye = DVec3::from(camera.position);
-    let extent = layout.tile_extent_m();
     (0..tiles.len())
         .filter(|&i| {
             let tile = &tiles[i];
+            let extent = layout.tile_extent_m_at(tile.id.level);
             let [x0, y0] = layout.tile_origin_m(tile.id);
             let lo = DVec3::new(x0, y0, tile.min_m) - eye;
             let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;
@@ -145,7 +149,7 @@ pub fn tile_pixels_per_metre(
     height_m: [f64; 2],
     threshold_px: f64,
 ) -> f64 {
-    let extent = layout.tile_extent_m();
+    let extent = layout.tile_extent_m_at(id.level);
     let [x0, y0] = layout.tile_origin_m(id);
     projection.pixels_per_metre(
         [x0, y0, height_m[0]],
@@ -180,7 +184,6 @@ pub fn rank_visible(
 ) -> Ranked {
     let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
     let eye = DVec3::from(camera.position);
-    let extent = layout.tile_extent_m();
     let projection = error_projection(camera, viewport);
     let visible = visible_tiles(camera, aspect, layout, tiles);
     let mut views = Vec::with_capacity(visible.len());
@@ -188,6 +191,7 @@ pub fn rank_visible(
     let mut pixels_per_metre = Vec::with_capacity(visible.len());
     for &i in &visible {
         let tile = &tiles[i];
+        let extent = layout.tile_extent_m_at(tile.id.level);
         let [x0, y0] = layout.tile_origin_m(tile.id);
         let lo = DVec3::new(x0, y0, tile.min_m) - eye;
         let hi = DVec3::new(x0 + extent[0], y0 + extent[1], tile.max_m) - eye;

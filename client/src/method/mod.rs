@@ -142,6 +142,12 @@ pub trait LodMethod: std::fmt::Debug + Send {
     /// Its name in tables and charts, e.g. `strip-masks/planar-shadow`.
     fn name(&self) -> String;
 
+    /// Whether it draws level 0 of the pyramid alone, whatever the other levels hold (the
+    /// full-resolution reference); the others are given tiles of every level used.
+    fn full_resolution_only(&self) -> bool {
+        false
+    }
+
     /// Decides and draws one frame into `frame` (its first pass clears the target).
     fn draw(&mut self, input: &MethodInput<'_>, frame: &mut Frame<'_>) -> MethodOutput;
 

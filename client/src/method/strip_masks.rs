@@ -65,8 +65,10 @@ impl StripMasks {
         id: TileId,
         min_m: f64,
     ) -> TileExtras {
-        let extent = layout.tile_extent_m();
-        let floor = min_m - fillers::filler_depth_m(extent);
+        // The plane's depth is a tenth of a level-0 tile's side at every level: a coarser
+        // tile spans more, but the cracks along its sides are no deeper for it.
+        let floor = min_m - fillers::filler_depth_m(layout.tile_extent_m());
+        let extent = layout.tile_extent_m_at(id.level);
         let mut extras = TileExtras {
             floor_m: floor as f32,
             ..TileExtras::default()
@@ -187,6 +189,10 @@ impl StripMasks {
 }
 
 impl LodMethod for StripMasks {
+    fn full_resolution_only(&self) -> bool {
+        self.reference
+    }
+
     fn name(&self) -> String {
         if self.reference {
             MethodKind::Reference.name().to_string()

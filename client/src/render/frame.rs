@@ -514,16 +514,22 @@ impl<'f> Frame<'f> {
         let mut uniforms = vec![0u8; (r.uniform_stride * ids.len() as u64) as usize];
         for (slot, (&id, extra)) in ids.iter().zip(&extras).enumerate() {
             let (_, uv) = r.tiles.binding_of(id, blocks[slot]);
+            // A tile of level k: its samples are 2^k level-0 samples apart, so its origin
+            // is counted in its own samples (a division by a power of two: exact) and its
+            // spacing is 2^k level 0's. Tiles of one level share their border samples bit
+            // for bit, as at level 0.
+            let step = Layout::sample_step(id.level);
+            let spacing = r.layout.spacing_at(id.level);
             let u = TileUniform {
                 origin: [
-                    (f64::from(id.x) * cells - self.anchor[0]) as f32,
+                    ((f64::from(id.x) * cells * step - self.anchor[0]) / step) as f32,
                     0.0,
-                    (f64::from(id.y) * cells - self.anchor[1]) as f32,
+                    ((f64::from(id.y) * cells * step - self.anchor[1]) / step) as f32,
                     0.0,
                 ],
                 spacing: [
-                    r.layout.spacing_m[0] as f32,
-                    r.layout.spacing_m[1] as f32,
+                    spacing[0] as f32,
+                    spacing[1] as f32,
                     n as f32,
                     extra.floor_m,
                 ],
@@ -536,10 +542,10 @@ impl<'f> Frame<'f> {
         if !uniforms.is_empty() {
             r.gpu.queue.write_buffer(&r.tile_uniforms, 0, &uniforms);
         }
-        let extent = r.layout.tile_extent_m();
         let clipped = ids
             .iter()
             .map(|&id| {
+                let extent = r.layout.tile_extent_m_at(id.level);
                 let [x0, y0] = r.layout.tile_origin_m(id);
                 // Past the edge by more than rounding: the tile holds padding.
                 let slack = 1e-6 * (extent[0] + extent[1]);

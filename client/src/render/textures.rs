@@ -56,20 +56,21 @@ pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) ->
     levels
 }
 
-/// Extra bytes of holding each texture level of `tile` (index = level) beyond the
+/// Extra bytes of holding each texture level of a tile (index = level; `texture` its
+/// tile blob's table) beyond the
 /// coarsest: the encoded levels kept on the CPU plus their RGBA mips on the GPU, `gpu_copies`
 /// times (2 with MapBlocks, whose block textures copy the tiles').
 pub fn extra_costs(
     manifest: &terrain_shared::Manifest,
-    tile: &terrain_shared::TileRecord,
+    texture: &[terrain_shared::Blob],
     gpu_copies: u64,
 ) -> Vec<u64> {
     let mut cost = 0u64;
-    (0..tile.texture.len())
+    (0..texture.len())
         .map(|level| {
             if level > 0 {
                 let side = u64::from(manifest.texture.level_size(level as u32));
-                cost += tile.texture[level].bytes + gpu_copies * side * side * 4;
+                cost += texture[level].bytes + gpu_copies * side * side * 4;
             }
             cost
         })

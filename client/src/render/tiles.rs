@@ -484,7 +484,8 @@ impl TileStore {
                 PooledSamples { buffer, group }
             });
             if got.needs_upload() {
-                let samples = mesh::tile_samples(&self.tiles[&id].heights, self.layout.spacing_m);
+                let samples =
+                    mesh::tile_samples(&self.tiles[&id].heights, self.layout.spacing_at(id.level));
                 self.queue.write_buffer(
                     &self.pool.get(got.slot()).buffer,
                     0,
@@ -504,8 +505,13 @@ impl TileStore {
         let Some(layout) = self.texture_blocks() else {
             return vec![None; ids.len()];
         };
-        let keys: std::collections::BTreeSet<[u32; 2]> =
-            ids.iter().map(|&id| layout.block_of(id)).collect();
+        // MapBlocks gather level-0 tiles; a tile of a coarser level draws with its own
+        // texture (it already covers the area of a block of tiles).
+        let keys: std::collections::BTreeSet<[u32; 2]> = ids
+            .iter()
+            .filter(|id| id.level == 0)
+            .map(|&id| layout.block_of(id))
+            .collect();
         for key in keys {
             self.assemble_block(layout, key);
         }
@@ -513,7 +519,7 @@ impl TileStore {
         ids.iter()
             .map(|&id| {
                 let key = layout.block_of(id);
-                blocks.holds(key, id).then_some(key)
+                (id.level == 0 && blocks.holds(key, id)).then_some(key)
             })
             .collect()
     }

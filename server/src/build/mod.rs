@@ -626,6 +626,7 @@ pub fn build(
                 records.push(TileRecord {
                     hash: stored.hash,
                     bytes: stored.bytes,
+                    coarsest_texture_bytes: made.texture_levels.first().map_or(0, |l| l.len() as u64),
                     min_m: made.carry.min_m,
                     max_m: made.carry.max_m,
                     roughness_m: made.roughness_m,
