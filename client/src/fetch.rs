@@ -423,7 +423,7 @@ mod tests {
         assert_eq!(client.base_url(), "http://host/terrain");
         assert_eq!(
             client.url(&routes::heights("abc", TileId::new(1, 2))),
-            "http://host/terrain/v1/abc/tiles/1/2/heights"
+            "http://host/terrain/v1/abc/levels/0/tiles/1/2/heights"
         );
     }
 

@@ -181,6 +181,7 @@ mod tests {
                 source: TextureSource::Generated,
                 size,
                 levels: 1,
+                level_bytes: Vec::new(),
             },
             |_| TileRecord {
                 hash: "0".repeat(32),

@@ -1167,12 +1167,17 @@ impl Scene {
                 })
             },
         );
+        let seams = crate::lod::levels::seams(&chosen);
         let candidates: Vec<Candidate> = chosen
             .iter()
-            .filter_map(|&id| {
+            .zip(seams)
+            .filter_map(|(&id, seams)| {
                 let i = self.manifest.index(id)?;
                 let tile = self.tiles[i].as_ref()?;
-                Some(Candidate::new(id, self.manifest.tile(id)?, &tile.error_minima))
+                Some(Candidate {
+                    seams,
+                    ..Candidate::new(id, self.manifest.tile(id)?, &tile.error_minima)
+                })
             })
             .collect();
         let input = MethodInput {
@@ -1387,62 +1392,38 @@ fn coarsest_rgba_bytes(manifest: &Manifest) -> u64 {
 mod tests {
     use super::*;
     use crate::fetch::FetchError;
-    use terrain_shared::manifest::{
-        FORMAT, GridSize, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource, VERSION,
-    };
+    use terrain_shared::manifest::{ImageFormat, RasterSize, TextureInfo, TextureSource};
     use terrain_shared::{Blob, Heights, TileRecord};
 
     const SPACING: f64 = 10.0;
 
-    /// Two 3-sample tiles side by side (5 x 3 samples), 10 m apart, one 2-byte texture level.
+    /// Two 3-sample tiles side by side (5 x 3 samples), 10 m apart, one 2-byte texture level;
+    /// level 1 above them, one tile.
     fn manifest() -> Arc<Manifest> {
-        let tiles = (0..2)
-            .map(|x| TileRecord {
-                x,
-                y: 0,
-                valid: [3, 3],
-                min_m: 0.0,
-                max_m: 8.0,
-                roughness_m: 0.0,
-                mask_errors_m: vec![0.0; 2],
-                heights: Blob::of(b"heights"),
-                texture: vec![Blob::of(b"tx")],
-            })
-            .collect();
-        Arc::new(Manifest {
-            format: FORMAT.into(),
-            version: VERSION,
-            dataset: "test".into(),
-            content_version: "0".into(),
-            raster: RasterSize {
+        Arc::new(Manifest::with_geometry(
+            "test",
+            RasterSize {
                 width: 5,
                 height: 3,
             },
-            tile_size: 3,
-            grid: GridSize {
-                columns: 2,
-                rows: 1,
-            },
-            spacing_m: [SPACING, SPACING],
-            extent_m: [4.0 * SPACING, 2.0 * SPACING],
-            heights: HeightsInfo {
-                codec: "planar-zstd/1".into(),
-                quantum_m: 1.0,
-                offset_m: 0.0,
-                min_m: 0.0,
-                max_m: 8.0,
-                filled_voids: 0,
-            },
-            texture: TextureInfo {
+            3,
+            [SPACING, SPACING],
+            TextureInfo {
                 format: ImageFormat::Png,
                 source: TextureSource::Generated,
                 size: 1,
                 levels: 1,
+                level_bytes: Vec::new(),
             },
-            georeference: None,
-            mask_levels: 2,
-            tiles,
-        })
+            |_| TileRecord {
+                hash: Blob::of(b"tile").hash,
+                bytes: 7,
+                coarsest_texture_bytes: 2,
+                min_m: 0.0,
+                max_m: 8.0,
+                roughness_m: 0.0,
+            },
+        ))
     }
 
     fn scene(limit: u64) -> Scene {
@@ -1472,6 +1453,8 @@ mod tests {
                 id: TileId::new(x, 0),
                 heights: heights(codes),
                 heights_bytes: 7,
+                mask_errors_m: vec![0.0; 2],
+                texture: vec![Blob::of(b"tx")],
                 coarsest_texture: bytes::Bytes::from_static(b"tx"),
                 attempts: 1,
                 elapsed: std::time::Duration::ZERO,
@@ -1512,12 +1495,12 @@ mod tests {
         let mut scene = scene(1 << 20);
         assert_eq!(scene.resident_bytes(), 0);
         arrive(&mut scene, 1, [1; 9]);
-        // Nine 32-bit codes and the two-byte coarsest texture level.
-        assert_eq!(scene.resident_bytes(), 9 * 4 + 2);
+        // Nine 32-bit codes, the error table (two f32) and the two-byte coarsest texture level.
+        assert_eq!(scene.resident_bytes(), 9 * 4 + 2 * 4 + 2);
         assert_eq!(scene.cpu_bytes(), scene.resident_bytes());
         assert_eq!(scene.gpu_bytes(), 0);
         assert_eq!(scene.resident_tiles(), 1);
-        let record = &scene.manifest().tiles[1];
+        let record = scene.manifest().tile(TileId::new(1, 0)).expect("tile 1");
         assert_eq!(
             expected_tile_bytes(scene.manifest(), record, 0).total(),
             scene.resident_bytes(),
@@ -1535,7 +1518,7 @@ mod tests {
         arrive(&mut scene, 1, [2; 9]);
         let mut rebuilt = (*manifest()).clone();
         rebuilt.content_version = "1".into();
-        rebuilt.tiles[1].heights = Blob::of(b"other heights");
+        rebuilt.levels[0].tiles[1].hash = Blob::of(b"other tile").hash;
         assert_eq!(
             scene.replace_manifest(Arc::new(rebuilt.clone())),
             Reconciled::Kept {
@@ -1555,7 +1538,7 @@ mod tests {
             "tile 1 dropped"
         );
         assert_eq!(scene.manifest().content_version, "1");
-        assert_eq!(scene.resident_bytes(), 9 * 4 + 2);
+        assert_eq!(scene.resident_bytes(), 9 * 4 + 2 * 4 + 2);
         // Another grid cannot be taken: the caller starts a new scene.
         let mut reshaped = rebuilt;
         reshaped.tile_size = 5;

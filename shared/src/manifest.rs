@@ -122,6 +122,10 @@ pub struct TextureInfo {
     pub size: u32,
     /// Number of levels; level 0 is the coarsest, each next level doubles the side.
     pub levels: u32,
+    /// Encoded bytes of each texture level (coarsest first) over every tile of every level
+    /// of the pyramid: what holding them all costs, before the tile blobs say it per tile.
+    #[serde(default)]
+    pub level_bytes: Vec<u64>,
 }
 
 impl TextureInfo {
@@ -369,6 +373,13 @@ impl Manifest {
         {
             return bad("texture has no levels, or more than 16".into());
         }
+        if self.texture.level_bytes.len() != self.texture.levels as usize {
+            return bad(format!(
+                "{} texture level sizes for {} levels",
+                self.texture.level_bytes.len(),
+                self.texture.levels
+            ));
+        }
         Ok(())
     }
 
@@ -424,6 +435,7 @@ impl Manifest {
             mask_levels: crate::mask::level_count(tile_size),
             levels,
         };
+        manifest.texture.level_bytes.resize(manifest.texture.levels as usize, 0);
         manifest.content_version = manifest.compute_content_version();
         manifest
     }

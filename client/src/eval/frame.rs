@@ -81,6 +81,8 @@ pub struct FrameMeasures {
     pub filler_pixels: u64,
     /// Pixels where the reference shows terrain.
     pub reference_terrain_pixels: u64,
+    /// Of those, the pixels where the frame shows terrain or a filler too.
+    pub covered_pixels: u64,
     /// Colour PSNR against the reference, dB (infinite when identical).
     pub psnr_db: f64,
 }
@@ -130,7 +132,25 @@ pub fn measure(
         silhouette_pixels: background - hole_pixels,
         filler_pixels: filler.iter().filter(|&&f| f).count() as u64,
         reference_terrain_pixels: reference.terrain_pixels(),
+        covered_pixels: frame
+            .points
+            .iter()
+            .zip(&reference.points)
+            .filter(|(f, r)| f.is_some() && r.is_some())
+            .count() as u64,
         psnr_db: metrics::psnr(&frame.color, &reference.color),
+    }
+}
+
+impl FrameMeasures {
+    /// Share of the reference's terrain pixels the frame draws, in [0, 1] (1 when the
+    /// reference shows no terrain).
+    pub fn coverage(&self) -> f64 {
+        if self.reference_terrain_pixels == 0 {
+            1.0
+        } else {
+            self.covered_pixels as f64 / self.reference_terrain_pixels as f64
+        }
     }
 }
 
@@ -217,6 +237,9 @@ mod tests {
         );
         assert_eq!((m.crack_pixels, m.hole_pixels, m.filler_pixels), (2, 1, 1));
         assert_eq!(m.reference_terrain_pixels, 4);
+        // Pixel 1 shows the background: three of the reference's four terrain pixels drawn.
+        assert_eq!(m.covered_pixels, 3);
+        assert!((m.coverage() - 0.75).abs() < 1e-12);
         // The filler pixel lies 40 m under the surface: the only one with an error.
         assert_eq!(m.error.terrain_pixels, 3);
         assert_eq!(m.error.above_threshold, 1);

@@ -42,22 +42,17 @@ pub struct Measured {
 /// method with MapBlocks (the most any method holds).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
     let copies = crate::render::blocks::TEXTURE_COPIES;
-    // The finer texture levels' sizes are in the tile blobs: the coarsest's, doubled per
-    // level, is a bound JPEG and PNG keep well within (a finer level of the same texels
-    // compresses at least as well per texel), and the RGBA mips are exact.
-    let levels = manifest.texture.levels;
+    // The finer levels' encoded sizes per tile are in the tile blobs; the manifest gives
+    // their totals.
+    let finer_encoded: u64 = manifest.texture.level_bytes.iter().skip(1).sum();
+    let finer_rgba: u64 = (1..manifest.texture.levels)
+        .map(|l| u64::from(manifest.texture.level_size(l)).pow(2) * 4 * copies)
+        .sum();
     manifest
         .tiles()
-        .map(|(_, t)| {
-            let encoded: u64 = (1..levels)
-                .map(|l| t.coarsest_texture_bytes << (2 * l))
-                .sum();
-            let rgba: u64 = (1..levels)
-                .map(|l| u64::from(manifest.texture.level_size(l)).pow(2) * 4 * copies)
-                .sum();
-            expected_tile_bytes(manifest, t, copies).total() + encoded + rgba
-        })
-        .sum()
+        .map(|(_, t)| expected_tile_bytes(manifest, t, copies).total() + finer_rgba)
+        .sum::<u64>()
+        + finer_encoded
 }
 
 impl Session {
@@ -229,6 +224,45 @@ impl Session {
             report,
             frame_ms: median(&mut times),
             gpu_ms: (!gpu_times.is_empty()).then(|| median(&mut gpu_times)),
+            capture,
+        })
+    }
+
+    /// Draws `camera`'s frame with `config` once and measures it against `reference`, a
+    /// frame drawn by another session, with `truth`'s resident samples as the true surface
+    /// (a scene holding the whole database; this one may hold too little of level 0 to
+    /// know it).
+    pub fn measure_against(
+        &mut self,
+        camera: &Camera,
+        config: RenderConfig,
+        reference: &Capture,
+        truth: &Scene,
+        threshold_px: f64,
+    ) -> Result<Measured, FlightError> {
+        let unfilled = if config.method.uses_filler() && config.filler != CrackFiller::None {
+            let bare = RenderConfig {
+                filler: CrackFiller::None,
+                ..config
+            };
+            Some(self.capture(camera, bare)?.0.depth)
+        } else {
+            None
+        };
+        let (capture, report) = self.capture(camera, config)?;
+        let measures = measure(
+            &capture,
+            unfilled.as_deref(),
+            reference,
+            camera,
+            |x, y| truth.surface_height(x, y),
+            threshold_px,
+        );
+        Ok(Measured {
+            measures,
+            frame_ms: report.draw_ms,
+            gpu_ms: report.stats.gpu_ms,
+            report,
             capture,
         })
     }

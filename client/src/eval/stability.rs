@@ -106,7 +106,14 @@ pub enum Kind {
     Relief,
     /// Over the flat (zero-error) tile nearest the terrain's centre, from 1.5 tiles west.
     FlatSea,
+    /// High over the terrain (this many metres above its highest sample), looking north
+    /// this many degrees down, with [`ALTITUDE_MEMORY`]: what only a pyramid of levels
+    /// draws whole. Measured against the whole database at full resolution.
+    Altitude { above_m: f64, pitch_deg: f64 },
 }
+
+/// Memory budget of the [`Kind::Altitude`] scenarios.
+pub const ALTITUDE_MEMORY: u64 = 16 << 20;
 
 /// A named scenario.
 #[derive(Debug, Clone, Copy)]
@@ -175,6 +182,51 @@ pub const SCENARIOS: &[Scenario] = &[
         kind: Kind::Jump,
     },
     Scenario {
+        name: "altitude-30km-20deg",
+        dataset: None,
+        what: "30 km above the highest point, 20 degrees down, 16 MiB",
+        kind: Kind::Altitude {
+            above_m: 30_000.0,
+            pitch_deg: 20.0,
+        },
+    },
+    Scenario {
+        name: "altitude-30km-45deg",
+        dataset: None,
+        what: "30 km above the highest point, 45 degrees down, 16 MiB",
+        kind: Kind::Altitude {
+            above_m: 30_000.0,
+            pitch_deg: 45.0,
+        },
+    },
+    Scenario {
+        name: "altitude-100km-20deg",
+        dataset: None,
+        what: "100 km above the highest point, 20 degrees down, 16 MiB",
+        kind: Kind::Altitude {
+            above_m: 100_000.0,
+            pitch_deg: 20.0,
+        },
+    },
+    Scenario {
+        name: "altitude-100km-45deg",
+        dataset: None,
+        what: "100 km above the highest point, 45 degrees down, 16 MiB",
+        kind: Kind::Altitude {
+            above_m: 100_000.0,
+            pitch_deg: 45.0,
+        },
+    },
+    Scenario {
+        name: "altitude-3km-horizon",
+        dataset: None,
+        what: "3 km above the highest point, looking at the horizon, 16 MiB",
+        kind: Kind::Altitude {
+            above_m: 3_000.0,
+            pitch_deg: 0.0,
+        },
+    },
+    Scenario {
         name: "terraced-8bit",
         dataset: Some("grand_canyon_hoppe"),
         what: "8-bit heights in 10 m terraces",
@@ -228,6 +280,14 @@ pub struct RunResult {
     pub flat_tiles: (u32, u32),
     /// Triangles used and needed in the measured frame.
     pub triangles: (u64, u64),
+    /// Of the pixels where the reference shows terrain, the share the frame draws (terrain
+    /// or filler), percent.
+    pub coverage_pct: f64,
+    /// Mean screen-space error of the measured frame, pixels.
+    pub mean_error_px: f64,
+    /// Whether the reference held the whole database ([`Kind::Altitude`]) rather than what
+    /// the scenario's own limit let in.
+    pub whole_reference: bool,
     /// Why it failed: an error or a panic.
     pub failure: Option<String>,
     pub picture: Option<image::RgbaImage>,
@@ -278,6 +338,7 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
     let variants = args.variants.list();
     let mut report = StabilityReport::default();
     let bar = super::accuracy::progress("stability", (chosen.len() * variants.len()) as u64);
+    let whole = WholeCache::default();
     for scenario in chosen {
         let server = match scenario.dataset {
             None => args.server.clone().ok_or_else(|| {
@@ -298,10 +359,12 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
         for &(method, filler) in &variants {
             bar.set_message(format!("{} {}", scenario.name, filler.name()));
             let (one, server, args2) = (*scenario, server.clone(), args.clone());
+            let whole = std::sync::Arc::clone(&whole);
             // Its own task: a panic is caught and reported as the run's failure.
-            let joined =
-                tokio::spawn(async move { run_one(&one, &server, &args2, method, filler).await })
-                    .await;
+            let joined = tokio::spawn(async move {
+                run_one(&one, &server, &args2, method, filler, whole).await
+            })
+            .await;
             let result = match joined {
                 Ok(Ok((r, adapter))) => {
                     report.adapter = adapter;
@@ -347,6 +410,9 @@ fn failed(s: &Scenario, method: MethodKind, filler: CrackFiller, why: String) ->
         database_bytes: 0,
         flat_tiles: (0, 0),
         triangles: (0, 0),
+        coverage_pct: 0.0,
+        mean_error_px: 0.0,
+        whole_reference: false,
         failure: Some(why),
         picture: None,
         reference: None,
@@ -451,9 +517,22 @@ pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
                     [flat[0], flat[1], 0.0],
                 )
             }
+            Kind::Altitude { above_m, pitch_deg } => {
+                // Over the south third of the terrain, looking north across it, drifting a
+                // tenth of its width east over the frames so that the levels page.
+                Camera::new(
+                    [(0.45 + 0.1 * f(i)) * w, 0.7 * h, top + above_m],
+                    -std::f64::consts::FRAC_PI_2,
+                    -pitch_deg.to_radians(),
+                )
+            }
         })
         .collect()
 }
+
+/// A session holding the whole database of one server, kept between the runs that measure
+/// against it ([`Kind::Altitude`]): loading it takes longer than a run.
+type WholeCache = std::sync::Arc<tokio::sync::Mutex<Option<(String, Session)>>>;
 
 async fn run_one(
     scenario: &Scenario,
@@ -461,6 +540,7 @@ async fn run_one(
     args: &StabilityArgs,
     method: MethodKind,
     filler: CrackFiller,
+    whole: WholeCache,
 ) -> Result<(RunResult, String), FlightError> {
     let config = RenderConfig {
         method,
@@ -475,7 +555,10 @@ async fn run_one(
     let client = crate::fetch::TileClient::new(server)?;
     let manifest = client.manifest().await?;
     let database = whole_database_bytes(&manifest);
-    let limit = if scenario.kind == Kind::MemoryBelowOneBelt {
+    let altitude = matches!(scenario.kind, Kind::Altitude { .. });
+    let limit = if altitude {
+        ALTITUDE_MEMORY
+    } else if scenario.kind == Kind::MemoryBelowOneBelt {
         let one = manifest
             .tiles()
             .map(|(_, t)| {
@@ -514,8 +597,30 @@ async fn run_one(
         budget: BudgetMode::Fixed(session.scene.budget().unwrap_or(u32::MAX)),
         ..config
     };
-    let (reference, _) = session.reference(&last)?;
-    let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
+    let (reference, measured) = if altitude {
+        // The reference holds the whole database; the scene's own limit holds too little of
+        // level 0 to draw it, or to give the true surface the errors are measured against.
+        let mut cache = whole.lock().await;
+        if cache.as_ref().is_none_or(|(url, _)| url != server) {
+            let mut opened = Session::open(server, None, config, args.size).await?;
+            opened.scene.use_levels(false);
+            *cache = Some((server.to_string(), opened));
+        }
+        let (_, whole) = cache.as_mut().expect("just set");
+        let centre = whole.centre();
+        if !whole.settle(centre, &last, Duration::from_secs(600)).await? {
+            return Err(FlightError::BadOption(
+                "the whole database did not load within 10 minutes".into(),
+            ));
+        }
+        let (reference, _) = whole.reference(&last)?;
+        let measured = session.measure_against(&last, frozen, &reference, &whole.scene, 1.0)?;
+        (reference, measured)
+    } else {
+        let (reference, _) = session.reference(&last)?;
+        let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
+        (reference, measured)
+    };
     peak = peak.max(session.scene.resident_bytes());
     held = held.max(held_now(&session.scene));
     let plan = &measured.report.plan;
@@ -559,6 +664,9 @@ async fn run_one(
                 measured.report.stats.triangles,
                 measured.report.triangles_needed,
             ),
+            coverage_pct: 100.0 * m.coverage(),
+            mean_error_px: m.error.mean_px,
+            whole_reference: altitude,
             failure: None,
             picture: Some(marked(&measured.capture, &reference)),
             reference: Some(reference.color.clone()),
@@ -589,14 +697,14 @@ pub fn markdown(report: &StabilityReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scenario | method | crack px (% of terrain) | holes px | max error (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
+        "| scenario | method | crack px (% of terrain) | holes px | coverage (%) | mean / max error (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
     );
-    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|");
     for r in &report.runs {
         if let Some(why) = &r.failure {
             let _ = writeln!(
                 s,
-                "| {} | {} | | | | | | | | | **failed**: {} |",
+                "| {} | {} | | | | | | | | | | **failed**: {} |",
                 r.scenario,
                 r.method,
                 why.replace('|', "/")
@@ -606,12 +714,15 @@ pub fn markdown(report: &StabilityReport) -> String {
         let pct = 100.0 * r.crack_pixels as f64 / (r.reference_terrain_pixels as f64).max(1.0);
         let _ = writeln!(
             s,
-            "| {} | {} | {} ({:.2}%) | {} | {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} of {:.1} {} | {} | {} / {} | ok |",
+            "| {} | {} | {} ({:.2}%) | {} | {:.2}{} | {:.2} / {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} of {:.1} {} | {} | {} / {} | ok |",
             r.scenario,
             r.method,
             r.crack_pixels,
             pct,
             r.hole_pixels,
+            r.coverage_pct,
+            if r.whole_reference { "*" } else { "" },
+            r.mean_error_px,
             r.max_error_px,
             r.above_threshold_pct,
             r.frame_ms_median,
@@ -636,7 +747,13 @@ pub fn markdown(report: &StabilityReport) -> String {
         );
     }
     for (name, why) in &report.skipped {
-        let _ = writeln!(s, "| {name} | all | | | | | | | | | not run: {why} |");
+        let _ = writeln!(s, "| {name} | all | | | | | | | | | | not run: {why} |");
+    }
+    if report.runs.iter().any(|r| r.whole_reference) {
+        let _ = writeln!(
+            s,
+            "\n\\* against a reference holding the whole database at full resolution (the other rows: every tile the scenario's own limit let in)."
+        );
     }
     s
 }
@@ -693,12 +810,12 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
     let md_path = out.join("stability.md");
     std::fs::write(&md_path, &md).map_err(write_err(&md_path))?;
     let mut csv = String::from(
-        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed\n",
+        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed,coverage_pct,mean_error_px,whole_reference\n",
     );
     for r in &report.runs {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3},{:.3},{}",
             r.scenario,
             r.method,
             r.failure.as_deref().unwrap_or("").replace([',', '\n'], ";"),
@@ -717,7 +834,10 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
             r.flat_tiles.0,
             r.flat_tiles.1,
             r.triangles.0,
-            r.triangles.1
+            r.triangles.1,
+            r.coverage_pct,
+            r.mean_error_px,
+            r.whole_reference
         );
     }
     let csv_path = out.join("stability.csv");

@@ -21,6 +21,7 @@
 use crate::lod::plan::{self, Layout};
 use crate::render::camera::Camera;
 use glam::DVec3;
+use std::collections::HashSet;
 use terrain_shared::{Manifest, TileId};
 
 /// What the choice needs of a resident tile.
@@ -94,4 +95,70 @@ pub fn choose(
         }
     }
     chosen
+}
+
+/// Per tile of `chosen` (a cut of the pyramid, as [`choose`] makes), which of its sides
+/// (north, east, south, west) border a chosen tile of another level: where the two edges
+/// are sampled differently and a crack can open whatever the methods' own stitching does
+/// (GeoMipMaps stitch tiles of one level only).
+pub fn seams(chosen: &[TileId]) -> Vec<[bool; 4]> {
+    let drawn: HashSet<TileId> = chosen.iter().copied().collect();
+    // Every tile with a chosen tile under it (a finer level draws its area).
+    let mut above = HashSet::new();
+    for &id in chosen {
+        let mut t = id;
+        while t.level < 31 {
+            t = t.parent();
+            if !above.insert(t) {
+                break;
+            }
+        }
+    }
+    let coarser_drawn = |mut t: TileId| {
+        while t.level < 31 {
+            t = t.parent();
+            if drawn.contains(&t) {
+                return true;
+            }
+        }
+        false
+    };
+    chosen
+        .iter()
+        .map(|id| {
+            [(0i64, -1i64), (1, 0), (0, 1), (-1, 0)].map(|(dx, dy)| {
+                let (x, y) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
+                let (Ok(x), Ok(y)) = (u32::try_from(x), u32::try_from(y)) else {
+                    return false;
+                };
+                let next = TileId::at(id.level, x, y);
+                !drawn.contains(&next) && (above.contains(&next) || coarser_drawn(next))
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seams_are_the_sides_facing_another_level() {
+        // Level 1 tile (0, 0) drawn as its four children; its east neighbour (1, 0) whole.
+        let chosen = [
+            TileId::new(0, 0),
+            TileId::new(1, 0),
+            TileId::new(0, 1),
+            TileId::new(1, 1),
+            TileId::at(1, 1, 0),
+        ];
+        let s = seams(&chosen);
+        // North, east, south, west.
+        assert_eq!(s[0], [false; 4], "a child inside the block");
+        assert_eq!(s[1], [false, true, false, false], "faces the coarser tile east");
+        assert_eq!(s[3], [false, true, false, false]);
+        assert_eq!(s[4], [false, false, false, true], "faces the finer tiles west");
+        // One level: no seams anywhere.
+        assert!(seams(&chosen[..4]).iter().all(|s| *s == [false; 4]));
+    }
 }

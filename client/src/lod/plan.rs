@@ -18,9 +18,14 @@ pub struct Candidate<'a> {
     pub min_m: f64,
     pub max_m: f64,
     pub roughness_m: f64,
-    /// Suffix minima of the maximum vertical error of each mask level, metres
-    /// ([`needed::suffix_minima`] of the manifest's `mask_errors_m`).
+    /// Suffix minima of the maximum vertical error of each mask level against the
+    /// full-resolution surface, metres ([`needed::suffix_minima`] of its tile blob's
+    /// `mask_errors_m`); `[0]` is the tile's own distance from full resolution (0 at
+    /// level 0).
     pub error_minima_m: &'a [f32],
+    /// Sides (north, east, south, west) that border a drawn tile of another level of the
+    /// pyramid ([`crate::lod::levels::seams`]).
+    pub seams: [bool; 4],
 }
 
 impl<'a> Candidate<'a> {
@@ -36,6 +41,7 @@ impl<'a> Candidate<'a> {
             max_m: f64::from(record.max_m),
             roughness_m: f64::from(record.roughness_m),
             error_minima_m,
+            seams: [false; 4],
         }
     }
 }
@@ -294,6 +300,7 @@ mod tests {
                     max_m: 100.0,
                     roughness_m: 1.0,
                     error_minima_m: &ROUGH,
+                    seams: [false; 4],
                 });
             }
         }

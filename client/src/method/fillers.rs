@@ -59,22 +59,34 @@ pub fn shadow_corner(corner: glam::DVec3, plane: f64) -> glam::DVec3 {
 /// `tile_size^2 + i`, which the shader places at the skirt's bottom). Edges are joined by
 /// repeated indices, like the mask strips. The strip-mask paper's "filleting" (section 5.4).
 pub fn skirt_strip(tile_size: u32, level: u32) -> Vec<u32> {
-    let kept = mask::kept_indices(tile_size, level);
+    skirt_strip_sides(tile_size, [Some(level); 4])
+}
+
+/// Skirts along some sides only (north, east, south, west), each hanging from the samples
+/// mask `sides[k]` keeps on it (`None`: no skirt on that side), as one triangle strip.
+pub fn skirt_strip_sides(tile_size: u32, sides: [Option<u32>; 4]) -> Vec<u32> {
     let n = tile_size;
     let last = n - 1;
     let feet = terrain_shaders::skirt_base(n);
     // Each edge walks its kept samples in order round the tile (north west to east, east
     // north to south, south east to west, west south to north); `kept` is not symmetric,
     // so the last two walk it backwards.
-    let forward: Vec<u32> = kept.clone();
-    let backward: Vec<u32> = kept.iter().rev().copied().collect();
-    let edges: [(Vec<u32>, u32, u32); 4] = [
-        (forward.clone(), 0, 1),         // north: k
-        (forward, last, n),              // east: k * n + last
-        (backward.clone(), last * n, 1), // south: last * n + k
-        (backward, 0, n),                // west: k * n
-    ];
-    let mut strip: Vec<u32> = Vec::with_capacity(4 * (2 * kept.len() + 2));
+    let forward = |level: u32| mask::kept_indices(tile_size, level);
+    let backward = |level: u32| {
+        let mut kept = mask::kept_indices(tile_size, level);
+        kept.reverse();
+        kept
+    };
+    let edges: Vec<(Vec<u32>, u32, u32)> = [
+        sides[0].map(|l| (forward(l), 0, 1)),            // north: k
+        sides[1].map(|l| (forward(l), last, n)),         // east: k * n + last
+        sides[2].map(|l| (backward(l), last * n, 1)),    // south: last * n + k
+        sides[3].map(|l| (backward(l), 0, n)),           // west: k * n
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    let mut strip: Vec<u32> = Vec::with_capacity(edges.iter().map(|e| 2 * e.0.len() + 2).sum());
     for (ks, first, step) in &edges {
         let at = |k: u32| first + k * step;
         if let Some(&previous) = strip.last() {
@@ -92,8 +104,16 @@ pub fn skirt_strip(tile_size: u32, level: u32) -> Vec<u32> {
 
 /// Triangles a skirt strip draws (joins not counted): two per kept border cell, four edges.
 pub fn skirt_triangles(tile_size: u32, level: u32) -> u32 {
-    let kept = mask::kept_indices(tile_size, level).len() as u32;
-    8 * (kept - 1)
+    skirt_triangles_sides(tile_size, [Some(level); 4])
+}
+
+/// Triangles [`skirt_strip_sides`] draws (joins not counted).
+pub fn skirt_triangles_sides(tile_size: u32, sides: [Option<u32>; 4]) -> u32 {
+    sides
+        .iter()
+        .flatten()
+        .map(|&l| 2 * (mask::kept_indices(tile_size, l).len() as u32 - 1))
+        .sum()
 }
 
 #[cfg(test)]

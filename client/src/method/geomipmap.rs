@@ -3,6 +3,11 @@
 //! to its neighbour's level ([`crate::lod::geomipmap`]): crack-free, no budget, no filler.
 //! Tiles are bound block by block with MapBlock textures, as the paper draws them
 //! ([`super::MethodConfig::uses_texture_blocks`]).
+//!
+//! Levels of the pyramid: a tile of a coarser level is one more GeoMipMap, its level errors
+//! raised by its own distance from full resolution. Stitching joins tiles of one level; a
+//! side that borders a tile of another level (a seam, [`crate::lod::levels::seams`]) hangs a
+//! skirt from its edge samples instead, down past the cracks the two edges can leave.
 
 use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
 use crate::lod::geomipmap::{self as levels, Stitch};
@@ -23,9 +28,10 @@ pub struct GeoMipMaps {
     /// Per resident tile, the suffix minima of its levels' errors, computed from its
     /// heights when it arrives.
     error_minima: HashMap<TileId, Vec<f32>>,
-    /// Index sets drawn lately, shared by every tile, with the frame each was last drawn
-    /// in: a set unused for [`super::strip_masks::KEEP_UNUSED_FRAMES`] frames is dropped.
-    index_sets: HashMap<Stitch, (IndexSet, u64)>,
+    /// Index sets drawn lately (a stitch and the sides with a skirt), shared by every tile,
+    /// with the frame each was last drawn in: a set unused for
+    /// [`super::strip_masks::KEEP_UNUSED_FRAMES`] frames is dropped.
+    index_sets: HashMap<(Stitch, [bool; 4]), (IndexSet, u64)>,
     frame: u64,
 }
 
@@ -68,8 +74,11 @@ impl LodMethod for GeoMipMaps {
         let mut chosen = HashMap::with_capacity(ranked.visible.len());
         for (&i, &k) in ranked.visible.iter().zip(&ranked.pixels_per_metre) {
             let tile = &input.tiles[i];
+            // A coarser level of the pyramid is that far from full resolution already.
+            let deviation = tile.error_minima_m.first().copied().unwrap_or(0.0);
             let level = self.error_minima.get(&tile.id).map_or(0, |minima| {
-                needed::coarsest_level_within(minima, k, threshold)
+                let raised: Vec<f32> = minima.iter().map(|e| e + deviation).collect();
+                needed::coarsest_level_within(&raised, k, threshold)
             });
             chosen.insert(tile.id, level);
         }
@@ -90,36 +99,45 @@ impl LodMethod for GeoMipMaps {
         self.index_sets
             .retain(|_, (_, used)| now - *used <= super::strip_masks::KEEP_UNUSED_FRAMES);
         let mut stitches = Vec::with_capacity(ranked.visible.len());
+        let mut extras = Vec::with_capacity(ranked.visible.len());
         for (&i, &importance) in ranked.visible.iter().zip(&ranked.importances) {
-            let id = input.tiles[i].id;
+            let tile = &input.tiles[i];
+            let id = tile.id;
             let level = chosen[&id];
             let near = |dx: i64, dy: i64| {
                 let (x, y) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
                 (x >= 0 && y >= 0)
-                    .then(|| chosen.get(&TileId::new(x as u32, y as u32)).copied())
+                    .then(|| chosen.get(&TileId::at(id.level, x as u32, y as u32)).copied())
                     .flatten()
             };
             let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
-            let (set, used) = self.index_sets.entry(stitch).or_insert_with(|| {
-                let set = IndexSet::new(
-                    &gpu,
-                    &levels::strip(n, stitch),
-                    levels::triangles(n, stitch).len() as u32,
-                );
-                (set, now)
+            let key = (stitch, tile.seams);
+            let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
+                let (indices, triangles) = strip_with_skirts(n, stitch, tile.seams);
+                (IndexSet::new(&gpu, &indices, triangles), now)
             });
             *used = now;
             plan.draws.push(plan::Draw { id, level });
             plan.importances.push(importance);
             plan.triangles += u64::from(set.triangles);
-            stitches.push(stitch);
+            stitches.push(key);
+            // Skirts reach below the tile's lowest point by a tenth of a level-0 tile and
+            // twice its own distance from full resolution: the two edges of a seam lie
+            // within their tiles' errors of the true surface, which is above that point.
+            let depth = super::fillers::filler_depth_m(input.layout.tile_extent_m())
+                + 2.0 * f64::from(tile.error_minima_m.first().copied().unwrap_or(0.0));
+            extras.push(TileExtras {
+                floor_m: (tile.min_m - depth) as f32,
+                ..TileExtras::default()
+            });
         }
         let lod_ms = started.elapsed().as_secs_f64() * 1e3;
 
         let tiles: Vec<(TileId, TileExtras)> = plan
             .draws
             .iter()
-            .map(|d| (d.id, TileExtras::default()))
+            .zip(extras)
+            .map(|(d, extras)| (d.id, extras))
             .collect();
         let slots = frame.prepare_tiles(&tiles);
         let mut stitch_of = vec![None; tiles.len()];
@@ -166,5 +184,45 @@ impl LodMethod for GeoMipMaps {
             cpu: self.masks.bytes(),
             gpu: self.index_sets.values().map(|(set, _)| set.bytes()).sum(),
         }
+    }
+}
+
+/// The index buffer of `stitch` (see [`levels::strip`]) with skirts along the sides marked
+/// in `skirts` (north, east, south, west), each hanging from the samples its side is
+/// stitched at; and the triangles it draws.
+fn strip_with_skirts(n: u32, stitch: Stitch, skirts: [bool; 4]) -> (Vec<u32>, u32) {
+    let mut indices = levels::strip(n, stitch);
+    let mut triangles = levels::triangles(n, stitch).len() as u32;
+    if skirts.contains(&true) {
+        // A side stitched at level j keeps every 2^j-th sample: mask level 2^j - 1.
+        let sides: [Option<u32>; 4] = std::array::from_fn(|k| {
+            skirts[k].then(|| (1u32 << stitch.sides[k]) - 1)
+        });
+        if indices.last() != Some(&levels::RESTART) {
+            indices.push(levels::RESTART);
+        }
+        indices.extend(super::fillers::skirt_strip_sides(n, sides));
+        triangles += super::fillers::skirt_triangles_sides(n, sides);
+    }
+    (indices, triangles)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_seam_adds_a_skirt_along_its_side_only() {
+        let n = 17;
+        let stitch = Stitch::new(2, [Some(2), Some(1), None, Some(2)]);
+        let (plain, bare) = strip_with_skirts(n, stitch, [false; 4]);
+        assert_eq!(plain, levels::strip(n, stitch));
+        let (skirted, with) = strip_with_skirts(n, stitch, [false, true, false, false]);
+        // The east side is stitched at level 1 (every other sample): 8 cells, 16 triangles.
+        assert_eq!(with - bare, 16);
+        let feet: Vec<u32> = skirted.iter().copied().filter(|&i| i != levels::RESTART && i >= n * n).collect();
+        assert!(!feet.is_empty());
+        // Every foot hangs under a sample of the east column.
+        assert!(feet.iter().all(|&f| (f - n * n) % n == n - 1), "{feet:?}");
     }
 }

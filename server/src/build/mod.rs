@@ -497,6 +497,7 @@ pub fn build(
     let mut levels: Vec<Level> = Vec::with_capacity(rasters.len());
     let mut heights_bytes = 0u64;
     let mut texture_bytes = 0u64;
+    let mut texture_level_bytes = vec![0u64; texture_levels as usize];
     let mut tile_samples = 0u64;
     // The level being cut, its codes, and what its tiles hand to their parents.
     // Codes of the level being cut (above level 0) and of the one before it (above level 1).
@@ -620,8 +621,12 @@ pub fn build(
                 let made = result?;
                 let stored = writer.add_heights(&made.blob)?;
                 heights_bytes += made.heights_bytes;
-                for level in &made.texture_levels {
-                    texture_bytes += writer.add_texture(level)?.bytes;
+                for (l, level) in made.texture_levels.iter().enumerate() {
+                    let bytes = writer.add_texture(level)?.bytes;
+                    texture_bytes += bytes;
+                    if let Some(total) = texture_level_bytes.get_mut(l) {
+                        *total += bytes;
+                    }
                 }
                 records.push(TileRecord {
                     hash: stored.hash,
@@ -680,6 +685,7 @@ pub fn build(
             },
             size: texture_size,
             levels: texture_levels,
+            level_bytes: texture_level_bytes,
         },
         georeference,
         mask_levels: mask::level_count(n),
