@@ -434,10 +434,10 @@ pub fn square_tiles(
 
 /// How the memory limit is shared between the levels of a pyramid, each of which runs
 /// [`decide`] on its own grid within its share: `whole[k]` is what level `k` holds with
-/// every tile resident (level 0 first). Coarsest first, each level gets an equal part of
-/// what the coarser levels left, but no more than its whole grid needs; what it does not
-/// need goes to the finer levels. So the coarsest level (one tile) is whole before any
-/// other gets a byte, and there is always something to draw.
+/// every tile resident (level 0 first). The coarsest level (one tile) gets what it needs
+/// whole before any other gets a byte, so there is always something to draw; then, coarse
+/// to fine, each level gets an equal part of what the coarser levels left, but no more than
+/// its whole grid needs; what it does not need goes to the finer levels.
 ///
 /// Equal parts: seen in perspective, a tile at distance `d` needs samples about `d` apart,
 /// so level `k` serves the ring from `2^k` to `2^(k+1)` units of distance, whose area is
@@ -448,7 +448,12 @@ pub fn level_shares(limit: u64, whole: &[u64]) -> Vec<u64> {
     let mut shares = vec![0; whole.len()];
     let mut left = limit;
     for (k, need) in whole.iter().enumerate().rev() {
-        let share = (left / (k as u64 + 1)).min(*need);
+        let part = if k + 1 == whole.len() {
+            left
+        } else {
+            left / (k as u64 + 1)
+        };
+        let share = part.min(*need);
         shares[k] = share;
         left -= share;
     }
@@ -1671,5 +1676,99 @@ mod tests {
                     "[jump] the new current tile is not requested at once");
             }
         }
+
+        /// [levels] A pyramid of levels pages as nested squares: each level runs Algorithm 1
+        /// on its own grid within its share of the limit ([`level_shares`]), around the tile
+        /// of that level under the viewpoint; every frame of a random walk keeps every
+        /// level's promises ([`World::check`]: a level's resident bytes stay within its share
+        /// but for a lone current tile), so the levels together stay within the limit but
+        /// for one tile a level; and a still viewpoint then brings each level to rest with at
+        /// least the largest square that fits its share.
+        #[test]
+        fn every_level_of_a_pyramid_pages_its_own_square_within_its_share(
+            width in 2u32..=260, height in 2u32..=260, power in 2u32..=4,
+            seed in any::<u64>(), limit_permille in 0u64..=1200,
+            walk in proptest::collection::vec(moves(), 1..40),
+        ) {
+            let tile_size = (1u32 << power) + 1;
+            let rasters = terrain_shared::manifest::level_rasters(
+                terrain_shared::manifest::RasterSize { width, height },
+                tile_size,
+            );
+            let mut random = Random(seed);
+            let grids: Vec<_> = rasters
+                .iter()
+                .map(|r| terrain_shared::manifest::grid_covering(*r, tile_size))
+                .collect();
+            let sizes: Vec<Vec<u64>> = grids
+                .iter()
+                .map(|g| (0..g.columns * g.rows).map(|_| 1 + random.below(1000)).collect())
+                .collect();
+            let whole: Vec<u64> = sizes.iter().map(|s| s.iter().sum()).collect();
+            let limit = whole.iter().sum::<u64>() * limit_permille / 1000;
+            let shares = level_shares(limit, &whole);
+            prop_assert!(shares.iter().sum::<u64>() <= limit, "[levels] shares {:?} exceed {}", shares, limit);
+            let mut worlds: Vec<World> = grids
+                .iter()
+                .zip(&shares)
+                .zip(sizes)
+                .map(|((g, &share), sizes)| {
+                    let mut world = World::new(PagerConfig::new(g.columns, g.rows, share), sizes);
+                    world.predict = true;
+                    world
+                })
+                .collect();
+            // The viewpoint in level-0 tiles; level k's tiles are 2^k times larger.
+            let (w, h) = (f64::from(grids[0].columns), f64::from(grids[0].rows));
+            let mut viewpoint = [w / 2.0, h / 2.0];
+            let at = |v: [f64; 2], k: usize| [v[0] / f64::from(1u32 << k), v[1] / f64::from(1u32 << k)];
+            let mut frame_all = |worlds: &mut Vec<World>, v: [f64; 2], random: &mut Random| {
+                for (k, world) in worlds.iter_mut().enumerate() {
+                    world.frame(at(v, k), &mut || random.below(MAX_DELAY + 1) as u32);
+                }
+                let lone: u64 = worlds.iter().map(|w| w.sizes.iter().max().copied().unwrap_or(0)).sum();
+                let used: u64 = worlds.iter().map(World::used).sum();
+                assert!(used <= limit + lone, "[levels] {used} bytes resident, limit {limit}");
+            };
+            for step in walk {
+                let frames = match step {
+                    Move::Stay(frames) => frames,
+                    Move::Step(dx, dy) => {
+                        viewpoint = [(viewpoint[0] + dx).clamp(-8.0, w + 8.0), (viewpoint[1] + dy).clamp(-8.0, h + 8.0)];
+                        1
+                    }
+                    Move::Jump(fx, fy) => {
+                        viewpoint = [fx * w, fy * h];
+                        1
+                    }
+                };
+                for _ in 0..frames {
+                    frame_all(&mut worlds, viewpoint, &mut random);
+                }
+            }
+            for (k, world) in worlds.iter_mut().enumerate() {
+                let limit = settle_limit(&world.config);
+                world.settle(at(viewpoint, k), &mut || random.below(MAX_DELAY + 1) as u32, limit);
+                let centre = viewpoint_tile(&world.config, at(viewpoint, k));
+                let complete = complete_rings(&world.config, centre, &world.resident);
+                let fits = largest_square_that_fits(&world.config, &world.sizes, centre);
+                prop_assert!(complete >= fits.max(1).min(rings(&world.config, centre)),
+                    "[levels] level {}: {} rings complete, {} fit its share", k, complete, fits);
+            }
+        }
+    }
+
+    #[test]
+    fn levels_share_the_limit_coarsest_first_in_equal_parts_and_pass_on_what_they_do_not_need() {
+        // Three levels: the coarsest needs 10, the middle 500, level 0 5000.
+        assert_eq!(level_shares(3000, &[5000, 500, 10]), vec![2490, 500, 10]);
+        assert_eq!(level_shares(1000, &[5000, 500, 10]), vec![495, 495, 10]);
+        // The coarsest whole before any other gets a byte.
+        assert_eq!(level_shares(10, &[5000, 500, 10]), vec![0, 0, 10]);
+        assert_eq!(level_shares(9, &[5000, 500, 10]), vec![0, 0, 9]);
+        // Enough for everything: each level its whole, the rest unused.
+        assert_eq!(level_shares(1 << 20, &[5000, 500, 10]), vec![5000, 500, 10]);
+        // One level: all of it.
+        assert_eq!(level_shares(123, &[1000]), vec![123]);
     }
 }
