@@ -43,6 +43,11 @@ enum BenchCommand {
     /// memory below one belt, 100 triangles, jumps, special datasets) with every method and
     /// filler; writes stability.md, stability.csv and pictures.
     Stability(terrain_client::eval::stability::StabilityArgs),
+    /// The default flight under a memory limit paged as a pyramid of levels (each policy
+    /// of sharing the limit) and as level 0 alone: downloaded bytes, and sampled frames'
+    /// coverage and screen-space error against the whole database at full resolution;
+    /// writes levels.md, levels.csv and levels.png.
+    Levels(terrain_client::eval::levels::LevelsArgs),
 }
 
 fn main() -> ExitCode {
@@ -81,6 +86,12 @@ fn main() -> ExitCode {
         }
         Command::Bench(BenchCommand::Stability(args)) => in_runtime(async move {
             terrain_client::eval::stability::run(&args)
+                .await
+                .map(|report| report.to_string())
+                .map_err(anyhow::Error::from)
+        }),
+        Command::Bench(BenchCommand::Levels(args)) => in_runtime(async move {
+            terrain_client::eval::levels::run(&args)
                 .await
                 .map(|report| report.to_string())
                 .map_err(anyhow::Error::from)

@@ -445,7 +445,38 @@ pub fn square_tiles(
 /// number of tiles for its ring, as in geometry clipmaps, where every level is a square of
 /// the same size.
 pub fn level_shares(limit: u64, whole: &[u64]) -> Vec<u64> {
+    shares_by(LevelPolicy::Equal, limit, whole)
+}
+
+/// How the levels of a pyramid share the memory limit (the default, [`LevelPolicy::Equal`],
+/// is [`level_shares`]; `bench levels` measures both).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum LevelPolicy {
+    /// The coarsest level whole, then equal parts coarse to fine ([`level_shares`]).
+    #[default]
+    Equal,
+    /// The coarsest level whole, then level 0 all it can hold, then level 1, and so on:
+    /// the largest full-resolution square, coarser levels only with what is left.
+    FinestFirst,
+}
+
+/// The shares of the levels under `policy` (see [`level_shares`] for `whole`).
+pub fn shares_by(policy: LevelPolicy, limit: u64, whole: &[u64]) -> Vec<u64> {
     let mut shares = vec![0; whole.len()];
+    if policy == LevelPolicy::FinestFirst {
+        let Some((coarsest, finer)) = whole.split_last() else {
+            return shares;
+        };
+        let mut left = limit;
+        let top = finer.len();
+        shares[top] = (*coarsest).min(left);
+        left -= shares[top];
+        for (k, need) in finer.iter().enumerate() {
+            shares[k] = (*need).min(left);
+            left -= shares[k];
+        }
+        return shares;
+    }
     let mut left = limit;
     for (k, need) in whole.iter().enumerate().rev() {
         let part = if k + 1 == whole.len() {
@@ -1770,5 +1801,10 @@ mod tests {
         assert_eq!(level_shares(1 << 20, &[5000, 500, 10]), vec![5000, 500, 10]);
         // One level: all of it.
         assert_eq!(level_shares(123, &[1000]), vec![123]);
+        // Finest first: the coarsest whole, then level 0 before level 1.
+        let finest = |limit| shares_by(LevelPolicy::FinestFirst, limit, &[5000, 500, 10]);
+        assert_eq!(finest(3000), vec![2990, 0, 10]);
+        assert_eq!(finest(5600), vec![5000, 500, 10]);
+        assert_eq!(finest(5300), vec![5000, 290, 10]);
     }
 }

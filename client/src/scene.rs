@@ -258,6 +258,8 @@ pub struct Scene {
     /// Levels paged and drawn: 1 is level 0 alone (the strip-mask paper's single
     /// resolution), the manifest's level count the whole pyramid.
     levels_used: u32,
+    /// How the levels share the limit.
+    level_policy: page::LevelPolicy,
     /// Per tile of every level (the manifest's dense order), as below.
     tiles: Vec<Option<ResidentTile>>,
     /// Bytes per tile at the coarsest texture (what the pager sees).
@@ -358,6 +360,7 @@ impl Scene {
             layout,
             pager,
             levels_used: manifest.level_count(),
+            level_policy: page::LevelPolicy::default(),
             tiles: vec![None; count],
             base_bytes: vec![0; count],
             in_flight: vec![false; count],
@@ -452,6 +455,11 @@ impl Scene {
         for id in coarser {
             self.drop_tile(id);
         }
+    }
+
+    /// Shares the limit between the levels by `policy` from the next update on.
+    pub fn set_level_policy(&mut self, policy: page::LevelPolicy) {
+        self.level_policy = policy;
     }
 
     /// Levels paged and drawn (see [`Scene::use_levels`]).
@@ -763,7 +771,7 @@ impl Scene {
             .iter()
             .map(|r| self.expected_bytes[r.clone()].iter().sum())
             .collect();
-        let shares = page::level_shares(limit, &whole);
+        let shares = page::shares_by(self.level_policy, limit, &whole);
         let now = Instant::now();
         self.in_square.fill(false);
         let mut levels = Vec::with_capacity(ranges.len());

@@ -4,6 +4,7 @@
 
 pub mod accuracy;
 pub mod frame;
+pub mod levels;
 pub mod metrics;
 pub mod session;
 pub mod stability;
