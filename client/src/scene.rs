@@ -581,6 +581,11 @@ impl Scene {
         }
     }
 
+    /// Whether tile `id` (of any level) is resident.
+    pub fn is_resident(&self, id: TileId) -> bool {
+        self.tiles.get(self.index(id)).is_some_and(Option::is_some)
+    }
+
     pub fn resident_tiles(&self) -> u64 {
         self.tiles.iter().filter(|t| t.is_some()).count() as u64
     }
