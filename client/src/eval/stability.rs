@@ -108,7 +108,8 @@ pub enum Kind {
     FlatSea,
     /// High over the terrain (this many metres above its highest sample), looking north
     /// this many degrees down, with [`ALTITUDE_MEMORY`]: what only a pyramid of levels
-    /// draws whole. Measured against the whole database at full resolution.
+    /// draws whole. Measured against the whole database at full resolution. Run on
+    /// himalaya_4097 (`--data himalaya_4097=URL`; any database given under that name).
     Altitude { above_m: f64, pitch_deg: f64 },
 }
 
@@ -183,7 +184,7 @@ pub const SCENARIOS: &[Scenario] = &[
     },
     Scenario {
         name: "altitude-30km-20deg",
-        dataset: None,
+        dataset: Some("himalaya_4097"),
         what: "30 km above the highest point, 20 degrees down, 16 MiB",
         kind: Kind::Altitude {
             above_m: 30_000.0,
@@ -192,7 +193,7 @@ pub const SCENARIOS: &[Scenario] = &[
     },
     Scenario {
         name: "altitude-30km-45deg",
-        dataset: None,
+        dataset: Some("himalaya_4097"),
         what: "30 km above the highest point, 45 degrees down, 16 MiB",
         kind: Kind::Altitude {
             above_m: 30_000.0,
@@ -201,7 +202,7 @@ pub const SCENARIOS: &[Scenario] = &[
     },
     Scenario {
         name: "altitude-100km-20deg",
-        dataset: None,
+        dataset: Some("himalaya_4097"),
         what: "100 km above the highest point, 20 degrees down, 16 MiB",
         kind: Kind::Altitude {
             above_m: 100_000.0,
@@ -210,7 +211,7 @@ pub const SCENARIOS: &[Scenario] = &[
     },
     Scenario {
         name: "altitude-100km-45deg",
-        dataset: None,
+        dataset: Some("himalaya_4097"),
         what: "100 km above the highest point, 45 degrees down, 16 MiB",
         kind: Kind::Altitude {
             above_m: 100_000.0,
@@ -219,7 +220,7 @@ pub const SCENARIOS: &[Scenario] = &[
     },
     Scenario {
         name: "altitude-3km-horizon",
-        dataset: None,
+        dataset: Some("himalaya_4097"),
         what: "3 km above the highest point, looking at the horizon, 16 MiB",
         kind: Kind::Altitude {
             above_m: 3_000.0,
