@@ -189,15 +189,7 @@ impl Session {
             },
             _ => config,
         };
-        let unfilled = if config.method.uses_filler() && config.filler != CrackFiller::None {
-            let bare = RenderConfig {
-                filler: CrackFiller::None,
-                ..config
-            };
-            Some(self.capture(camera, bare)?.0.depth)
-        } else {
-            None
-        };
+        let unfilled = self.unfilled_depth(camera, config)?;
         self.reconfigure(config);
         let mut times = Vec::new();
         let mut gpu_times = Vec::new();
@@ -228,6 +220,23 @@ impl Session {
         })
     }
 
+    /// With a crack filler, the depth of `camera`'s frame drawn without it (where the two
+    /// depths differ, the filler shows); `None` for a configuration without a filler.
+    fn unfilled_depth(
+        &mut self,
+        camera: &Camera,
+        config: RenderConfig,
+    ) -> Result<Option<Vec<f32>>, FlightError> {
+        if !config.method.uses_filler() || config.filler == CrackFiller::None {
+            return Ok(None);
+        }
+        let bare = RenderConfig {
+            filler: CrackFiller::None,
+            ..config
+        };
+        Ok(Some(self.capture(camera, bare)?.0.depth))
+    }
+
     /// Draws `camera`'s frame with `config` once and measures it against `reference`, a
     /// frame drawn by another session, with `truth`'s resident samples as the true surface
     /// (a scene holding the whole database; this one may hold too little of level 0 to
@@ -240,15 +249,7 @@ impl Session {
         truth: &Scene,
         threshold_px: f64,
     ) -> Result<Measured, FlightError> {
-        let unfilled = if config.method.uses_filler() && config.filler != CrackFiller::None {
-            let bare = RenderConfig {
-                filler: CrackFiller::None,
-                ..config
-            };
-            Some(self.capture(camera, bare)?.0.depth)
-        } else {
-            None
-        };
+        let unfilled = self.unfilled_depth(camera, config)?;
         let (capture, report) = self.capture(camera, config)?;
         let measures = measure(
             &capture,
