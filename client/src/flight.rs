@@ -53,6 +53,13 @@ pub struct StreamArgs {
     /// HTTP requests at once.
     #[arg(long, default_value_t = crate::fetcher::DEFAULT_CONCURRENCY)]
     pub concurrency: usize,
+    /// Page and draw level 0 of the pyramid alone: the single-resolution client of the
+    /// strip-mask paper (what a database of one level gives anyway).
+    #[arg(long)]
+    pub single_level: bool,
+    /// How the levels of the pyramid share the memory limit.
+    #[arg(long, value_enum, default_value_t = crate::page::LevelPolicy::Equal)]
+    pub level_policy: crate::page::LevelPolicy,
 }
 
 impl StreamArgs {
@@ -63,7 +70,16 @@ impl StreamArgs {
             memory,
             limit_percent: crate::memory::DEFAULT_LIMIT_PERCENT,
             concurrency: crate::fetcher::DEFAULT_CONCURRENCY,
+            single_level: false,
+            level_policy: crate::page::LevelPolicy::Equal,
         }
+    }
+
+    /// Pages `scene` as these options say: every level or level 0 alone, and the policy
+    /// that shares the limit between levels.
+    pub fn configure(&self, scene: &mut Scene) {
+        scene.use_levels(!self.single_level);
+        scene.set_level_policy(self.level_policy);
     }
 
     /// The memory budget, once the options are checked.
@@ -645,6 +661,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         !args.no_nearest_when_outside,
         scene_render(),
     );
+    args.stream.configure(&mut scene);
     let mut fetcher = connection.fetcher;
     let limit_below_one_tile = scene
         .largest_tile()
@@ -697,6 +714,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                                 nearest_when_outside: !args.no_nearest_when_outside,
                             };
                             scene = Scene::new(manifest, pager, scene_render());
+                            args.stream.configure(&mut scene);
                         }
                         content_changes.push(change);
                         match scene.update(&mut fetcher, frame, position) {

@@ -434,6 +434,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
         manifest,
         connection,
         memory_limit: budget.limit_bytes(),
+        stream: args.stream.clone(),
         render_config,
         window_size: args.render.size,
         print_stats: args.print_stats,
@@ -473,6 +474,7 @@ impl View {
         event_loop: &ActiveEventLoop,
         connection: &Connection,
         memory_limit: u64,
+        stream: &crate::flight::StreamArgs,
         render: RenderConfig,
         size: (u32, u32),
     ) -> Result<View, ViewError> {
@@ -522,7 +524,9 @@ impl View {
             height = config.height,
             "window open"
         );
-        let scene = connection.scene(memory_limit, true, Some((gpu.clone(), view_format, render)));
+        let mut scene =
+            connection.scene(memory_limit, true, Some((gpu.clone(), view_format, render)));
+        stream.configure(&mut scene);
         Ok(View {
             window,
             surface,
@@ -599,6 +603,8 @@ struct App {
     /// The manifest and the fetcher streaming its tiles.
     connection: Connection,
     memory_limit: u64,
+    /// How the scene pages the levels (`--single-level`, `--level-policy`).
+    stream: crate::flight::StreamArgs,
     render_config: RenderConfig,
     window_size: (u32, u32),
     print_stats: bool,
@@ -718,6 +724,7 @@ impl ApplicationHandler for App {
             event_loop,
             &self.connection,
             self.memory_limit,
+            &self.stream,
             self.render_config,
             self.window_size,
         ) {
