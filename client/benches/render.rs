@@ -99,6 +99,8 @@ fn main() {
                 roughness_m: f64::from(hi - lo) / 100.0,
                 // Synthetic tiles have no measured mask errors: no error cap applies.
                 error_minima_m: &[],
+                // One grid, one level: no side borders a tile of another level.
+                seams: [false; 4],
             });
         }
     }

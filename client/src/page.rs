@@ -1753,7 +1753,7 @@ mod tests {
             let (w, h) = (f64::from(grids[0].columns), f64::from(grids[0].rows));
             let mut viewpoint = [w / 2.0, h / 2.0];
             let at = |v: [f64; 2], k: usize| [v[0] / f64::from(1u32 << k), v[1] / f64::from(1u32 << k)];
-            let mut frame_all = |worlds: &mut Vec<World>, v: [f64; 2], random: &mut Random| {
+            let frame_all = |worlds: &mut Vec<World>, v: [f64; 2], random: &mut Random| {
                 for (k, world) in worlds.iter_mut().enumerate() {
                     world.frame(at(v, k), &mut || random.below(MAX_DELAY + 1) as u32);
                 }

@@ -8,7 +8,7 @@
 
 use std::path::Path;
 use terrain_server::build::input::{self, Format, OutOfRange, ReadOptions};
-use terrain_shared::{Heights, Manifest, TileId, mask};
+use terrain_shared::{Blob, Heights, Manifest, TileBlob, TileId, mask};
 
 /// Bytes of the heights header (see `terrain_shared::heights`); the payload follows it.
 const HEIGHTS_HEADER: usize = 44;
@@ -16,9 +16,30 @@ const HEIGHTS_HEADER: usize = 44;
 /// `Heights::decode`, twice: on the input as it is, and with its payload length and
 /// checksum made right, so that the checks and the decoding behind the checksum are reached
 /// (random bytes almost never carry a valid CRC-32). A tile that decodes must survive an
-/// encode and decode unchanged.
+/// encode and decode unchanged. The input also goes through `TileBlob::decode` (what the
+/// heights route serves wraps the heights in a tile blob), as it is and wrapped in a tile
+/// blob, which must give the heights back.
 pub fn heights_decode(data: &[u8]) {
     let _ = Heights::decode(data);
+    if let Ok(blob) = TileBlob::decode(data) {
+        assert_eq!(
+            TileBlob::decode(&blob.encode()),
+            Ok(blob),
+            "a tile blob round trips"
+        );
+    }
+    let wrapped = TileBlob {
+        mask_errors_m: vec![0.0, 0.5],
+        texture: vec![Blob::of(b"coarsest")],
+        heights: data.to_vec(),
+    }
+    .encode();
+    let head = TileBlob::head(&wrapped).expect("a tile blob made here splits");
+    assert_eq!(
+        &wrapped[head.heights_at..],
+        data,
+        "the heights come back whole"
+    );
     if data.len() < HEIGHTS_HEADER {
         return;
     }
@@ -45,12 +66,38 @@ pub fn manifest_parse(data: &[u8]) {
         return;
     };
     let n = manifest.tile_size;
-    for record in &manifest.tiles {
-        let id = record.id();
-        assert!(manifest.tile(id).is_some(), "tile {id} is in its own grid");
+    for (dense, (id, record)) in manifest.tiles().enumerate() {
+        assert_eq!(
+            manifest.index(id),
+            Some(dense),
+            "tile {id} is where the order says"
+        );
+        assert_eq!(manifest.id_at(dense), id);
+        assert!(
+            manifest.tile(id).is_some_and(|r| std::ptr::eq(r, record)),
+            "tile {id} is in its own grid"
+        );
+        let valid = manifest.valid(id);
+        assert!(
+            (1..=n).contains(&valid[0]) && (1..=n).contains(&valid[1]),
+            "tile {id} has {valid:?} real samples"
+        );
+        for child in manifest.children(id) {
+            assert_eq!(child.parent(), id, "tile {id} covers its children");
+        }
         let _ = manifest.sample_position_m(id, n - 1, n - 1);
     }
-    let _ = manifest.tile(TileId::new(manifest.grid.columns, manifest.grid.rows));
+    assert_eq!(manifest.tiles().count(), manifest.tile_count());
+    for level in 0..manifest.level_count() {
+        let grid = manifest.grid(level);
+        let _ = manifest.tile(TileId::at(level, grid.columns, grid.rows));
+        let _ = manifest.tile(TileId::at(level, u32::MAX, u32::MAX));
+    }
+    assert!(
+        manifest
+            .tile(TileId::at(manifest.level_count(), 0, 0))
+            .is_none()
+    );
     for level in 0..manifest.texture.levels.min(64) {
         let _ = manifest.texture.level_size(level);
     }

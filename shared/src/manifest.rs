@@ -616,6 +616,7 @@ mod tests {
             source: TextureSource::Generated,
             size: 128,
             levels: 40,
+            level_bytes: Vec::new(),
         };
         let sizes: Vec<u32> = [0, 7, 31, 32, 38, 39].map(|l| texture.level_size(l)).into();
         assert_eq!(sizes, [0, 0, 0, 1, 64, 128]);

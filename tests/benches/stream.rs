@@ -5,14 +5,15 @@
 //! cargo bench -p terrain-tests --bench stream -- [DATABASE_DIR]
 //! ```
 //!
-//! Without an argument it builds himalaya_4097 (1024 tiles, about a second on the link)
-//! from `$TERRAIN_DATA_DIR`. A real server on
+//! Without an argument it builds himalaya_4097 (1365 tiles over six levels, 1024 of them at
+//! level 0; a second or two on the link) from `$TERRAIN_DATA_DIR`. A real server on
 //! 127.0.0.1 serves the database through a shaping proxy (`terrain_tests::proxy`, a token
 //! bucket shared by all connections, no burst) limited to 100 Mbit/s; the client's
-//! [`Fetcher`] (4, 8 and 16 requests at once, a run each) fetches every tile as a flight would (heights and the
-//! coarsest texture level). The baseline, measured in the same run through an identical
-//! link, is one bulk download of a 24 MiB body: what the link delivers to a single
-//! transfer that never waits on a round trip.
+//! [`Fetcher`] (4, 8 and 16 requests at once, a run each) fetches every tile of every level
+//! as a flight would (the tile blob and the coarsest texture level), coarsest level first.
+//! The baseline, measured in the same run through an identical link, is one bulk download
+//! of a 24 MiB body: what the link delivers to a single transfer that never waits on a
+//! round trip.
 
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
@@ -20,6 +21,7 @@ use std::time::{Duration, Instant};
 use terrain_client::fetch::TileClient;
 use terrain_client::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
 use terrain_server::build::{BuildOptions, build};
+use terrain_shared::TileBlob;
 use terrain_tests::proxy::{FaultPlan, FaultyProxy};
 use terrain_tests::server::TestServer;
 use terrain_tests::synthetic::{LARGE_TEXTURE, SyntheticDb};
@@ -71,9 +73,12 @@ fn main() {
     let bulk_rate = runtime.block_on(async {
         let client = TileClient::new(bulk_proxy.base_url()).expect("client");
         let manifest = client.manifest().await.expect("manifest");
+        // Its hash, from its tile blob (as written): the body is verified as a tile's is.
+        let (id, level) = LARGE_TEXTURE;
+        let blob = TileBlob::decode(synthetic.heights(id)).expect("a tile blob");
         let started = Instant::now();
         let body = client
-            .texture(&manifest, LARGE_TEXTURE.0, LARGE_TEXTURE.1)
+            .texture(&manifest, id, level, Some(&blob.texture[level as usize]))
             .await
             .expect("bulk body");
         body.len() as f64 / started.elapsed().as_secs_f64()
@@ -107,11 +112,15 @@ fn main() {
                 tokio::runtime::Handle::current(),
             );
             let started = Instant::now();
-            for (rank, tile) in manifest.tiles.iter().enumerate() {
-                fetcher.request(tile.id(), Want::Tile, rank as u64);
+            // Coarsest level first, as a flight's first frame asks (it covers the most
+            // screen), then row-major within a level.
+            let mut ids: Vec<_> = manifest.tiles().map(|(id, _)| id).collect();
+            ids.sort_by_key(|id| std::cmp::Reverse(id.level));
+            for (rank, id) in ids.into_iter().enumerate() {
+                fetcher.request(id, Want::Tile, rank as u64);
             }
             let mut delivered = 0;
-            while delivered < manifest.tiles.len() {
+            while delivered < manifest.tile_count() {
                 for event in fetcher.poll() {
                     match event {
                         FetchEvent::Tile { .. } => delivered += 1,

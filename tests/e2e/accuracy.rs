@@ -492,10 +492,12 @@ fn the_bench_commands_refuse_bad_options_and_unreachable_servers_with_a_reason()
 
 /// A session holding the whole jacksboro database served by `server`, drawn with `config` at
 /// 480x270, loaded and settled; with `along` cameras along the default flight (25 degrees
-/// down) followed by `extra`.
+/// down) followed by `extra`. `levels`: the whole pyramid, or level 0 alone (the
+/// single-resolution terrain the methods were made for).
 async fn whole_jacksboro(
     server: &TestServer,
     config: terrain_client::scene::RenderConfig,
+    levels: bool,
     along: u32,
     extra: &[Camera],
 ) -> (terrain_client::eval::session::Session, Vec<Camera>) {
@@ -503,6 +505,7 @@ async fn whole_jacksboro(
         terrain_client::eval::session::Session::open(server.base_url(), None, config, (480, 270))
             .await
             .expect("session");
+    session.scene.use_levels(levels);
     let path = terrain_client::path::CameraPath::default_for(&session.manifest);
     let mut cameras = accuracy::cameras_along(&path, along, -25.0);
     cameras.extend_from_slice(extra);
@@ -528,9 +531,11 @@ fn geomipmaps_draw_jacksboro_without_a_crack_and_within_the_error_threshold() {
     let db = build_jacksboro(tmp.path());
     let server = TestServer::start(&db.out);
     runtime().block_on(async {
+        // GeoMipMaps' own levels over level 0 alone: their stitching is under test.
         let (mut session, cameras) = whole_jacksboro(
             &server,
             RenderConfig::default(),
+            false,
             4,
             &[
                 Camera::looking_at([15000.0, 33000.0, 1500.0], [15000.0, 12000.0, 500.0]),
@@ -614,9 +619,12 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
             texture_blocks: false,
             ..config(None)
         };
+        // MapBlocks gather level-0 tiles (a coarser tile draws with its own texture): level
+        // 0 alone, so that every drawn tile is in a block.
         let (mut session, cameras) = whole_jacksboro(
             &server,
             config(None),
+            false,
             2,
             &[Camera::looking_at(
                 [6000.0, 6000.0, 2600.0],
@@ -625,7 +633,7 @@ fn geomipmaps_with_the_texture_cut_into_map_blocks_render_as_with_one_texture() 
         )
         .await;
         let manifest = Arc::clone(&session.manifest);
-        let grid = [manifest.grid.columns, manifest.grid.rows];
+        let grid = [manifest.grid(0).columns, manifest.grid(0).rows];
         let finest = manifest.texture.size;
         // The adapter takes the whole terrain's texture as one: one block, bound once.
         let adapter_limit = session.gpu.device.limits().max_texture_dimension_2d;

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use terrain_server::build::{BuildError, BuildOptions, BuildReport, BuildWarning, build};
 use terrain_server::db::{DbError, TileDb, Verify, WriteError};
 use terrain_shared::manifest::TextureSource;
-use terrain_shared::{Heights, Manifest, TileId};
+use terrain_shared::{Blob, Heights, Manifest, TileBlob, TileId};
 use terrain_tests::data::{geotiff_i16, jacksboro, kit_file, png_codes, workspace_binary};
 
 fn build_into(heights: &Path, dir: &Path, adjust: impl FnOnce(&mut BuildOptions)) -> BuildReport {
@@ -16,47 +16,119 @@ fn build_into(heights: &Path, dir: &Path, adjust: impl FnOnce(&mut BuildOptions)
         .unwrap_or_else(|e| panic!("{}: {e}", heights.display()))
 }
 
-/// Decodes every tile of an opened database, row-major.
-fn decoded_tiles(db: &TileDb) -> Vec<(TileId, Heights)> {
+/// One tile of an opened database, decoded: its tile blob and the heights in it.
+struct Decoded {
+    id: TileId,
+    blob: TileBlob,
+    heights: Heights,
+}
+
+/// Decodes every tile of every level of an opened database, in manifest order (level 0
+/// first, row-major within a level).
+fn decoded_tiles(db: &TileDb) -> Vec<Decoded> {
     db.manifest()
-        .tiles
-        .iter()
-        .map(|t| {
-            let blob = db.heights(t.id()).expect("tile in grid");
-            (
-                t.id(),
-                Heights::decode(&blob.bytes).unwrap_or_else(|e| panic!("tile {}: {e}", t.id())),
-            )
+        .tiles()
+        .map(|(id, _)| {
+            let stored = db.heights(id).expect("tile in grid");
+            let blob = TileBlob::decode(&stored.bytes).unwrap_or_else(|e| panic!("tile {id}: {e}"));
+            let heights =
+                Heights::decode(&blob.heights).unwrap_or_else(|e| panic!("tile {id}: {e}"));
+            Decoded { id, blob, heights }
         })
         .collect()
 }
 
-/// Every sample of every tile equals `source` at its raster position; padding repeats the
-/// nearest edge sample. Returns the number of real samples compared.
+/// The level-0 raster position of sample `(x, y)` of tile `id`: a tile of level `k` keeps
+/// every `2^k`-th sample of level 0, and samples past its level's raster (padding) repeat
+/// the last real one, as do samples past level 0's.
+fn source_position(m: &Manifest, id: TileId, x: u32, y: u32) -> (u32, u32) {
+    let n = m.tile_size;
+    let raster = m.levels[id.level as usize].raster;
+    let lx = (id.x * (n - 1) + x).min(raster.width - 1);
+    let ly = (id.y * (n - 1) + y).min(raster.height - 1);
+    (
+        (lx << id.level).min(m.raster.width - 1),
+        (ly << id.level).min(m.raster.height - 1),
+    )
+}
+
+/// Every sample of every tile of every level equals `source` at its raster position;
+/// padding repeats the nearest edge sample. Returns the number of real level-0 samples
+/// compared.
 fn check_tiles_equal_source(db: &TileDb, source: impl Fn(u32, u32) -> i32) -> usize {
     let m: &Manifest = db.manifest();
     let n = m.tile_size;
     let mut compared = 0;
-    for (id, tile) in decoded_tiles(db) {
-        assert_eq!((tile.width, tile.height), (n as u16, n as u16));
+    let tiles = decoded_tiles(db);
+    assert_eq!(tiles.len(), m.tile_count());
+    for Decoded { id, heights, .. } in tiles {
+        assert_eq!((heights.width, heights.height), (n as u16, n as u16));
+        let valid = m.valid(id);
         for y in 0..n {
             for x in 0..n {
-                let sx = (id.x * (n - 1) + x).min(m.raster.width - 1);
-                let sy = (id.y * (n - 1) + y).min(m.raster.height - 1);
-                let got = tile.codes[(y * n + x) as usize];
+                let (sx, sy) = source_position(m, id, x, y);
+                let got = heights.codes[(y * n + x) as usize];
                 assert_eq!(
                     got,
                     source(sx, sy),
                     "tile {id} sample ({x}, {y}) = raster ({sx}, {sy})"
                 );
-                let record = m.tile(id).expect("record");
-                if x < record.valid[0] && y < record.valid[1] {
+                if id.level == 0 && x < valid[0] && y < valid[1] {
                     compared += 1;
                 }
             }
         }
     }
     compared
+}
+
+/// The largest distance, metres, between tile `id`'s surface and the level-0 samples that
+/// lie on the sides of its cells (where its surface is the straight line between two of its
+/// samples, whichever way the cells are split): a floor under its distance from the
+/// full-resolution surface. `source` gives level-0 heights in metres.
+fn deviation_along_cell_sides(m: &Manifest, id: TileId, source: impl Fn(u32, u32) -> f64) -> f64 {
+    let n = m.tile_size;
+    let step = 1u32 << id.level;
+    let raster = m.levels[id.level as usize].raster;
+    let level0 = |lx: u32, ly: u32| (lx * step, ly * step);
+    let inside = |(x, y): (u32, u32)| x < m.raster.width && y < m.raster.height;
+    let mut worst = 0.0f64;
+    for j in 0..n {
+        for i in 0..n {
+            let (lx, ly) = (id.x * (n - 1) + i, id.y * (n - 1) + j);
+            if lx >= raster.width || ly >= raster.height || !inside(level0(lx, ly)) {
+                continue;
+            }
+            let (x0, y0) = level0(lx, ly);
+            let a = source(x0, y0);
+            // East along the row, south along the column: both ends real samples.
+            for (ends, along) in [
+                (
+                    (i + 1 < n && lx + 1 < raster.width).then(|| level0(lx + 1, ly)),
+                    0,
+                ),
+                (
+                    (j + 1 < n && ly + 1 < raster.height).then(|| level0(lx, ly + 1)),
+                    1,
+                ),
+            ] {
+                let Some(end) = ends.filter(|&e| inside(e)) else {
+                    continue;
+                };
+                let b = source(end.0, end.1);
+                for t in 1..step {
+                    let (x, y) = if along == 0 {
+                        (x0 + t, y0)
+                    } else {
+                        (x0, y0 + t)
+                    };
+                    let line = a + (b - a) * f64::from(t) / f64::from(step);
+                    worst = worst.max((source(x, y) - line).abs());
+                }
+            }
+        }
+    }
+    worst
 }
 
 fn open(report: &BuildReport) -> TileDb {
@@ -70,7 +142,12 @@ fn jacksboro_heights_are_stored_exactly_with_shared_borders() {
     let (w, h, codes) = png_codes(&jacksboro());
     let m = &report.manifest;
     assert_eq!((m.raster.width, m.raster.height), (403, 344));
-    assert_eq!((m.grid.columns, m.grid.rows), (4, 3));
+    // 403 x 344 samples, then every other one: 202 x 173, then 102 x 87, one tile.
+    let grids: Vec<(u32, u32)> = (0..m.level_count())
+        .map(|k| (m.grid(k).columns, m.grid(k).rows))
+        .collect();
+    assert_eq!(grids, [(4, 3), (2, 2), (1, 1)]);
+    assert_eq!(m.tile_count(), 17);
     assert_eq!(
         m.spacing_m,
         [74.3, 92.6],
@@ -82,24 +159,70 @@ fn jacksboro_heights_are_stored_exactly_with_shared_borders() {
     // Shared borders are real duplicates: counting each raster sample once per tile that holds it.
     let compared = check_tiles_equal_source(&db, |x, y| codes[(y * w + x) as usize]);
     assert!(compared >= (w * h) as usize);
-    // Per-tile metadata is consistent with the samples: bounds hold, errors grow from 0.
-    for (id, tile) in decoded_tiles(&db) {
+    // Per-tile metadata is consistent with the samples: bounds hold (above level 0, those
+    // of the full-resolution surface under the tile, its children's), errors grow from the
+    // tile's distance to full resolution (0 at level 0), which is at least what its cells'
+    // sides show; the tile blob lists the texture levels the database holds.
+    let metres = |x: u32, y: u32| f64::from(codes[(y * w + x) as usize]);
+    let mut level_bytes = vec![0u64; m.texture.levels as usize];
+    for Decoded { id, blob, heights } in decoded_tiles(&db) {
         let record = m.tile(id).expect("record");
-        let (lo, hi) = tile.code_range();
+        let (lo, hi) = heights.code_range();
+        if id.level == 0 {
+            assert_eq!(
+                (record.min_m, record.max_m),
+                (lo as f32, hi as f32),
+                "tile {id}"
+            );
+            assert_eq!(blob.mask_errors_m[0], 0.0, "tile {id}");
+        } else {
+            let children: Vec<_> = m
+                .children(id)
+                .into_iter()
+                .map(|c| m.tile(c).expect("child"))
+                .collect();
+            assert!(!children.is_empty(), "tile {id}");
+            let min = children.iter().map(|c| c.min_m).fold(f32::MAX, f32::min);
+            let max = children.iter().map(|c| c.max_m).fold(f32::MIN, f32::max);
+            assert_eq!((record.min_m, record.max_m), (min, max), "tile {id}");
+            assert!(
+                record.min_m <= lo as f32 && hi as f32 <= record.max_m,
+                "tile {id}"
+            );
+            let floor = deviation_along_cell_sides(m, id, metres);
+            assert!(
+                f64::from(blob.mask_errors_m[0]) >= floor - 1e-3,
+                "tile {id}: mask 0 is {} m from full resolution, its cell sides show {floor} m",
+                blob.mask_errors_m[0]
+            );
+        }
+        assert_eq!(blob.mask_errors_m.len(), m.mask_levels as usize);
+        // Each mask's error is its distance from the tile plus the tile's from full
+        // resolution (the triangle inequality), which adds up one level's decimation error
+        // after another: each within the heights it spans.
+        let spans =
+            f64::from(hi - lo) + f64::from(id.level) * f64::from(record.max_m - record.min_m);
+        assert!(
+            blob.mask_errors_m
+                .iter()
+                .all(|&e| e >= blob.mask_errors_m[0] && f64::from(e) <= spans + 0.02),
+            "tile {id}: {:?}",
+            blob.mask_errors_m
+        );
+        assert!(record.roughness_m > 0.0, "tile {id}");
+        assert_eq!(blob.texture.len(), m.texture.levels as usize, "tile {id}");
         assert_eq!(
-            (record.min_m, record.max_m),
-            (lo as f32, hi as f32),
+            blob.texture[0].bytes, record.coarsest_texture_bytes,
             "tile {id}"
         );
-        assert_eq!(record.mask_errors_m[0], 0.0);
-        assert!(
-            record
-                .mask_errors_m
-                .iter()
-                .all(|&e| e >= 0.0 && f64::from(e) <= (hi - lo) as f64 + 0.01)
-        );
-        assert!(record.roughness_m > 0.0);
+        for (level, listed) in blob.texture.iter().enumerate() {
+            let stored = db.texture(id, level as u32).expect("texture level");
+            assert_eq!(Blob::of(&stored.bytes), *listed, "tile {id} level {level}");
+            level_bytes[level] += listed.bytes;
+        }
     }
+    // The manifest's totals per texture level are the tile blobs' sizes added up.
+    assert_eq!(m.texture.level_bytes, level_bytes);
 }
 
 #[test]
@@ -160,20 +283,33 @@ fn himalaya_4097_builds_a_32_by_32_grid_with_everest() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_into(&heights, tmp.path(), |_| {});
     let m = &report.manifest;
-    assert_eq!((m.grid.columns, m.grid.rows), (32, 32));
+    assert_eq!((m.grid(0).columns, m.grid(0).rows), (32, 32));
+    // 4097, 2049, ... 129 samples: six levels, the last one tile.
+    assert_eq!(m.level_count(), 6);
+    assert_eq!(m.tile_count(), 1365);
     assert_eq!((m.heights.min_m, m.heights.max_m), (0.0, 8752.0));
     assert!(
-        m.tiles.iter().all(|t| t.valid == [129, 129]),
-        "4097 = 32 * 128 + 1: no padding"
-    );
-    // Flat sea: tiles that are all zero have no roughness and no mask error at any level.
-    let sea: Vec<_> = m.tiles.iter().filter(|t| t.max_m == 0.0).collect();
-    assert!(!sea.is_empty());
-    assert!(
-        sea.iter()
-            .all(|t| t.roughness_m == 0.0 && t.mask_errors_m.iter().all(|&e| e == 0.0))
+        m.tiles().all(|(id, _)| m.valid(id) == [129, 129]),
+        "4097 = 32 * 128 + 1, and every level 2^k * 128 + 1: no padding"
     );
     let db = open(&report);
+    // Flat sea: tiles over nothing but zeros (at full resolution, whatever their level)
+    // have no roughness and no mask error at any mask level.
+    let sea: Vec<_> = m.tiles().filter(|(_, t)| t.max_m == 0.0).collect();
+    assert!(sea.iter().any(|(id, _)| id.level == 0));
+    assert!(
+        sea.iter().any(|(id, _)| id.level > 0),
+        "the sea is larger than a tile"
+    );
+    for (id, record) in sea {
+        let blob = TileBlob::decode(&db.heights(id).expect("in grid").bytes).expect("blob");
+        assert!(
+            record.roughness_m == 0.0 && blob.mask_errors_m.iter().all(|&e| e == 0.0),
+            "tile {id}: {} m rough, {:?}",
+            record.roughness_m,
+            blob.mask_errors_m
+        );
+    }
     let (w, _, codes) = png_codes(&heights);
     check_tiles_equal_source(&db, |x, y| codes[(y * w + x) as usize]);
 }
@@ -237,12 +373,11 @@ fn check_srtm_geotiff(name: &str) {
         .expect("valid");
     let db = open(&report);
     let n = m.tile_size;
-    for (id, tile) in decoded_tiles(&db) {
+    for Decoded { id, heights, .. } in decoded_tiles(&db) {
         for y in 0..n {
             for x in 0..n {
-                let sx = (id.x * (n - 1) + x).min(m.raster.width - 1);
-                let sy = (id.y * (n - 1) + y).min(m.raster.height - 1);
-                let got = tile.codes[(y * n + x) as usize];
+                let (sx, sy) = source_position(m, id, x, y);
+                let got = heights.codes[(y * n + x) as usize];
                 let original = i32::from(source[(sy * w + sx) as usize]);
                 if original == -32768 {
                     assert!(
@@ -294,8 +429,10 @@ fn an_srtm_hgt_file_gives_the_same_heights_as_its_geotiff() {
     let (a, b) = (open(&from_hgt), open(&from_tif));
     let (ta, tb) = (decoded_tiles(&a), decoded_tiles(&b));
     assert_eq!(ta.len(), tb.len());
-    for ((id, x), (_, y)) in ta.iter().zip(&tb) {
-        assert_eq!(x.codes, y.codes, "tile {id}");
+    assert_eq!(ta.len(), a.manifest().tile_count());
+    for (x, y) in ta.iter().zip(&tb) {
+        assert_eq!(x.heights.codes, y.heights.codes, "tile {}", x.id);
+        assert_eq!(x.blob.mask_errors_m, y.blob.mask_errors_m, "tile {}", x.id);
     }
     for (s, t) in from_hgt
         .manifest
@@ -343,7 +480,8 @@ fn a_damaged_database_is_refused_when_it_opens() {
     std::fs::write(&pack, &bytes).expect("write");
     match TileDb::open(&report.out, Verify::Hashes) {
         Err(DbError::HashMismatch { id, .. }) => {
-            assert_eq!(id, TileId::new(3, 2), "the last tile holds the last byte")
+            // The pack ends with the coarsest level's one tile.
+            assert_eq!(id, TileId::at(2, 0, 0), "the last tile holds the last byte")
         }
         other => panic!("expected a hash mismatch, got {other:?}"),
     }

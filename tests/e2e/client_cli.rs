@@ -115,10 +115,11 @@ fn an_error_prints_each_cause_once() {
 fn a_failing_tile_is_warned_about_with_the_cause_of_its_failure() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let server = TestServer::start(&build_jacksboro(tmp.path()).out);
-    // Every request for tile (1, 1)'s heights is reset.
+    // Every request for tile (1, 1)'s heights (its tile blob, level 0) is reset.
+    const BAD: &str = "/levels/0/tiles/1/1/heights";
     let proxy = FaultyProxy::start(
         server.addr(),
-        FaultPlan::rotation(&[Fault::Reset]).only_paths_containing("/tiles/1/1/heights"),
+        FaultPlan::rotation(&[Fault::Reset]).only_paths_containing(BAD),
     );
     let output = run(fly_command(
         proxy.base_url(),
@@ -134,13 +135,10 @@ fn a_failing_tile_is_warned_about_with_the_cause_of_its_failure() {
     // "GET <url> failed" and, after it, what failed underneath (reqwest's error and the
     // connection's).
     let (_, cause) = warning
-        .split_once("/tiles/1/1/heights failed: ")
+        .split_once(&format!("{BAD} failed: "))
         .unwrap_or_else(|| panic!("no cause after the URL: {warning}"));
     assert!(cause.len() > 10, "{warning}");
-    assert_eq!(
-        warning.matches("/tiles/1/1/heights").count(),
-        1 + cause.matches("/tiles/1/1/heights").count()
-    );
+    assert_eq!(warning.matches(BAD).count(), 1 + cause.matches(BAD).count());
 }
 
 #[test]

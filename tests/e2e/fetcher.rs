@@ -1,24 +1,29 @@
 //! The [`Fetcher`] over real sockets: a real server with the jacksboro database, reached
 //! directly or through a [`FaultyProxy`] that corrupts, truncates, resets and slows down
-//! responses; a server stopped and started again on the same port. Every delivered tile is
-//! compared with the same tile fetched directly from the server.
+//! responses; a server stopped and started again on the same port. Every delivered tile (of
+//! every level of the pyramid) is compared with the same tile fetched directly from the
+//! server.
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
+use terrain_client::fetch::FetchedTile;
 use terrain_client::fetch::{FetchError, TileClient};
 use terrain_client::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
 use terrain_server::build::{BuildOptions, build};
-use terrain_shared::{Heights, Manifest, TileId};
+use terrain_shared::manifest::Level;
+use terrain_shared::{Manifest, TileId, routes};
 use terrain_tests::data::jacksboro;
 use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
 use terrain_tests::server::{RestartableServer, TestServer};
 
-/// Smaller than the default tiles, so the 403x344 fixture makes a 7x6 grid: 42 tiles give
-/// the fault schedules many tiles to land on.
+/// Smaller than the default tiles, so the 403x344 fixture makes a 7x6 grid and three levels
+/// above it (4x3, 2x2, 1x1): 59 tiles give the fault schedules many tiles to land on.
 const TILE_SIZE: u32 = 65;
+/// Tiles of every level of the fixture in [`TILE_SIZE`] tiles.
+const TILES: u64 = 42 + 12 + 4 + 1;
 /// Backoff of these tests: short, so a test with retries still takes well under a second.
 const BACKOFF_BASE: Duration = Duration::from_millis(10);
 const BACKOFF_MAX: Duration = Duration::from_millis(200);
@@ -48,7 +53,9 @@ fn through_a_proxy_that_corrupts_truncates_and_resets_every_tile_still_arrives_i
     let finest = db.manifest.texture.levels - 1;
     for (priority, id) in db.ids().enumerate() {
         fetcher.request(id, Want::Tile, priority as u64);
-        fetcher.request(id, Want::TextureLevel(finest), priority as u64);
+        // Its hash, from the tile blob, is what the body is checked against.
+        let blob = reference.texture_blob(id, finest);
+        fetcher.request_texture(id, finest, blob, priority as u64);
     }
     let events = run_until_idle(&mut fetcher);
 
@@ -75,9 +82,9 @@ fn through_a_proxy_that_corrupts_truncates_and_resets_every_tile_still_arrives_i
     );
     assert_eq!(
         stats.requests_started,
-        3 * db.manifest.tiles.len() as u64 + stats.retries + stats.corrupt_refetches
+        3 * TILES + stats.retries + stats.corrupt_refetches
     );
-    assert_eq!((stats.delivered, stats.failures), (2 * 42, 0));
+    assert_eq!((stats.delivered, stats.failures), (2 * TILES, 0));
 }
 
 #[test]
@@ -85,7 +92,8 @@ fn a_tile_that_is_always_corrupt_is_reported_after_its_refetch_and_the_others_ar
     let db = JacksboroDb::build();
     let server = TestServer::start(&db.dir);
     let bad = TileId::new(2, 1);
-    let plan = FaultPlan::rotation(&[Fault::Corrupt]).only_paths_containing("/tiles/2/1/heights");
+    let bad_path = routes::heights(&db.manifest.content_version, bad);
+    let plan = FaultPlan::rotation(&[Fault::Corrupt]).only_paths_containing(&bad_path);
     let proxy = FaultyProxy::start(server.addr(), plan);
     let runtime = runtime();
     let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
@@ -111,7 +119,7 @@ fn a_tile_that_is_always_corrupt_is_reported_after_its_refetch_and_the_others_ar
         .expect("a failure");
     assert_eq!(attempts, config.corrupt_attempts);
     assert!(matches!(error, FetchError::HashMismatch { .. }), "{error}");
-    assert!(error.to_string().contains("/tiles/2/1/heights"), "{error}");
+    assert!(error.to_string().contains(&bad_path), "{error}");
     assert_eq!(proxy.stats().corrupted, u64::from(config.corrupt_attempts));
     let stats = fetcher.stats();
     assert_eq!(
@@ -119,7 +127,11 @@ fn a_tile_that_is_always_corrupt_is_reported_after_its_refetch_and_the_others_ar
         (1, 0),
         "{stats:?}"
     );
-    assert_eq!((stats.delivered, stats.failures), (41, 1), "{stats:?}");
+    assert_eq!(
+        (stats.delivered, stats.failures),
+        (TILES - 1, 1),
+        "{stats:?}"
+    );
 }
 
 #[test]
@@ -171,17 +183,25 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
     let current = db.manifest.content_version.clone();
     let levels = db.manifest.texture.levels;
 
+    let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
+
     let mut stale = db.manifest.clone();
     stale.content_version = "0123456789abcdef".into();
     // A manifest promising one texture level more than the server has.
+    let mut extra_texture_level = db.manifest.clone();
+    extra_texture_level.texture.levels += 1;
+    // A manifest promising one level of the pyramid more than the server has.
     let mut extra_level = db.manifest.clone();
-    let finest = extra_level.tiles[0].texture[levels as usize - 1].clone();
-    extra_level.tiles[0].texture.push(finest);
+    let last: Level = extra_level.levels.last().expect("levels").clone();
+    extra_level.levels.push(last);
+    let past_the_last = TileId::at(db.manifest.level_count(), 0, 0);
 
     struct Case<'a> {
         manifest: &'a Manifest,
         id: TileId,
         want: Want,
+        /// The hash a texture level is asked with (the tile blob's entry).
+        texture: Option<terrain_shared::Blob>,
         /// Parts the error's message must contain.
         message: &'a [&'a str],
         /// HTTP requests the failure costs: 0 when the manifest refused, else 1, or 2 for a
@@ -193,6 +213,7 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
             manifest: &stale,
             id: TileId::new(0, 0),
             want: Want::Tile,
+            texture: None,
             message: &["404", "not served", &current],
             requests: 2,
         },
@@ -200,34 +221,78 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
             manifest: &stale,
             id: TileId::new(1, 0),
             want: Want::TextureLevel(1),
+            texture: Some(reference.texture_blob(TileId::new(1, 0), 1)),
             message: &["404", "not served", &current],
             requests: 1,
         },
         Case {
-            manifest: &extra_level,
+            manifest: &stale,
+            id: TileId::at(2, 1, 1),
+            want: Want::Tile,
+            texture: None,
+            message: &["404", "not served", &current],
+            requests: 2,
+        },
+        Case {
+            manifest: &extra_texture_level,
             id: TileId::new(0, 0),
             want: Want::TextureLevel(levels),
+            texture: Some(reference.texture_blob(TileId::new(0, 0), levels - 1)),
             message: &["404", &format!("not {levels}")],
             requests: 1,
+        },
+        Case {
+            manifest: &extra_level,
+            id: past_the_last,
+            want: Want::Tile,
+            texture: None,
+            message: &[
+                "404",
+                &format!("level {} does not exist", past_the_last.level),
+            ],
+            requests: 2,
         },
         Case {
             manifest: &db.manifest,
             id: TileId::new(99, 0),
             want: Want::Tile,
+            texture: None,
             message: &["not in the 7x6 grid"],
+            requests: 0,
+        },
+        Case {
+            manifest: &db.manifest,
+            id: TileId::at(1, 4, 0),
+            want: Want::Tile,
+            texture: None,
+            message: &["not in the 4x3 grid"],
+            requests: 0,
+        },
+        Case {
+            manifest: &db.manifest,
+            id: past_the_last,
+            want: Want::Tile,
+            texture: None,
+            message: &["not in the 0x0 grid"],
             requests: 0,
         },
         Case {
             manifest: &db.manifest,
             id: TileId::new(0, 0),
             want: Want::TextureLevel(levels),
+            texture: Some(reference.texture_blob(TileId::new(0, 0), levels - 1)),
             message: &["texture levels 0 to"],
             requests: 0,
         },
     ];
     for case in cases {
         let mut fetcher = fetcher(&runtime, server.base_url(), case.manifest, quick_config());
-        fetcher.request(case.id, case.want, 0);
+        match (case.want, case.texture) {
+            (Want::TextureLevel(level), Some(blob)) => {
+                fetcher.request_texture(case.id, level, blob, 0)
+            }
+            (want, _) => fetcher.request(case.id, want, 0),
+        }
         let events = run_until_idle(&mut fetcher);
         let [
             FetchEvent::Failed {
@@ -262,17 +327,53 @@ fn a_request_the_server_refuses_with_404_fails_at_once_with_its_reason() {
 }
 
 #[test]
+fn a_texture_level_asked_for_without_its_hash_is_refused_as_corrupt() {
+    let db = JacksboroDb::build();
+    let server = TestServer::start(&db.dir);
+    let runtime = runtime();
+    let config = quick_config();
+    let mut fetcher = fetcher(&runtime, server.base_url(), &db.manifest, config.clone());
+    // A finer level's hash is in its tile blob: asked for without it, no body can match.
+    let id = TileId::new(1, 0);
+    fetcher.request(id, Want::TextureLevel(1), 0);
+    let events = run_until_idle(&mut fetcher);
+    let [
+        FetchEvent::Failed {
+            error, attempts, ..
+        },
+    ] = events.as_slice()
+    else {
+        panic!("expected one failure, got {events:?}");
+    };
+    assert!(matches!(error, FetchError::HashMismatch { .. }), "{error}");
+    assert_eq!(*attempts, config.corrupt_attempts);
+    // With its hash, the same level arrives.
+    let reference = Reference::fetch(&runtime, server.base_url(), &db.manifest);
+    fetcher.request_texture(id, 1, reference.texture_blob(id, 1), 0);
+    let events = run_until_idle(&mut fetcher);
+    let delivered = reference.check_delivered(&events);
+    assert_eq!(delivered.levels, HashSet::from([(id, 1)]));
+}
+
+#[test]
 fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_empties() {
     let db = JacksboroDb::build();
     let server = TestServer::start(&db.dir);
+    // Level 0's 42 tiles, then one tile of level 1: the cancelling is the same at every
+    // level, and the pending marks go where the manifest's dense order says.
+    let ids: Vec<TileId> = db
+        .ids()
+        .filter(|id| id.level == 0)
+        .chain([TileId::at(1, 3, 2)])
+        .collect();
+    assert_eq!(ids.len(), 43);
     // About 100 ms a tile on the link, so the whole grid would take about 4 s.
-    let tile_bytes: u64 = db
-        .manifest
-        .tiles
+    let tile_bytes: u64 = ids
         .iter()
-        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .filter_map(|id| db.manifest.tile(*id))
+        .map(|t| t.bytes + t.coarsest_texture_bytes)
         .sum();
-    let per_tile = tile_bytes / db.manifest.tiles.len() as u64;
+    let per_tile = tile_bytes / ids.len() as u64;
     let proxy = FaultyProxy::start(
         server.addr(),
         FaultPlan::pass_through().with_bandwidth(per_tile * 10),
@@ -284,8 +385,9 @@ fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_emptie
         ..quick_config()
     };
     let mut fetcher = fetcher(&runtime, proxy.base_url(), &db.manifest, config);
-    let ids: Vec<TileId> = db.ids().collect();
-    request_all_tiles(&mut fetcher, &db.manifest);
+    for (priority, id) in ids.iter().enumerate() {
+        fetcher.request(*id, Want::Tile, priority as u64);
+    }
 
     let mut events = Vec::new();
     let deadline = Instant::now() + IDLE_TIMEOUT;
@@ -300,7 +402,7 @@ fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_emptie
     );
     // The second tile is on the link now: it is cancelled with all but two of the rest.
     assert_eq!(fetcher.running_count(), 1);
-    let keep = [ids[5], ids[41]];
+    let keep = [ids[5], ids[42]];
     let cancelled: Vec<TileId> = ids[1..]
         .iter()
         .copied()
@@ -310,10 +412,11 @@ fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_emptie
     let mut pending: Vec<TileId> = fetcher.pending().collect();
     pending.sort();
     assert_eq!(pending, keep);
-    let mut marks = vec![true; 42];
-    fetcher.mark_pending(&mut marks, 7);
+    let mut marks = vec![true; TILES as usize];
+    fetcher.mark_pending(&mut marks, &db.manifest);
     assert_eq!(marks.iter().filter(|pending| **pending).count(), 2);
-    assert!(marks[5] && marks[41]);
+    // Tile 5 of level 0, and tile (3, 2) of level 1 after level 0's 42: 42 + 2 * 4 + 3.
+    assert!(marks[5] && marks[53]);
     events.extend(run_until_idle(&mut fetcher));
 
     let delivered = reference.check_delivered(&events);
@@ -322,7 +425,7 @@ fn cancelled_tiles_on_a_slow_link_are_never_delivered_and_the_pending_set_emptie
     let stats = fetcher.stats();
     assert_eq!(
         (stats.cancelled, stats.delivered, stats.failures),
-        (39, 3, 0),
+        (40, 3, 0),
         "{stats:?}"
     );
     // The cancelled tile on the link was dropped, not downloaded to the end for nobody;
@@ -341,7 +444,7 @@ fn results_that_finished_before_their_cancel_are_never_delivered() {
     let server = TestServer::start(&db.dir);
     let runtime = runtime();
     let mut fetcher = fetcher(&runtime, server.base_url(), &db.manifest, quick_config());
-    let ids: Vec<TileId> = db.ids().take(8).collect();
+    let ids: Vec<TileId> = db.ids().filter(|id| id.level == 0).take(8).collect();
     for (priority, id) in ids.iter().enumerate() {
         fetcher.request(*id, Want::Tile, priority as u64);
     }
@@ -355,7 +458,7 @@ fn results_that_finished_before_their_cancel_are_never_delivered() {
     let expected: u64 = ids
         .iter()
         .filter_map(|id| db.manifest.tile(*id))
-        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .map(|t| t.bytes + t.coarsest_texture_bytes)
         .sum();
     let deadline = Instant::now() + IDLE_TIMEOUT;
     while fetcher.stats().bytes_downloaded < expected {
@@ -388,7 +491,11 @@ impl JacksboroDb {
         let report =
             build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("jacksboro builds");
         let manifest = report.manifest;
-        assert_eq!((manifest.grid.columns, manifest.grid.rows), (7, 6));
+        let grids: Vec<(u32, u32)> = (0..manifest.level_count())
+            .map(|k| (manifest.grid(k).columns, manifest.grid(k).rows))
+            .collect();
+        assert_eq!(grids, [(7, 6), (4, 3), (2, 2), (1, 1)]);
+        assert_eq!(manifest.tile_count() as u64, TILES);
         JacksboroDb {
             _tmp: tmp,
             dir: report.out,
@@ -396,9 +503,9 @@ impl JacksboroDb {
         }
     }
 
-    /// Every tile, row-major.
+    /// Every tile of every level, level 0 first, row-major within a level.
     fn ids(&self) -> impl Iterator<Item = TileId> + '_ {
-        self.manifest.tiles.iter().map(|tile| tile.id())
+        self.manifest.tiles().map(|(id, _)| id)
     }
 }
 
@@ -434,10 +541,11 @@ fn fetcher(
     )
 }
 
-/// Every tile, nearest the north-west corner first (row-major order as the priority).
+/// Every tile of every level, in the manifest's order (level 0 first, then row-major) as
+/// the priority.
 fn request_all_tiles(fetcher: &mut Fetcher, manifest: &Manifest) {
-    for (priority, tile) in manifest.tiles.iter().enumerate() {
-        fetcher.request(tile.id(), Want::Tile, priority as u64);
+    for (priority, (id, _)) in manifest.tiles().enumerate() {
+        fetcher.request(id, Want::Tile, priority as u64);
     }
 }
 
@@ -458,9 +566,9 @@ fn run_until_idle(fetcher: &mut Fetcher) -> Vec<FetchEvent> {
     events
 }
 
-/// Every tile's heights and texture levels, fetched directly from the server.
+/// Every tile's blob (decoded) and texture levels, fetched directly from the server.
 struct Reference {
-    heights: HashMap<TileId, Heights>,
+    tiles: HashMap<TileId, FetchedTile>,
     textures: HashMap<(TileId, u32), Vec<u8>>,
 }
 
@@ -476,25 +584,30 @@ impl Reference {
     fn fetch(runtime: &tokio::runtime::Runtime, base_url: &str, manifest: &Manifest) -> Reference {
         let client = TileClient::new(base_url).expect("client");
         runtime.block_on(async {
-            let mut heights = HashMap::new();
+            let mut tiles = HashMap::new();
             let mut textures = HashMap::new();
-            for tile in &manifest.tiles {
-                let id = tile.id();
-                let tile_heights = client
-                    .heights(manifest, id)
+            for (id, _) in manifest.tiles() {
+                let tile = client
+                    .tile(manifest, id)
                     .await
                     .unwrap_or_else(|e| panic!("reference {id}: {e}"));
-                heights.insert(id, tile_heights);
                 for level in 0..manifest.texture.levels {
+                    // Verified against the tile blob's table.
                     let bytes = client
-                        .texture(manifest, id, level)
+                        .texture(manifest, id, level, Some(&tile.texture[level as usize]))
                         .await
                         .unwrap_or_else(|e| panic!("reference {id} level {level}: {e}"));
                     textures.insert((id, level), bytes.to_vec());
                 }
+                tiles.insert(id, tile);
             }
-            Reference { heights, textures }
+            Reference { tiles, textures }
         })
+    }
+
+    /// The hash and size of texture `level` of tile `id`, from its tile blob.
+    fn texture_blob(&self, id: TileId, level: u32) -> terrain_shared::Blob {
+        self.tiles[&id].texture[level as usize].clone()
     }
 
     /// Checks every delivered tile and level against the reference (and that none came
@@ -511,11 +624,16 @@ impl Reference {
                     id,
                     heights,
                     heights_bytes,
+                    mask_errors_m,
+                    texture,
                     coarsest_texture,
                     attempts,
                     ..
                 } => {
-                    assert_eq!(Some(heights), self.heights.get(id), "tile {id} heights");
+                    let reference = &self.tiles[id];
+                    assert_eq!(*heights, reference.heights, "tile {id} heights");
+                    assert_eq!(*mask_errors_m, reference.mask_errors_m, "tile {id} errors");
+                    assert_eq!(*texture, reference.texture, "tile {id} texture hashes");
                     assert!(*heights_bytes > 0 && *attempts >= 1);
                     assert_eq!(
                         Some(&coarsest_texture.to_vec()),

@@ -63,11 +63,27 @@ fn number(row: &std::collections::HashMap<String, String>, column: &str) -> u64 
         .unwrap_or_else(|e| panic!("{column} = {:?}: {e}", row[column]))
 }
 
-/// Bytes the client holds for a resident tile: decoded codes (4 bytes each) and the coarsest
+/// Bytes the client holds for a resident tile of any level: decoded codes (4 bytes each),
+/// its table of mask errors (an `f32` per mask level, from its tile blob) and the coarsest
 /// texture level.
 fn tile_bytes(manifest: &Manifest, id: TileId) -> u64 {
     let record = manifest.tile(id).expect("in grid");
-    4 * u64::from(manifest.tile_size).pow(2) + record.texture[0].bytes
+    4 * u64::from(manifest.tile_size).pow(2)
+        + 4 * u64::from(manifest.mask_levels)
+        + record.coarsest_texture_bytes
+}
+
+/// A memory budget (`--memory`, before the flight's 10% margin) with room for every tile of
+/// the levels above level 0 and for `tiles` tiles of level 0 the size of tile (0, 0): the
+/// pager shares the limit out coarsest level first (`page::level_shares`), so each coarser
+/// level takes what it needs whole and level 0 gets room for `tiles`.
+fn budget_for_level_0_tiles(manifest: &Manifest, tiles: u64) -> u64 {
+    let coarser: u64 = manifest
+        .tiles()
+        .filter(|(id, _)| id.level > 0)
+        .map(|(id, _)| tile_bytes(manifest, id))
+        .sum();
+    (coarser + tiles * tile_bytes(manifest, TileId::new(0, 0))) * 10 / 9
 }
 
 fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {
@@ -76,7 +92,7 @@ fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {
 }
 
 #[test]
-fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
+fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_pyramid() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (server, manifest) = jacksboro_server(tmp.path());
     let out = tmp.path().join("flight");
@@ -86,19 +102,19 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
     let rows = read_csv(&summary.csv);
     assert_eq!(rows.len() as u64, summary.frames);
     let last = rows.last().expect("frames");
-    // The default path ends still over the centre, tile (1, 1) of the 4 x 3 grid: three
-    // belts reach every tile.
+    // The default path ends still over the centre, tile (1, 1) of level 0's 4 x 3 grid:
+    // three belts reach every tile. Every tile of the levels above is resident too.
     assert_eq!(
         (number(last, "current_x"), number(last, "current_y")),
         (1, 1)
     );
     assert_eq!(number(last, "complete_belts"), 3);
-    assert_eq!(number(last, "resident_tiles"), manifest.tiles.len() as u64);
+    assert!(manifest.level_count() > 1);
+    assert_eq!(number(last, "resident_tiles"), manifest.tile_count() as u64);
     assert_eq!(number(last, "in_flight"), 0);
     let all: u64 = manifest
-        .tiles
-        .iter()
-        .map(|t| tile_bytes(&manifest, t.id()))
+        .tiles()
+        .map(|(id, _)| tile_bytes(&manifest, id))
         .sum();
     assert_eq!(
         number(last, "resident_bytes"),
@@ -129,25 +145,34 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_grid() {
 
 #[test]
 fn a_tight_budget_keeps_resident_bytes_under_the_limit_but_for_the_current_tile_on_every_frame() {
+    tight_budget_flight(false);
+}
+
+#[test]
+fn a_single_level_flight_on_a_tight_budget_exceeds_the_limit_by_the_current_tile_at_most() {
+    tight_budget_flight(true);
+}
+
+/// A lap with room for about three tiles of level 0 (less than the nine of a full second
+/// belt): paging every level (the coarser levels with room for all their tiles, so that
+/// level 0 alone is tight), or level 0 alone (`--single-level`, the paper's client).
+fn tight_budget_flight(single_level: bool) {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (server, manifest) = jacksboro_server(tmp.path());
-    let one_tile = tile_bytes(&manifest, TileId::new(0, 0));
-    // Room for about three tiles: less than the nine of a full second belt.
-    let budget = one_tile * 3 * 10 / 9;
-    let summary = runtime()
-        .block_on(fly(&args(
-            &server,
-            &tmp.path().join("flight"),
-            Some(budget),
-        )))
-        .expect("flight");
+    let budget = if single_level {
+        tile_bytes(&manifest, TileId::new(0, 0)) * 3 * 10 / 9
+    } else {
+        budget_for_level_0_tiles(&manifest, 3)
+    };
+    let mut flight = args(&server, &tmp.path().join("flight"), Some(budget));
+    flight.stream.single_level = single_level;
+    let summary = runtime().block_on(fly(&flight)).expect("flight");
     let rows = read_csv(&summary.csv);
     // The pager knows each tile's bytes from the manifest and starts a belt only if it fits;
     // only the current tile is fetched regardless, so it is the most the limit is exceeded by.
     let slack = manifest
-        .tiles
-        .iter()
-        .map(|t| tile_bytes(&manifest, t.id()))
+        .tiles()
+        .map(|(id, _)| tile_bytes(&manifest, id))
         .max()
         .unwrap_or(0);
     let mut evicted_at_some_point = false;
@@ -175,7 +200,12 @@ fn a_tight_budget_keeps_resident_bytes_under_the_limit_but_for_the_current_tile_
         number(last, "complete_belts") >= 1,
         "the current tile is always kept"
     );
-    assert!(number(last, "resident_tiles") < manifest.tiles.len() as u64);
+    let paged = if single_level {
+        manifest.levels[0].tiles.len()
+    } else {
+        manifest.tile_count()
+    };
+    assert!(number(last, "resident_tiles") < paged as u64);
 }
 
 #[test]
@@ -199,13 +229,12 @@ fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_jacksboro(tmp.path());
     let mut server = RestartableServer::start(&report.out);
-    // Room for ten of the twelve tiles: the square can reach two belts (nine tiles) but not
-    // the whole grid, so the lap keeps fetching and evicting all along.
-    let one_tile = tile_bytes(&report.manifest, TileId::new(0, 0));
+    // Room for ten of level 0's twelve tiles: the square can reach two belts (nine tiles)
+    // but not the whole grid, so the lap keeps fetching and evicting all along.
     let args = paging_flight(
         &server.base_url(),
         &tmp.path().join("flight"),
-        Some(one_tile * 10 * 10 / 9),
+        Some(budget_for_level_0_tiles(&report.manifest, 10)),
     );
     let flight = std::thread::spawn(move || runtime().block_on(fly(&args)));
     // Down from 0.5 s to 3.5 s of the 12 s lap: the pager fetches several times in between
@@ -277,14 +306,15 @@ fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame(
         );
     }
     // The square is far larger than one belt, and the budget is what stops it: the whole
-    // grid (1024 tiles of about 67 KiB) would need about 67 MiB.
+    // pyramid (1365 tiles of about 67 KiB) would need about 90 MiB.
     let last = rows.last().expect("frames");
     assert!(
         number(last, "complete_belts") >= 5,
         "{} complete belts",
         last["complete_belts"]
     );
-    assert!(number(last, "resident_tiles") < 1024);
+    assert_eq!(report.manifest.tile_count(), 1365);
+    assert!(number(last, "resident_tiles") < 1365);
     assert!(
         summary.peak_resident_bytes > limit / 2,
         "the flight used its budget"
@@ -364,7 +394,7 @@ fn a_flight_over_a_link_with_2_s_a_request_still_loads_tiles() {
         number(last, "complete_belts") >= 1,
         "the current tile is held at the end"
     );
-    assert!(number(last, "resident_tiles") <= manifest.tiles.len() as u64);
+    assert!(number(last, "resident_tiles") <= manifest.tile_count() as u64);
 }
 
 #[test]
@@ -394,22 +424,21 @@ fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests()
     let tmp = tempfile::tempdir().expect("tempdir");
     let report = build_jacksboro(tmp.path());
     let manifest = report.manifest;
-    // Flip a byte in the middle of tile (1, 1)'s heights, as a disk would; the server
-    // (opened checking sizes only, as `serve --no-verify`) serves it as it is.
+    // Flip a byte in the middle of tile (1, 1)'s blob, as a disk would; the server (opened
+    // checking sizes only, as `serve --no-verify`) serves it as it is.
     let bad = TileId::new(1, 1);
     let pack = report.out.join(terrain_server::db::HEIGHTS_PACK);
     let mut bytes = std::fs::read(&pack).expect("heights.pack");
     let offset: u64 = manifest
-        .tiles
-        .iter()
-        .take_while(|t| t.id() != bad)
-        .map(|t| t.heights.bytes)
+        .tiles()
+        .take_while(|(id, _)| *id != bad)
+        .map(|(_, t)| t.bytes)
         .sum();
     let record = manifest.tile(bad).expect("in grid");
-    let blob = offset as usize..(offset + record.heights.bytes) as usize;
+    let blob = offset as usize..(offset + record.bytes) as usize;
     assert_eq!(
         terrain_shared::manifest::content_hash(&bytes[blob.clone()]),
-        record.heights.hash
+        record.hash
     );
     bytes[blob.start + blob.len() / 2] ^= 0x5a;
     std::fs::write(&pack, bytes).expect("heights.pack written");
@@ -442,13 +471,12 @@ fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests()
         summary.retries
     );
     let everything: u64 = manifest
-        .tiles
-        .iter()
-        .map(|t| t.heights.bytes + t.texture[0].bytes)
+        .tiles()
+        .map(|(_, t)| t.bytes + t.coarsest_texture_bytes)
         .sum();
     assert!(
         summary.bytes_downloaded
-            <= everything + 2 * limit * (record.heights.bytes + record.texture[0].bytes),
+            <= everything + 2 * limit * (record.bytes + record.coarsest_texture_bytes),
         "{} bytes downloaded, the tiles are {everything}",
         summary.bytes_downloaded
     );
@@ -458,16 +486,16 @@ fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests()
     );
 }
 
-/// Flies a lap with room for ten of jacksboro's twelve tiles (so it keeps fetching) while
-/// the served database is replaced, after 1 s, by `rebuilt` (a directory beside it).
+/// Flies a lap with room for ten of jacksboro's twelve level-0 tiles (so it keeps
+/// fetching) while the served database is replaced, after 1 s, by `rebuilt` (a directory
+/// beside it).
 fn fly_through_a_rebuild(tmp: &Path, rebuilt: &str) -> terrain_client::flight::FlightSummary {
     let report = build_jacksboro(tmp);
     let mut server = RestartableServer::start(&report.out);
-    let one_tile = tile_bytes(&report.manifest, TileId::new(0, 0));
     let args = paging_flight(
         &server.base_url(),
         &tmp.join("flight"),
-        Some(one_tile * 10 * 10 / 9),
+        Some(budget_for_level_0_tiles(&report.manifest, 10)),
     );
     let flight = std::thread::spawn(move || runtime().block_on(fly(&args)));
     std::thread::sleep(Duration::from_millis(1000));
@@ -509,7 +537,7 @@ fn a_database_rebuilt_mid_flight_with_the_same_grid_is_reloaded_and_the_flight_g
 fn a_database_rebuilt_mid_flight_with_another_grid_restarts_paging_and_the_flight_goes_on() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let rebuilt = jacksboro_db(tmp.path(), "rebuilt", 65, 0.0);
-    assert_eq!((rebuilt.grid.columns, rebuilt.grid.rows), (7, 6));
+    assert_eq!((rebuilt.grid(0).columns, rebuilt.grid(0).rows), (7, 6));
     let summary = fly_through_a_rebuild(tmp.path(), "rebuilt");
     let [change] = summary.content_changes.as_slice() else {
         panic!("one content change: {summary}");

@@ -120,7 +120,9 @@ fn empty_manifest() -> Manifest {
     let db = terrain_server::db::TileDb::open(&report.out, terrain_server::db::Verify::SizesOnly)
         .expect("opens");
     let mut manifest = db.manifest().clone();
-    manifest.tiles.clear();
+    for level in &mut manifest.levels {
+        level.tiles.clear();
+    }
     manifest
 }
 

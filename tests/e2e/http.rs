@@ -1,5 +1,6 @@
-//! The HTTP server against a real client: routes, caching headers, errors, compression,
-//! CORS, metrics, and the hardening (timeouts, load shedding, graceful shutdown).
+//! The HTTP server against a real client: routes (every level of the pyramid, and the
+//! single-level spelling redirected), caching headers, errors, compression, CORS, metrics,
+//! and the hardening (timeouts, load shedding, graceful shutdown).
 //!
 //! Every test serves a [`SyntheticDb`] on `127.0.0.1:0` through the library's `serve`,
 //! and talks to it with reqwest, or with a raw TCP socket where a test needs to misbehave
@@ -10,20 +11,23 @@ use reqwest::header::HeaderMap;
 use std::io::Read;
 use std::time::{Duration, Instant};
 use terrain_server::http::ServeOptions;
-use terrain_shared::TileId;
 use terrain_shared::manifest::content_hash;
 use terrain_shared::routes;
+use terrain_shared::{TileBlob, TileId};
 use terrain_tests::server::TestServer;
 use terrain_tests::synthetic::{LARGE_TEXTURE, SyntheticDb};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-const HEIGHTS_CONTENT_TYPE: &str = "application/vnd.terrain.heights";
+/// Content type of a tile blob (`terrain_shared::tile_blob`), what the heights route serves.
+const HEIGHTS_CONTENT_TYPE: &str = "application/vnd.terrain.tile";
 const TILE_CACHE_CONTROL: &str = "public, max-age=31536000, immutable";
 const MANIFEST_CACHE_CONTROL: &str = "public, no-cache";
 /// Route templates as they must appear in metric labels.
-const HEIGHTS_ROUTE: &str = "/v1/{content_version}/tiles/{x}/{y}/heights";
-const TEXTURE_ROUTE: &str = "/v1/{content_version}/tiles/{x}/{y}/texture/{level}";
+const HEIGHTS_ROUTE: &str = "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/heights";
+const TEXTURE_ROUTE: &str = "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/texture/{mip}";
+/// The single-level API's spelling of a level-0 tile, answered with a redirect.
+const LEGACY_HEIGHTS_ROUTE: &str = "/v1/{content_version}/tiles/{x}/{y}/heights";
 
 /// One answer, read whole.
 #[derive(Debug)]
@@ -131,7 +135,7 @@ async fn manifest_and_every_tile_are_served_with_their_bytes_content_type_etag_a
         content_type: "application/json",
         cache_control: MANIFEST_CACHE_CONTROL,
     }];
-    for id in db.tile_ids() {
+    for id in db.all_tile_ids() {
         expected.push(Expected {
             path: routes::heights(version, id),
             bytes: db.heights(id).to_vec(),
@@ -147,8 +151,9 @@ async fn manifest_and_every_tile_are_served_with_their_bytes_content_type_etag_a
             });
         }
     }
-    // 1 manifest + 4 tiles x (heights + 2 levels): refuse to pass on an empty grid.
-    assert_eq!(expected.len(), 13);
+    // 1 manifest + (4 tiles of level 0 + 1 of level 1) x (heights + 2 levels): refuse to
+    // pass on an empty grid.
+    assert_eq!(expected.len(), 16);
 
     for entity in &expected {
         let answer = get(&client, &server.url(&entity.path)).await;
@@ -184,11 +189,37 @@ async fn manifest_and_every_tile_are_served_with_their_bytes_content_type_etag_a
         );
     }
 
-    // The served heights decode to the codes the database was written with.
-    let id = TileId::new(1, 0);
-    let answer = get(&client, &server.url(&routes::heights(version, id))).await;
-    let heights = terrain_shared::Heights::decode(&answer.body).expect("served heights decode");
-    assert_eq!(heights, SyntheticDb::codes(id));
+    // The served tile blobs decode to the codes the database was written with, at every
+    // level, and the texture hashes they carry verify the texture bodies served.
+    for id in db.all_tile_ids() {
+        let answer = get(&client, &server.url(&routes::heights(version, id))).await;
+        let blob = TileBlob::decode(&answer.body).expect("a served tile blob decodes");
+        assert_eq!(
+            blob,
+            TileBlob::decode(db.heights(id)).expect("as written"),
+            "{id}"
+        );
+        let heights =
+            terrain_shared::Heights::decode(&blob.heights).expect("served heights decode");
+        assert_eq!(heights, SyntheticDb::codes(id), "{id}");
+        assert_eq!(
+            blob.mask_errors_m.len(),
+            db.manifest().mask_levels as usize,
+            "{id}"
+        );
+        assert_eq!(
+            blob.texture.len(),
+            db.manifest().texture.levels as usize,
+            "{id}"
+        );
+        for (level, listed) in blob.texture.iter().enumerate() {
+            let path = routes::texture(version, id, level as u32);
+            let texture = get(&client, &server.url(&path)).await;
+            assert_eq!(texture.status, 200, "{path}");
+            assert_eq!(content_hash(&texture.body), listed.hash, "{path}");
+            assert_eq!(texture.body.len() as u64, listed.bytes, "{path}");
+        }
+    }
 }
 
 #[tokio::test]
@@ -234,6 +265,16 @@ async fn a_matching_if_none_match_gives_304_without_a_body_and_another_gives_200
         (
             routes::texture(version, id, 1),
             content_hash(db.texture(id, 1)),
+            TILE_CACHE_CONTROL,
+        ),
+        (
+            routes::heights(version, TileId::at(1, 0, 0)),
+            content_hash(db.heights(TileId::at(1, 0, 0))),
+            TILE_CACHE_CONTROL,
+        ),
+        (
+            routes::texture(version, TileId::at(1, 0, 0), 0),
+            content_hash(db.texture(TileId::at(1, 0, 0), 0)),
             TILE_CACHE_CONTROL,
         ),
     ];
@@ -319,6 +360,18 @@ async fn malformed_coordinates_and_levels_give_400_with_a_json_body() {
     let client = reqwest::Client::new();
     let v = &db.manifest().content_version;
     let cases = [
+        format!("/v1/{v}/levels/0/tiles/-1/0/heights"),
+        format!("/v1/{v}/levels/0/tiles/0/-1/heights"),
+        format!("/v1/{v}/levels/-1/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/x/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/01/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/+1/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/4294967296/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/%FF/tiles/0/0/heights"),
+        format!("/v1/{v}/levels/0/tiles/0/0/texture/-1"),
+        format!("/v1/{v}/levels/1.0/tiles/0/0/texture/0"),
+        format!("/v1/{v}/levels/0/tiles/x/0/texture/0"),
+        // The single-level spelling is checked like the levels' before it is redirected.
         format!("/v1/{v}/tiles/-1/0/heights"),
         format!("/v1/{v}/tiles/0/-1/heights"),
         format!("/v1/{v}/tiles/x/0/heights"),
@@ -337,18 +390,20 @@ async fn malformed_coordinates_and_levels_give_400_with_a_json_body() {
     for path in &cases {
         check_error(&client, &server, Method::GET, path, 400).await;
     }
-    let message = check_error(
-        &client,
-        &server,
-        Method::GET,
-        &format!("/v1/{v}/tiles/-1/0/heights"),
-        400,
-    )
-    .await;
-    assert!(
-        message.contains("x coordinate") && message.contains("\"-1\""),
-        "{message}"
-    );
+    for (path, segment) in [
+        (
+            format!("/v1/{v}/levels/0/tiles/-1/0/heights"),
+            "x coordinate",
+        ),
+        (format!("/v1/{v}/tiles/-1/0/heights"), "x coordinate"),
+        (format!("/v1/{v}/levels/-1/tiles/0/0/heights"), "level"),
+    ] {
+        let message = check_error(&client, &server, Method::GET, &path, 400).await;
+        assert!(
+            message.contains(segment) && message.contains("\"-1\""),
+            "{path}: {message}"
+        );
+    }
 }
 
 #[tokio::test]
@@ -358,12 +413,21 @@ async fn missing_tiles_levels_stale_versions_and_unknown_routes_give_404_with_a_
     let client = reqwest::Client::new();
     let v = &db.manifest().content_version;
     let levels = db.manifest().texture.levels;
+    // The pyramid: level 0 of 2x2 tiles, level 1 of one.
+    let past_the_last = db.manifest().level_count();
+    assert_eq!(past_the_last, 2);
     let cases = [
         routes::heights(v, TileId::new(2, 0)),
         routes::heights(v, TileId::new(0, 2)),
         routes::heights(v, TileId::new(u32::MAX, u32::MAX)),
+        routes::heights(v, TileId::at(1, 1, 0)),
+        routes::heights(v, TileId::at(past_the_last, 0, 0)),
+        routes::heights(v, TileId::at(u32::MAX, 0, 0)),
         routes::texture(v, TileId::new(2, 1), 0),
+        routes::texture(v, TileId::at(1, 0, 1), 0),
+        routes::texture(v, TileId::at(past_the_last, 0, 0), 0),
         routes::texture(v, TileId::new(0, 0), levels),
+        routes::texture(v, TileId::at(1, 0, 0), levels),
         routes::texture(v, TileId::new(0, 0), u32::MAX),
         "/".to_string(),
         "/v1".to_string(),
@@ -371,6 +435,12 @@ async fn missing_tiles_levels_stale_versions_and_unknown_routes_give_404_with_a_
         "/v2/manifest.json".to_string(),
         format!("/v1/{v}/tiles/0/0"),
         format!("/v1/{v}/tiles/0/0/heights/extra"),
+        format!("/v1/{v}/levels/0/tiles/0/0"),
+        format!("/v1/{v}/levels/0/tiles/0/0/heights/extra"),
+        format!("/v1/{v}/levels/0/heights"),
+        // A single-level URL of a tile that does not exist is not redirected.
+        format!("/v1/{v}/tiles/2/0/heights"),
+        format!("/v1/{v}/tiles/0/2/texture/0"),
         "/v1/../../etc/passwd".to_string(),
     ];
     for path in &cases {
@@ -393,6 +463,30 @@ async fn missing_tiles_levels_stale_versions_and_unknown_routes_give_404_with_a_
         &client,
         &server,
         Method::GET,
+        &routes::heights(v, TileId::at(1, 1, 0)),
+        404,
+    )
+    .await;
+    assert!(
+        message.contains("L1:1/0") && message.contains("1x1"),
+        "{message}"
+    );
+    // A level past the last names the levels there are, for heights and textures.
+    for path in [
+        routes::heights(v, TileId::at(past_the_last, 0, 0)),
+        routes::texture(v, TileId::at(past_the_last, 0, 0), 0),
+    ] {
+        let message = check_error(&client, &server, Method::GET, &path, 404).await;
+        assert!(
+            message.contains(&format!("level {past_the_last} does not exist"))
+                && message.contains(&format!("levels 0 to {}", past_the_last - 1)),
+            "{path}: {message}"
+        );
+    }
+    let message = check_error(
+        &client,
+        &server,
+        Method::GET,
         &routes::texture(v, TileId::new(0, 0), levels),
         404,
     )
@@ -402,10 +496,14 @@ async fn missing_tiles_levels_stale_versions_and_unknown_routes_give_404_with_a_
         "{message}"
     );
 
-    // A stale content version is a 404 that names the current one, for heights and textures.
+    // A stale content version is a 404 that names the current one, for heights and textures
+    // of every level, and for the single-level spelling (not redirected).
     for path in [
         routes::heights("0000000000000000", TileId::new(0, 0)),
         routes::texture("previous", TileId::new(0, 0), 0),
+        routes::heights("0000000000000000", TileId::at(1, 0, 0)),
+        "/v1/0000000000000000/tiles/0/0/heights".to_string(),
+        "/v1/previous/tiles/0/0/texture/1".to_string(),
     ] {
         let message = check_error(&client, &server, Method::GET, &path, 404).await;
         assert!(
@@ -433,8 +531,10 @@ async fn the_manifest_is_gzipped_when_asked_and_heights_and_textures_never_are()
     let client = reqwest::Client::new();
     let v = &db.manifest().content_version;
     let manifest = manifest_json(&db);
+    // Compact JSON, a tile record one short array: under a kilobyte for five tiles, which
+    // gzip still shrinks (checked below).
     assert!(
-        manifest.len() > 1024,
+        manifest.len() > 512,
         "the synthetic manifest is large enough to be compressed"
     );
 
@@ -479,11 +579,13 @@ async fn the_manifest_is_gzipped_when_asked_and_heights_and_textures_never_are()
     assert_eq!(answer.header("content-encoding"), "");
     assert!(answer.body == manifest);
 
-    let id = TileId::new(0, 0);
+    let (id, above) = (TileId::new(0, 0), TileId::at(1, 0, 0));
     for (path, bytes) in [
         (routes::heights(v, id), db.heights(id)),
         (routes::texture(v, id, 0), db.texture(id, 0)),
         (routes::texture(v, id, 1), db.texture(id, 1)),
+        (routes::heights(v, above), db.heights(above)),
+        (routes::texture(v, above, 1), db.texture(above, 1)),
     ] {
         let answer = fetch(
             &client,
@@ -598,7 +700,7 @@ async fn metrics_count_requests_and_bytes_by_route_template_and_status_and_time_
     let v = &db.manifest().content_version;
 
     let mut heights_bytes = 0;
-    for id in db.tile_ids() {
+    for id in db.all_tile_ids() {
         assert_eq!(
             get(&client, &server.url(&routes::heights(v, id)))
                 .await
@@ -623,10 +725,27 @@ async fn metrics_count_requests_and_bytes_by_route_template_and_status_and_time_
         404
     );
     assert_eq!(
-        get(&client, &server.url(&format!("/v1/{v}/tiles/a/0/heights")))
-            .await
-            .status,
+        get(
+            &client,
+            &server.url(&format!("/v1/{v}/levels/0/tiles/a/0/heights"))
+        )
+        .await
+        .status,
         400
+    );
+    // A single-level URL: its redirect is counted under its own template.
+    let no_redirects = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .expect("client");
+    assert_eq!(
+        get(
+            &no_redirects,
+            &server.url(&format!("/v1/{v}/tiles/0/0/heights"))
+        )
+        .await
+        .status,
+        308
     );
     assert_eq!(
         get(&client, &server.url("/no/such/route")).await.status,
@@ -647,11 +766,13 @@ async fn metrics_count_requests_and_bytes_by_route_template_and_status_and_time_
     let text = String::from_utf8(answer.body).expect("metrics are text");
 
     let route = |route: &str, status: u16| format!("route=\"{route}\",status=\"{status}\"");
-    let tiles = db.tile_ids().len() as f64;
+    let tiles = db.all_tile_ids().len() as f64;
+    assert_eq!(tiles, 5.0);
     for (labels, count) in [
         (route(HEIGHTS_ROUTE, 200), tiles),
         (route(HEIGHTS_ROUTE, 404), 1.0),
         (route(HEIGHTS_ROUTE, 400), 1.0),
+        (route(LEGACY_HEIGHTS_ROUTE, 308), 1.0),
         (route(TEXTURE_ROUTE, 200), 1.0),
         (route("unmatched", 404), 1.0),
         (route(routes::MANIFEST, 200), 1.0),
@@ -1007,12 +1128,17 @@ async fn a_tile_url_has_one_spelling_no_query_string_and_no_percent_encoding() {
     let texture = routes::texture(v, TileId::new(1, 0), 0);
     assert_eq!(get(&client, &server.url(&heights)).await.status, 200);
     assert_eq!(get(&client, &server.url(&texture)).await.status, 200);
+    let legacy = format!("/v1/{v}/tiles/1/0/heights");
     for respelled in [
         format!("{heights}?v=2"),
         format!("{heights}?"),
         format!("{texture}?cache-buster=1"),
         heights.replace("/tiles/1/", "/tiles/%31/"),
+        heights.replace("/levels/0/", "/levels/%30/"),
         texture.replace("/texture/0", "/texture/%30"),
+        // The single-level spelling is held to one spelling too before it is redirected.
+        format!("{legacy}?v=2"),
+        legacy.replace("/tiles/1/", "/tiles/%31/"),
     ] {
         let answer = get(&client, &server.url(&respelled)).await;
         assert_eq!(answer.status, 400, "{respelled} was served");
@@ -1050,6 +1176,71 @@ async fn a_tile_url_has_one_spelling_no_query_string_and_no_percent_encoding() {
     };
     assert_eq!(etag(&absolute), etag(&origin));
     assert!(etag(&origin).is_some(), "{origin}");
+}
+
+#[tokio::test]
+async fn a_single_level_tile_url_is_redirected_permanently_to_its_level_0_spelling() {
+    let db = synthetic();
+    let server = TestServer::start(db.dir());
+    let v = &db.manifest().content_version;
+    let no_redirects = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .expect("client");
+    let following = reqwest::Client::new();
+    let levels = db.manifest().texture.levels;
+    let mut redirects = 0;
+    for id in db.tile_ids() {
+        let mut pairs = vec![(
+            format!("/v1/{v}/tiles/{}/{}/heights", id.x, id.y),
+            routes::heights(v, id),
+            db.heights(id),
+        )];
+        for level in 0..levels {
+            pairs.push((
+                format!("/v1/{v}/tiles/{}/{}/texture/{level}", id.x, id.y),
+                routes::texture(v, id, level),
+                db.texture(id, level),
+            ));
+        }
+        for (legacy, target, bytes) in pairs {
+            for method in [Method::GET, Method::HEAD] {
+                let answer = fetch(
+                    &no_redirects,
+                    method.clone(),
+                    &server.url(&legacy),
+                    &[("origin", "https://viewer.example")],
+                )
+                .await;
+                // 308, not 301: the method is kept (RFC 9110 section 15.4.9).
+                assert_eq!(answer.status, 308, "{method} {legacy}");
+                assert_eq!(answer.header("location"), target, "{method} {legacy}");
+                // As cacheable as the tile: the content version in the URL pins both.
+                assert_eq!(
+                    answer.header("cache-control"),
+                    TILE_CACHE_CONTROL,
+                    "{method} {legacy}"
+                );
+                assert_eq!(
+                    answer.header("access-control-allow-origin"),
+                    "*",
+                    "{method} {legacy}: a browser may follow it"
+                );
+                redirects += 1;
+            }
+            // A client that follows redirects gets the tile's bytes.
+            let followed = get(&following, &server.url(&legacy)).await;
+            assert_eq!(followed.status, 200, "{legacy}");
+            assert!(followed.body == bytes, "{legacy}: body after the redirect");
+            assert_eq!(
+                followed.header("etag"),
+                quoted(&content_hash(bytes)),
+                "{legacy}"
+            );
+        }
+    }
+    // 4 tiles x (heights + 2 levels) x (GET, HEAD): refuse to pass on an empty grid.
+    assert_eq!(redirects, 24);
 }
 
 #[tokio::test]

@@ -8,6 +8,7 @@ mod flight;
 mod fuzz_corpora;
 mod hostile;
 mod http;
+mod levels;
 mod methods;
 mod render;
 mod round_trip;

@@ -6,7 +6,7 @@
 //!   buffer of every resident tile's coarse grid) drawn as one mesh with a pipeline of its
 //!   own, no per-tile draws;
 //! - [`OwnData`], progressive patches' shape: data of its own per tile (here the tile's
-//!   encoded heights again, hash-checked), asked of the scene and fetched by its fetcher.
+//!   tile blob again, hash-checked), asked of the scene and fetched by its fetcher.
 //!
 //! Both rank tiles by importance, so the scene refines their textures, and both hold bytes
 //! the scene's resident figure includes. Then a flight with GeoMipMaps and MapBlocks that
@@ -277,14 +277,19 @@ impl LodMethod for OwnMesh {
     fn tile_resident(&mut self, _gpu: &Gpu, id: TileId, heights: &Heights) {
         let cells = self.tile_size - 1;
         let step = cells / (GRID - 1);
+        // Resident tiles come from every level of the pyramid: a tile of level k has its
+        // samples 2^k level-0 samples apart.
+        let spacing = self
+            .spacing_m
+            .map(|s| s * plan::Layout::sample_step(id.level));
         let mut grid = Vec::with_capacity((GRID * GRID) as usize);
         for r in 0..GRID {
             for c in 0..GRID {
                 let (column, row) = ((c * step) as usize, (r * step) as usize);
                 grid.push([
-                    ((id.x * cells) as f64 + column as f64) as f32 * self.spacing_m[0] as f32,
+                    ((id.x * cells) as f64 + column as f64) as f32 * spacing[0] as f32,
                     heights.metres(column, row) as f32,
-                    ((id.y * cells) as f64 + row as f64) as f32 * self.spacing_m[1] as f32,
+                    ((id.y * cells) as f64 + row as f64) as f32 * spacing[1] as f32,
                 ]);
             }
         }
@@ -343,14 +348,8 @@ impl OwnData {
         OwnData {
             sources: with
                 .manifest
-                .tiles
-                .iter()
-                .map(|t| {
-                    (
-                        t.id(),
-                        (routes::heights(version, t.id()), t.heights.hash.clone()),
-                    )
-                })
+                .tiles()
+                .map(|(id, t)| (id, (routes::heights(version, id), t.hash.clone())))
                 .collect(),
             resident: HashSet::new(),
             data: HashMap::new(),
@@ -436,7 +435,7 @@ impl LodMethod for OwnData {
     }
 
     fn expected_tile_bytes(&self, tile: &TileRecord) -> u64 {
-        tile.heights.bytes
+        tile.bytes
     }
 
     fn shared_bytes(&self) -> MethodBytes {
@@ -583,12 +582,9 @@ fn a_method_with_its_own_pipeline_and_copy_of_the_terrain_draws_one_mesh_and_is_
 fn textures_follow_importance(scene: &Scene, camera: &Camera) -> (f64, f64) {
     let manifest = scene.manifest();
     let layout = plan::Layout::of(manifest);
-    let minima = vec![Vec::new(); manifest.tiles.len()];
     let candidates: Vec<plan::Candidate> = manifest
-        .tiles
-        .iter()
-        .zip(&minima)
-        .map(|(t, m)| plan::Candidate::new(t, m))
+        .tiles()
+        .map(|(id, t)| plan::Candidate::new(id, t, &[]))
         .collect();
     let visible: HashSet<TileId> =
         plan::visible_tiles(camera, f64::from(W) / f64::from(H), &layout, &candidates)
@@ -596,9 +592,9 @@ fn textures_follow_importance(scene: &Scene, camera: &Camera) -> (f64, f64) {
             .map(|i| candidates[i].id)
             .collect();
     let (mut seen, mut unseen) = (Vec::new(), Vec::new());
-    for t in &manifest.tiles {
-        if let Some(level) = scene.texture_level(t.id()) {
-            let list = if visible.contains(&t.id()) {
+    for (id, _) in manifest.tiles() {
+        if let Some(level) = scene.texture_level(id) {
+            let list = if visible.contains(&id) {
                 &mut seen
             } else {
                 &mut unseen
@@ -628,20 +624,20 @@ fn textures_follow_importance(scene: &Scene, camera: &Camera) -> (f64, f64) {
     (seen_mean, unseen_mean)
 }
 
-/// A limit holding every tile at its coarsest texture, what the method expects to hold for
-/// each, and a quarter of what their finer levels would take: textures compete.
+/// A limit holding every tile of every level at its coarsest texture, what the method
+/// expects to hold for each, and a quarter of what their finer levels would take (their
+/// sizes are in the tile blobs, fetched here): textures compete.
 fn competing_limit(server: &TestServer, per_tile: u64) -> u64 {
-    let manifest = tokio::runtime::Handle::current()
-        .block_on(
-            terrain_client::fetch::TileClient::new(server.base_url())
-                .expect("client")
-                .manifest(),
-        )
-        .expect("manifest");
+    let client = terrain_client::fetch::TileClient::new(server.base_url()).expect("client");
+    let handle = tokio::runtime::Handle::current();
+    let manifest = handle.block_on(client.manifest()).expect("manifest");
     let (mut base, mut finer) = (0, 0);
-    for t in &manifest.tiles {
+    for (id, t) in manifest.tiles() {
+        let tile = handle
+            .block_on(client.tile(&manifest, id))
+            .unwrap_or_else(|e| panic!("tile {id}: {e}"));
         base += terrain_client::scene::expected_tile_bytes(&manifest, t, 1).total() + per_tile;
-        finer += terrain_client::render::textures::extra_costs(&manifest, t, 1)
+        finer += terrain_client::render::textures::extra_costs(&manifest, &tile.texture, 1)
             .last()
             .copied()
             .unwrap_or(0);
@@ -670,12 +666,7 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
                 .manifest(),
         )
         .expect("manifest");
-    let largest = manifest
-        .tiles
-        .iter()
-        .map(|t| t.heights.bytes)
-        .max()
-        .unwrap_or(0);
+    let largest = manifest.tiles().map(|(_, t)| t.bytes).max().unwrap_or(0);
     let limit = competing_limit(&server, largest);
     let (mut scene, mut fetcher) = scene(&server, &gpu, limit, RenderConfig::default());
     scene.use_method(|with| Box::new(OwnData::new(with)));
@@ -704,7 +695,7 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
     let tiles = scene.resident_tiles();
     let geometry = scene.geometry_memory();
     // Every resident tile's own data arrived, fetched by the fetcher (a second GET of each
-    // heights blob), and is counted on the CPU.
+    // tile blob), and is counted on the CPU.
     let stats = fetcher.stats();
     assert!(
         stats.requests_started >= 2 * tiles,
@@ -714,10 +705,9 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
     assert!(drawn > 0, "tiles with their data are drawn");
     let manifest = &scene.manifest().clone();
     let own: u64 = manifest
-        .tiles
-        .iter()
-        .filter(|t| scene.texture_level(t.id()).is_some())
-        .map(|t| t.heights.bytes)
+        .tiles()
+        .filter(|(id, _)| scene.texture_level(*id).is_some())
+        .map(|(_, t)| t.bytes)
         .sum();
     assert!(own > 0);
     assert!(
@@ -813,9 +803,9 @@ fn geomipmaps_with_map_blocks_never_hold_more_than_the_limit_on_the_gpu_as_the_a
                             *w = (cpu, reported);
                         }
                     }
-                    for t in &scene.manifest().tiles {
-                        if let Some(level) = scene.texture_level(t.id()) {
-                            levels_seen.insert((t.id(), level));
+                    for (id, _) in scene.manifest().tiles() {
+                        if let Some(level) = scene.texture_level(id) {
+                            levels_seen.insert((id, level));
                         }
                     }
                 },
@@ -873,13 +863,11 @@ fn by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone
         true,
         Some((gpu.clone(), OFFSCREEN_FORMAT, RenderConfig::default())),
     );
+    // Level 0 alone, the strip-mask paper's square: with the pyramid, a level-0 tile of the
+    // belt still arriving is drawn only where the coarser levels are not fine enough, and
+    // from this height (30 km) no such tile was drawn outside the squares in 3000 frames.
+    scene.use_levels(false);
     let mut fetcher = connection.fetcher;
-    let pager = terrain_client::page::PagerConfig {
-        columns: manifest.grid.columns,
-        rows: manifest.grid.rows,
-        memory_limit: limit,
-        nearest_when_outside: true,
-    };
     let target = Offscreen::new(&gpu, W, H);
     let extent = manifest.extent_m;
     // Over the north-west corner, high enough to see every tile.
@@ -901,10 +889,20 @@ fn by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone
         let update = scene
             .update(&mut fetcher, frame, camera.position)
             .expect("update");
-        let decision = update.decision;
-        let square: HashSet<TileId> =
-            terrain_client::page::square_tiles(&pager, decision.current, decision.complete_belts)
-                .collect();
+        // Every level used pages its own square: the square is the union of theirs (here
+        // level 0's alone), each in its level's numbering.
+        let square: HashSet<TileId> = update
+            .levels
+            .iter()
+            .flat_map(|l| {
+                terrain_client::page::square_tiles(
+                    &l.pager,
+                    l.decision.current,
+                    l.decision.complete_belts,
+                )
+                .map(|id| id.with_level(l.level))
+            })
+            .collect();
         let every = drawn(&mut scene);
         if every.is_subset(&square) {
             // Nothing resident outside the square yet (or the whole grid is the square).

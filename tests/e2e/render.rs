@@ -27,10 +27,19 @@ fn runtime() -> tokio::runtime::Runtime {
         .expect("tokio runtime")
 }
 
-/// Every tile of jacksboro, fetched from a real server: heights and all texture levels.
+/// Every tile of jacksboro's level 0 (the full-resolution grid these tests draw the methods
+/// on), fetched from a real server: heights, mask errors and all texture levels.
 struct Terrain {
     manifest: Manifest,
-    tiles: Vec<(TileId, terrain_shared::Heights, Vec<image::RgbaImage>)>,
+    tiles: Vec<Fetched>,
+}
+
+struct Fetched {
+    id: TileId,
+    heights: terrain_shared::Heights,
+    /// Per mask level, its error (from the tile blob).
+    mask_errors_m: Vec<f32>,
+    textures: Vec<image::RgbaImage>,
 }
 
 fn fetch_jacksboro(dir: &Path) -> Terrain {
@@ -40,20 +49,28 @@ fn fetch_jacksboro(dir: &Path) -> Terrain {
         let client = TileClient::new(server.base_url()).expect("client");
         let manifest = client.manifest().await.expect("manifest");
         let mut tiles = Vec::new();
-        for record in &manifest.tiles {
-            let id = record.id();
-            let heights = client.heights(&manifest, id).await.expect("heights");
-            let mut levels = Vec::new();
-            for level in 0..record.texture.len() as u32 {
-                let bytes = client.texture(&manifest, id, level).await.expect("texture");
-                levels.push(
+        for (id, _) in manifest.tiles().filter(|(id, _)| id.level == 0) {
+            let tile = client.tile(&manifest, id).await.expect("tile");
+            let mut textures = Vec::new();
+            for (level, blob) in tile.texture.iter().enumerate() {
+                let bytes = client
+                    .texture(&manifest, id, level as u32, Some(blob))
+                    .await
+                    .expect("texture");
+                textures.push(
                     image::load_from_memory(&bytes)
                         .expect("texture decodes")
                         .into_rgba8(),
                 );
             }
-            tiles.push((id, heights, levels));
+            tiles.push(Fetched {
+                id,
+                heights: tile.heights,
+                mask_errors_m: tile.mask_errors_m,
+                textures,
+            });
         }
+        assert_eq!(tiles.len(), manifest.levels[0].tiles.len());
         Terrain { manifest, tiles }
     })
 }
@@ -62,19 +79,23 @@ fn layout(manifest: &Manifest) -> Layout {
     Layout::of(manifest)
 }
 
-fn candidates<'a>(manifest: &Manifest, minima: &'a [Vec<f32>]) -> Vec<Candidate<'a>> {
-    manifest
+/// The candidates of `terrain`'s tiles, with the error minima `minima` (one per tile).
+fn candidates<'a>(terrain: &Terrain, minima: &'a [Vec<f32>]) -> Vec<Candidate<'a>> {
+    terrain
         .tiles
         .iter()
         .zip(minima)
-        .map(|(t, m)| Candidate::new(t, m))
+        .map(|(t, m)| {
+            let record = terrain.manifest.tile(t.id).expect("in grid");
+            Candidate::new(t.id, record, m)
+        })
         .collect()
 }
 
 /// The renderer and the strip-mask method drawing given plans of jacksboro's tiles.
 struct Painter<'a> {
     gpu: &'a Gpu,
-    manifest: &'a Manifest,
+    terrain: &'a Terrain,
     renderer: Renderer,
     method: StripMasks,
 }
@@ -89,11 +110,11 @@ impl<'a> Painter<'a> {
     ) -> Painter<'a> {
         let format = terrain_client::render::offscreen::OFFSCREEN_FORMAT;
         let mut renderer = Renderer::new(gpu, format, layout(&terrain.manifest));
-        for (id, heights, levels) in &terrain.tiles {
+        for tile in &terrain.tiles {
             renderer
                 .tiles
-                .upload_tile(*id, std::sync::Arc::new(heights.clone()));
-            textures(&mut renderer.tiles, *id, levels);
+                .upload_tile(tile.id, std::sync::Arc::new(tile.heights.clone()));
+            textures(&mut renderer.tiles, tile.id, &tile.textures);
         }
         let method = StripMasks::new(
             &MethodConfig {
@@ -106,7 +127,7 @@ impl<'a> Painter<'a> {
         );
         Painter {
             gpu,
-            manifest: &terrain.manifest,
+            terrain,
             renderer,
             method,
         }
@@ -121,9 +142,9 @@ impl<'a> Painter<'a> {
 
     fn draw(&mut self, camera: &Camera, draws: &[Draw], filler: CrackFiller) -> image::RgbaImage {
         let target = Offscreen::new(self.gpu, WIDTH, HEIGHT);
-        let minima = vec![Vec::new(); self.manifest.tiles.len()];
-        let tiles = candidates(self.manifest, &minima);
-        let layout = layout(self.manifest);
+        let minima = vec![Vec::new(); self.terrain.tiles.len()];
+        let tiles = candidates(self.terrain, &minima);
+        let layout = layout(&self.terrain.manifest);
         let mut frame = self.renderer.begin_frame(&target.view, camera);
         self.method
             .draw_levels(&mut frame, &layout, &tiles, draws, filler);
@@ -162,12 +183,11 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
     let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
     let mut painter = Painter::finest(&gpu, &terrain);
     let minima: Vec<Vec<f32>> = terrain
-        .manifest
         .tiles
         .iter()
         .map(|t| suffix_minima(&t.mask_errors_m))
         .collect();
-    let tiles = candidates(&terrain.manifest, &minima);
+    let tiles = candidates(&terrain, &minima);
     for (name, camera) in cameras() {
         // A fixed budget: golden images must not depend on the machine's speed.
         let plan = plan_frame(
@@ -275,7 +295,7 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
         Camera::looking_at([15000.0, 28000.0, 1500.0], [15000.0, 8000.0, 500.0]),
     );
     for (name, camera) in crack_cameras {
-        let all: Vec<TileId> = terrain.manifest.tiles.iter().map(|t| t.id()).collect();
+        let all: Vec<TileId> = terrain.tiles.iter().map(|t| t.id).collect();
         // The reference: every tile at the finest mask, no filler: no crack anywhere.
         let finest: Vec<Draw> = all.iter().map(|&id| Draw { id, level: 0 }).collect();
         let reference = painter.draw(&camera, &finest, CrackFiller::None);
@@ -363,12 +383,11 @@ fn a_rendered_flight_draws_within_its_budgets_and_writes_frames_csv_and_charts()
     let server = TestServer::start(&report.out);
     let expected: u64 = report
         .manifest
-        .tiles
-        .iter()
-        .map(|t| terrain_client::flight::expected_tile_bytes(&report.manifest, t, 1).total())
+        .tiles()
+        .map(|(_, t)| terrain_client::flight::expected_tile_bytes(&report.manifest, t, 1).total())
         .sum();
-    // Room for every tile at its coarsest texture and a little more: finer texture levels
-    // must fit in what is left.
+    // Room for every tile of every level at its coarsest texture and a little more: finer
+    // texture levels must fit in what is left.
     let memory = expected * 12 / 10 * 100 / 90;
     let mut stream = StreamArgs::new(server.base_url(), Some(MemorySize(memory)));
     stream.concurrency = 4;
@@ -490,7 +509,7 @@ fn textures_refined_and_coarsened_on_the_gpu_render_as_if_uploaded_whole() {
     let draws: Vec<Draw> = terrain
         .tiles
         .iter()
-        .map(|(id, _, _)| Draw { id: *id, level: 4 })
+        .map(|t| Draw { id: t.id, level: 4 })
         .collect();
     let render_with = |levels_of: &dyn Fn(&mut TileStore, TileId, &[image::RgbaImage])| {
         Painter::new(&gpu, &terrain, levels_of).draw(&camera, &draws, CrackFiller::PlanarShadow)
@@ -573,49 +592,68 @@ fn the_padding_of_the_last_tiles_is_never_drawn_whatever_the_filler() {
         let extent = manifest.extent_m;
         // The last column and row of tiles are padded: the grid spans more than the DEM.
         let cells = f64::from(manifest.tile_size - 1);
-        assert!(f64::from(manifest.grid.columns) * cells * manifest.spacing_m[0] > extent[0]);
-        assert!(f64::from(manifest.grid.rows) * cells * manifest.spacing_m[1] > extent[1]);
+        let grid = manifest.grid(0);
+        assert!(f64::from(grid.columns) * cells * manifest.spacing_m[0] > extent[0]);
+        assert!(f64::from(grid.rows) * cells * manifest.spacing_m[1] > extent[1]);
         // From beyond the south-east corner, looking back at it.
         let camera = Camera::looking_at(
             [extent[0] + 6000.0, extent[1] + 7000.0, 3500.0],
             [extent[0] - 6000.0, extent[1] - 6000.0, 400.0],
         );
-        let centre = session.centre();
-        assert!(
-            session
-                .settle(centre, &camera, std::time::Duration::from_secs(120))
-                .await
-                .expect("loads")
-        );
         let tolerance = 0.5 * manifest.spacing_m[0].min(manifest.spacing_m[1]);
-        for filler in [
-            CrackFiller::PlanarShadow,
-            CrackFiller::Skirts,
-            CrackFiller::None,
-        ] {
-            let (capture, _) = session
-                .capture(&camera, RenderConfig { filler, ..config })
-                .expect("capture");
-            let past = pixels_past_the_edge(&capture, extent, tolerance);
-            let terrain = capture.terrain_pixels();
-            eprintln!(
-                "{}: {terrain} terrain pixels, {past} past the edge",
-                filler.name()
-            );
+        // Level 0 alone, the golden images' single resolution, then the whole pyramid (the
+        // scene's default: the far side of the corner is drawn from coarser levels, whose
+        // last tiles are padded too).
+        for levels in [false, true] {
+            session.scene.use_levels(levels);
+            let centre = session.centre();
             assert!(
-                terrain > u64::from(WIDTH * HEIGHT / 10),
-                "the corner is in view: {terrain} pixels"
+                session
+                    .settle(centre, &camera, std::time::Duration::from_secs(120))
+                    .await
+                    .expect("loads")
             );
-            assert_eq!(
-                past,
-                0,
-                "{}: terrain drawn past the DEM's edge",
-                filler.name()
-            );
-            golden::compare(
-                &format!("jacksboro-corner-{}", filler.name()),
-                &capture.color,
-            );
+            for filler in [
+                CrackFiller::PlanarShadow,
+                CrackFiller::Skirts,
+                CrackFiller::None,
+            ] {
+                let (capture, report) = session
+                    .capture(&camera, RenderConfig { filler, ..config })
+                    .expect("capture");
+                let past = pixels_past_the_edge(&capture, extent, tolerance);
+                let terrain = capture.terrain_pixels();
+                let coarser = report.plan.draws.iter().filter(|d| d.id.level > 0).count();
+                let name = format!("jacksboro-corner-{}", filler.name());
+                eprintln!(
+                    "{} ({}): {terrain} terrain pixels, {past} past the edge, {coarser} of {} tiles drawn above level 0",
+                    filler.name(),
+                    if levels { "every level" } else { "level 0" },
+                    report.plan.draws.len()
+                );
+                assert!(
+                    terrain > u64::from(WIDTH * HEIGHT / 10),
+                    "the corner is in view: {terrain} pixels"
+                );
+                assert_eq!(
+                    past,
+                    0,
+                    "{}: terrain drawn past the DEM's edge",
+                    filler.name()
+                );
+                if levels {
+                    assert!(coarser > 0, "{}: the far side is drawn coarser", filler.name());
+                    if let Some(share) = golden::differing_share(&name, &capture.color) {
+                        eprintln!(
+                            "{name} with every level: {:.2}% of the pixels differ from level 0's golden image",
+                            100.0 * share
+                        );
+                    }
+                } else {
+                    assert_eq!(coarser, 0, "{}: level 0 alone", filler.name());
+                    golden::compare(&name, &capture.color);
+                }
+            }
         }
         session.close();
     });

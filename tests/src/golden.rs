@@ -58,6 +58,19 @@ pub fn differing_pixels(a: &image::RgbaImage, b: &image::RgbaImage) -> u64 {
         .count() as u64
 }
 
+/// The share of `actual`'s pixels that differ from `tests/golden/NAME.png` (as [`compare`]
+/// counts them), or `None` when there is no golden image of that size: for a frame that
+/// may legitimately differ from it, to say by how much.
+pub fn differing_share(name: &str, actual: &image::RgbaImage) -> Option<f64> {
+    let golden = image::open(golden_dir().join(format!("{name}.png")))
+        .ok()?
+        .into_rgba8();
+    (golden.dimensions() == actual.dimensions()).then(|| {
+        let total = u64::from(actual.width()) * u64::from(actual.height());
+        differing_pixels(&golden, actual) as f64 / total as f64
+    })
+}
+
 /// Compares `actual` with `tests/golden/NAME.png` (see the module docs).
 pub fn compare(name: &str, actual: &image::RgbaImage) {
     let golden_path = golden_dir().join(format!("{name}.png"));
@@ -88,13 +101,13 @@ pub fn compare(name: &str, actual: &image::RgbaImage) {
     let total = u64::from(actual.width()) * u64::from(actual.height());
     let share = differing as f64 / total as f64;
     if share > MAX_DIFFERING_SHARE {
-        let out = write_failure(name, actual, Some(&golden));
+        write_failure(name, actual, Some(&golden));
         panic!(
             "{name}: {differing} of {total} pixels ({:.2}%) differ from {} by more than {CHANNEL_TOLERANCE} (allowed {:.2}%); see {}-actual.png and -diff.png",
             100.0 * share,
             golden_path.display(),
             100.0 * MAX_DIFFERING_SHARE,
-            out.with_extension("").display()
+            failure_dir().join(name).display()
         );
     }
 }

@@ -3,7 +3,8 @@
 //!
 //! A 2x2 grid of 17x17-sample tiles whose height codes follow a known formula
 //! ([`SyntheticDb::codes`]) over the whole raster, so neighbouring tiles agree on their
-//! shared edge, and two tiny PNG texture levels per tile (4 and 8 texels a side).
+//! shared edge, and two tiny PNG texture levels per tile (4 and 8 texels a side); above it,
+//! level 1 of the pyramid, one tile of every other sample.
 //! [`SyntheticDb::write_with_large_texture`] additionally replaces the finest texture of
 //! one tile by many pseudo-random bytes: not a decodable image, only a body large enough
 //! that sending it takes a client's cooperation (transport tests).
@@ -12,10 +13,8 @@ use anyhow::Context;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 use terrain_server::db::DbWriter;
-use terrain_shared::manifest::{
-    FORMAT, GridSize, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource, VERSION,
-};
-use terrain_shared::{Heights, Manifest, TileId, TileRecord};
+use terrain_shared::manifest::{GridSize, ImageFormat, RasterSize, TextureInfo, TextureSource};
+use terrain_shared::{Blob, Heights, Manifest, TileBlob, TileId, TileRecord};
 
 /// Samples per tile side (`2^4 + 1`).
 pub const TILE_SIZE: u32 = 17;
@@ -39,7 +38,7 @@ pub struct SyntheticDb {
     _root: tempfile::TempDir,
     dir: PathBuf,
     manifest: Manifest,
-    /// Per tile in manifest order, the encoded heights.
+    /// Per tile in manifest order (every level), the tile blob.
     heights: Vec<Vec<u8>>,
     /// Per tile in manifest order, the texture levels coarsest first.
     textures: Vec<Vec<Vec<u8>>>,
@@ -66,29 +65,46 @@ impl SyntheticDb {
         &self.manifest
     }
 
-    /// Every tile of the grid, row-major.
+    /// Every tile of level 0, row-major.
     pub fn tile_ids(&self) -> Vec<TileId> {
-        self.manifest.tiles.iter().map(TileRecord::id).collect()
+        self.manifest
+            .tiles()
+            .filter(|(id, _)| id.level == 0)
+            .map(|(id, _)| id)
+            .collect()
     }
 
-    /// The encoded heights of `id` as written.
+    /// Every tile of every level, in manifest order.
+    pub fn all_tile_ids(&self) -> Vec<TileId> {
+        self.manifest.tiles().map(|(id, _)| id).collect()
+    }
+
+    /// The tile blob of `id` as written (what its heights route serves).
     pub fn heights(&self, id: TileId) -> &[u8] {
-        &self.heights[index(id)]
+        &self.heights[self.index(id)]
     }
 
     /// Texture `level` of `id` as written.
     pub fn texture(&self, id: TileId, level: u32) -> &[u8] {
-        &self.textures[index(id)][level as usize]
+        &self.textures[self.index(id)][level as usize]
     }
 
-    /// The height codes of tile `id`: `1000 + 3 gx + 5 gy + (gx gy mod 7)` at global sample
-    /// `(gx, gy)`, a tilted plane with some texture so the codec's residuals are not all zero.
+    fn index(&self, id: TileId) -> usize {
+        self.manifest.index(id).expect("a tile of the synthetic grid")
+    }
+
+    /// The height codes of tile `id`: `1000 + 3 gx + 5 gy + (gx gy mod 7)` at level-0
+    /// sample `(gx, gy)` (a tile of level `k` keeps every `2^k`-th), a tilted plane with some
+    /// texture so the codec's residuals are not all zero.
     pub fn codes(id: TileId) -> Heights {
         let step = TILE_SIZE - 1;
         let mut codes = Vec::with_capacity((TILE_SIZE * TILE_SIZE) as usize);
         for y in 0..TILE_SIZE {
             for x in 0..TILE_SIZE {
-                let (gx, gy) = ((id.x * step + x) as i32, (id.y * step + y) as i32);
+                let (gx, gy) = (
+                    ((id.x * step + x) << id.level) as i32,
+                    ((id.y * step + y) << id.level) as i32,
+                );
                 codes.push(1000 + 3 * gx + 5 * gy + (gx * gy) % 7);
             }
         }
@@ -106,84 +122,70 @@ impl SyntheticDb {
         let dir = root.path().join("synthetic");
         let mut writer = DbWriter::create(&dir, false)?;
         let mask_levels = terrain_shared::mask::level_count(TILE_SIZE);
-        let (mut records, mut heights, mut textures) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut min_code, mut max_code) = (i32::MAX, i32::MIN);
-
-        for y in 0..GRID.rows {
-            for x in 0..GRID.columns {
-                let id = TileId::new(x, y);
-                let tile = Self::codes(id);
-                let (low, high) = tile.code_range();
-                min_code = min_code.min(low);
-                max_code = max_code.max(high);
-                let encoded = tile.encode()?;
-                let heights_blob = writer.add_heights(&encoded)?;
-
-                let mut levels = Vec::new();
-                let mut texture_blobs = Vec::new();
-                for level in 0..TEXTURE_LEVELS {
-                    let bytes = match large_texture {
-                        Some(size) if (id, level) == LARGE_TEXTURE => pseudo_random_bytes(size),
-                        _ => texture_png(id, 4 << level)?,
-                    };
-                    texture_blobs.push(writer.add_texture(&bytes)?);
-                    levels.push(bytes);
-                }
-
-                let metres = |code: i32| (OFFSET_M + QUANTUM_M * f64::from(code)) as f32;
-                records.push(TileRecord {
-                    x,
-                    y,
-                    valid: [TILE_SIZE, TILE_SIZE],
-                    min_m: metres(low),
-                    max_m: metres(high),
-                    roughness_m: 1.0,
-                    // Level 0 is the full tile; the others are plausible, not computed.
-                    mask_errors_m: (0..mask_levels).map(|level| level as f32 * 0.25).collect(),
-                    heights: heights_blob,
-                    texture: texture_blobs,
-                });
-                heights.push(encoded);
-                textures.push(levels);
-            }
-        }
-
-        let raster = (TILE_SIZE - 1) * GRID.columns + 1;
-        let spacing = 10.0;
-        let mut manifest = Manifest {
-            format: FORMAT.to_string(),
-            version: VERSION,
-            dataset: "synthetic".to_string(),
-            content_version: String::new(),
-            raster: RasterSize {
-                width: raster,
-                height: (TILE_SIZE - 1) * GRID.rows + 1,
-            },
-            tile_size: TILE_SIZE,
-            grid: GRID,
-            spacing_m: [spacing, spacing],
-            extent_m: [
-                f64::from(raster - 1) * spacing,
-                f64::from((TILE_SIZE - 1) * GRID.rows) * spacing,
-            ],
-            heights: HeightsInfo {
-                codec: terrain_shared::heights::CODEC_NAME.to_string(),
-                quantum_m: QUANTUM_M,
-                offset_m: OFFSET_M,
-                min_m: OFFSET_M + QUANTUM_M * f64::from(min_code),
-                max_m: OFFSET_M + QUANTUM_M * f64::from(max_code),
-                filled_voids: 0,
-            },
-            texture: TextureInfo {
-                format: ImageFormat::Png,
-                source: TextureSource::Generated,
-                size: 4 << (TEXTURE_LEVELS - 1),
-                levels: TEXTURE_LEVELS,
-            },
-            georeference: None,
-            mask_levels,
-            tiles: records,
+        let raster = RasterSize {
+            width: (TILE_SIZE - 1) * GRID.columns + 1,
+            height: (TILE_SIZE - 1) * GRID.rows + 1,
         };
+        let texture = TextureInfo {
+            format: ImageFormat::Png,
+            source: TextureSource::Generated,
+            size: 4 << (TEXTURE_LEVELS - 1),
+            levels: TEXTURE_LEVELS,
+            level_bytes: Vec::new(),
+        };
+        let placeholder = |_| TileRecord {
+            hash: "0".repeat(32),
+            bytes: 0,
+            coarsest_texture_bytes: 0,
+            min_m: 0.0,
+            max_m: 0.0,
+            roughness_m: 0.0,
+        };
+        let mut manifest =
+            Manifest::with_geometry("synthetic", raster, TILE_SIZE, [10.0, 10.0], texture, placeholder);
+        let (mut heights, mut textures) = (Vec::new(), Vec::new());
+        let (mut min_code, mut max_code) = (i32::MAX, i32::MIN);
+        let ids: Vec<TileId> = manifest.tiles().map(|(id, _)| id).collect();
+        for id in ids {
+            let tile = Self::codes(id);
+            let (low, high) = tile.code_range();
+            min_code = min_code.min(low);
+            max_code = max_code.max(high);
+            let mut levels = Vec::new();
+            for level in 0..TEXTURE_LEVELS {
+                levels.push(match large_texture {
+                    Some(size) if (id, level) == LARGE_TEXTURE => pseudo_random_bytes(size),
+                    _ => texture_png(id, 4 << level)?,
+                });
+            }
+            let blob = TileBlob {
+                // Level 0 is the full tile; the others are plausible, not computed.
+                mask_errors_m: (0..mask_levels).map(|level| level as f32 * 0.25).collect(),
+                texture: levels.iter().map(|l| Blob::of(l)).collect(),
+                heights: tile.encode()?,
+            }
+            .encode();
+            let stored = writer.add_heights(&blob)?;
+            for (l, level) in levels.iter().enumerate() {
+                manifest.texture.level_bytes[l] += writer.add_texture(level)?.bytes;
+            }
+            let metres = |code: i32| (OFFSET_M + QUANTUM_M * f64::from(code)) as f32;
+            let level = &mut manifest.levels[id.level as usize];
+            level.tiles[(id.y * level.grid.columns + id.x) as usize] = TileRecord {
+                hash: stored.hash,
+                bytes: stored.bytes,
+                coarsest_texture_bytes: levels[0].len() as u64,
+                min_m: metres(low),
+                max_m: metres(high),
+                roughness_m: 1.0,
+            };
+            heights.push(blob);
+            textures.push(levels);
+        }
+        manifest.heights.quantum_m = QUANTUM_M;
+        manifest.heights.offset_m = OFFSET_M;
+        manifest.heights.min_m = OFFSET_M + QUANTUM_M * f64::from(min_code);
+        manifest.heights.max_m = OFFSET_M + QUANTUM_M * f64::from(max_code);
         manifest.content_version = manifest.compute_content_version();
         manifest.validate()?;
         writer.finish(&manifest)?;
@@ -197,17 +199,13 @@ impl SyntheticDb {
     }
 }
 
-fn index(id: TileId) -> usize {
-    (id.y * GRID.columns + id.x) as usize
-}
-
 /// A `size`-texel PNG whose colour encodes the tile, so levels and tiles all differ.
 fn texture_png(id: TileId, size: u32) -> anyhow::Result<Vec<u8>> {
     let image = image::RgbImage::from_fn(size, size, |x, y| {
         image::Rgb([
             (id.x * 100 + x * 10) as u8,
             (id.y * 100 + y * 10) as u8,
-            size as u8,
+            (size + 40 * id.level) as u8,
         ])
     });
     let mut png = Cursor::new(Vec::new());
