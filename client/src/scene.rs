@@ -806,7 +806,22 @@ impl Scene {
             for id in evict {
                 self.drop_tile(id);
             }
-            for (rank, id) in tag(&decision.fetch).into_iter().enumerate() {
+            // The pager always fetches the current tile, even alone over its share (the
+            // paper's rule). With levels, only the coarsest level used may: a finer level
+            // whose share holds not even that tile waits, or the levels together would
+            // overspend the limit by a tile each.
+            let top = level + 1 == self.levels_used;
+            let lone_over = !top
+                && decision.fetch.len() == 1
+                && decision.used_bytes
+                    + self.expected_bytes[range.start + pager.index(decision.fetch[0])]
+                    > pager.memory_limit;
+            let fetch = if lone_over {
+                Vec::new()
+            } else {
+                tag(&decision.fetch)
+            };
+            for (rank, id) in fetch.into_iter().enumerate() {
                 // A tile that failed waits out its delay; one given up is not asked for again.
                 if let Some(failing) = self.failing.get(&id) {
                     if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP
