@@ -740,11 +740,10 @@ impl Job {
     /// had moved on before it landed. The texture's hash is in the tile blob, so it is
     /// checked when both are in; a texture that fails is fetched again, verified.
     async fn tile(&self, started: Instant) -> Result<FetchEvent, (FetchError, u32)> {
-        let (((tile, heights_bytes, decode), heights_tries), (texture, texture_tries)) =
-            tokio::try_join!(
-                self.with_retries(Part::Heights, || self.heights()),
-                self.with_retries(Part::Texture(0), || self.texture(0, None)),
-            )?;
+        let (((tile, heights_bytes, decode), heights_tries), (texture, texture_tries)) = tokio::try_join!(
+            self.with_retries(Part::Heights, || self.heights()),
+            self.with_retries(Part::Texture(0), || self.texture(0, None)),
+        )?;
         let Some(coarsest) = tile.texture.first() else {
             return Err((
                 FetchError::NoSuchTextureLevel {

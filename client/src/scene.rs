@@ -824,8 +824,7 @@ impl Scene {
             for (rank, id) in fetch.into_iter().enumerate() {
                 // A tile that failed waits out its delay; one given up is not asked for again.
                 if let Some(failing) = self.failing.get(&id) {
-                    if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP
-                        || now < failing.retry_at
+                    if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP || now < failing.retry_at
                     {
                         continue;
                     }
@@ -857,12 +856,17 @@ impl Scene {
         let decision = levels
             .first()
             .map(|l| l.decision.clone())
-            .unwrap_or_else(|| page::decide(&self.pager, &PagerView {
-                viewpoint: [0.0, 0.0],
-                resident_bytes: &[],
-                in_flight: &[],
-                expected_bytes: None,
-            }));
+            .unwrap_or_else(|| {
+                page::decide(
+                    &self.pager,
+                    &PagerView {
+                        viewpoint: [0.0, 0.0],
+                        resident_bytes: &[],
+                        in_flight: &[],
+                        expected_bytes: None,
+                    },
+                )
+            });
         self.request_method_data(fetcher, frame);
         let texture_budget = self.share_textures(fetcher, frame);
         Ok(Update {
@@ -1286,11 +1290,7 @@ impl Scene {
             let extent = self.layout.tile_extent_m_at(level);
             let (tx, ty) = (position[0] / extent[0], position[1] / extent[1]);
             let grid = self.manifest.grid(level);
-            if tx < 0.0
-                || ty < 0.0
-                || tx >= f64::from(grid.columns)
-                || ty >= f64::from(grid.rows)
-            {
+            if tx < 0.0 || ty < 0.0 || tx >= f64::from(grid.columns) || ty >= f64::from(grid.rows) {
                 return None;
             }
             let id = TileId::at(level, tx as u32, ty as u32);

@@ -276,10 +276,10 @@ fn run() -> anyhow::Result<()> {
     let root = work.path().join("www");
     let mut paths = Vec::new();
     let mut total_bytes = 0u64;
-    for tile in &manifest.tiles {
-        let path = routes::heights(version, tile.id());
+    for (id, _) in manifest.tiles() {
+        let path = routes::heights(version, id);
         let blob = db
-            .heights(tile.id())
+            .heights(id)
             .context("a manifest tile without heights")?;
         let file = root.join(path.trim_start_matches('/'));
         if let Some(parent) = file.parent() {

@@ -143,7 +143,9 @@ impl TileDb {
                 id,
                 source,
             })?;
-            if head.texture.len() != levels || head.mask_errors_m.len() != manifest.mask_levels as usize {
+            if head.texture.len() != levels
+                || head.mask_errors_m.len() != manifest.mask_levels as usize
+            {
                 return Err(DbError::TileBlob {
                     pack: heights_path.clone(),
                     id,
@@ -160,8 +162,12 @@ impl TileDb {
                     .map(|(level, blob)| (id, format!("texture level {level}"), blob)),
             );
         }
-        let flat_textures =
-            slice_pack(&textures_pack, &textures_path, texture_blobs.into_iter(), verify)?;
+        let flat_textures = slice_pack(
+            &textures_pack,
+            &textures_path,
+            texture_blobs.into_iter(),
+            verify,
+        )?;
         let mut flat = flat_textures.into_iter();
         let textures = (0..heights.len())
             .map(|_| flat.by_ref().take(levels).collect())

@@ -174,7 +174,9 @@ pub struct TileRecord {
 type RecordRow = (String, u64, u64, f32, f32, f32);
 
 impl From<RecordRow> for TileRecord {
-    fn from((hash, bytes, coarsest_texture_bytes, min_m, max_m, roughness_m): RecordRow) -> TileRecord {
+    fn from(
+        (hash, bytes, coarsest_texture_bytes, min_m, max_m, roughness_m): RecordRow,
+    ) -> TileRecord {
         TileRecord {
             hash,
             bytes,
@@ -346,9 +348,11 @@ impl Manifest {
                     grid.rows
                 ));
             }
-            if let Some(i) = level.tiles.iter().position(|t| {
-                t.hash.len() != 32 || !t.hash.bytes().all(|b| b.is_ascii_hexdigit())
-            }) {
+            if let Some(i) = level
+                .tiles
+                .iter()
+                .position(|t| t.hash.len() != 32 || !t.hash.bytes().all(|b| b.is_ascii_hexdigit()))
+            {
                 return bad(format!("level {k}: tile record {i} has no 32-digit hash"));
             }
         }
@@ -369,8 +373,7 @@ impl Manifest {
                 self.extent_m
             ));
         }
-        if self.texture.levels == 0 || self.texture.levels > 16 || self.texture.level_size(0) == 0
-        {
+        if self.texture.levels == 0 || self.texture.levels > 16 || self.texture.level_size(0) == 0 {
             return bad("texture has no levels, or more than 16".into());
         }
         if self.texture.level_bytes.len() != self.texture.levels as usize {
@@ -435,7 +438,10 @@ impl Manifest {
             mask_levels: crate::mask::level_count(tile_size),
             levels,
         };
-        manifest.texture.level_bytes.resize(manifest.texture.levels as usize, 0);
+        manifest
+            .texture
+            .level_bytes
+            .resize(manifest.texture.levels as usize, 0);
         manifest.content_version = manifest.compute_content_version();
         manifest
     }
@@ -452,9 +458,13 @@ impl Manifest {
 
     /// The tile grid of `level` (an empty grid past the last level).
     pub fn grid(&self, level: u32) -> GridSize {
-        self.levels
-            .get(level as usize)
-            .map_or(GridSize { columns: 0, rows: 0 }, |l| l.grid)
+        self.levels.get(level as usize).map_or(
+            GridSize {
+                columns: 0,
+                rows: 0,
+            },
+            |l| l.grid,
+        )
     }
 
     /// Metres between the samples of `level`: level 0's spacing times `2^level`.
@@ -587,7 +597,14 @@ mod tests {
         let r = |width, height| RasterSize { width, height };
         assert_eq!(
             level_rasters(r(4097, 4097), 129),
-            [r(4097, 4097), r(2049, 2049), r(1025, 1025), r(513, 513), r(257, 257), r(129, 129)]
+            [
+                r(4097, 4097),
+                r(2049, 2049),
+                r(1025, 1025),
+                r(513, 513),
+                r(257, 257),
+                r(129, 129)
+            ]
         );
         // 344 - 1 = 343 cells, odd: 172 at level 1 (its last sample one past, padded), 86
         // at level 2.

@@ -136,7 +136,10 @@ impl TileBlob {
         }
         let mut levels = Vec::with_capacity(texture);
         for _ in 0..texture {
-            let hash: String = bytes[at..at + 16].iter().map(|b| format!("{b:02x}")).collect();
+            let hash: String = bytes[at..at + 16]
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect();
             let size = u32::from_le_bytes([
                 bytes[at + 16],
                 bytes[at + 17],

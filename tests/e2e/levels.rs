@@ -40,23 +40,35 @@ fn manifest_bytes_per_tile(server: &TestServer) -> (usize, usize, f64) {
 #[test]
 fn the_manifest_sends_at_most_96_bytes_a_tile_gzipped() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let mut checked = vec![("jacksboro, tiles of 33", serve(&jacksboro(), &tmp.path().join("j"), 33))];
+    let mut checked = vec![(
+        "jacksboro, tiles of 33",
+        serve(&jacksboro(), &tmp.path().join("j"), 33),
+    )];
     if let Some(himalaya) = kit_file("manifest size", "himalaya_4097/g10g_himalaya_4097.png") {
-        checked.push(("himalaya_4097", serve(&himalaya, &tmp.path().join("h"), 129)));
+        checked.push((
+            "himalaya_4097",
+            serve(&himalaya, &tmp.path().join("h"), 129),
+        ));
     }
     for (name, server) in &checked {
         let (sent, tiles, per_tile) = manifest_bytes_per_tile(server);
-        eprintln!("{name}: manifest {sent} bytes gzipped for {tiles} tiles: {per_tile:.1} bytes a tile");
+        eprintln!(
+            "{name}: manifest {sent} bytes gzipped for {tiles} tiles: {per_tile:.1} bytes a tile"
+        );
         assert!(
             per_tile <= MAX_MANIFEST_BYTES_PER_TILE,
             "{name}: {per_tile:.1} bytes a tile ({sent} for {tiles})"
         );
-        assert!(server.state().db.manifest().level_count() > 1, "{name}: a pyramid");
+        assert!(
+            server.state().db.manifest().level_count() > 1,
+            "{name}: a pyramid"
+        );
     }
 }
 
 #[test]
-fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stays_under_the_limit() {
+fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stays_under_the_limit()
+{
     let tmp = tempfile::tempdir().expect("tempdir");
     // Tiles of 33 samples: 13 x 11 at level 0, then 7 x 6, 4 x 3, 2 x 2 and one tile.
     let server = serve(&jacksboro(), tmp.path(), 33);
@@ -89,7 +101,10 @@ fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stay
         let update = scene.update(&mut fetcher, frame, position).expect("update");
         assert_eq!(update.levels.len(), 5, "frame {frame}: every level paged");
         let shares: u64 = update.levels.iter().map(|l| l.pager.memory_limit).sum();
-        assert!(shares <= limit, "frame {frame}: shares {shares} over the limit {limit}");
+        assert!(
+            shares <= limit,
+            "frame {frame}: shares {shares} over the limit {limit}"
+        );
         for level in &update.levels {
             let (k, d) = (level.level, &level.decision);
             // Counted from the tile of this level under the viewpoint.
@@ -121,7 +136,10 @@ fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stay
     }
     // At rest: every level holds at least its own tile's belt; the coarsest level is whole;
     // the limit kept level 0 from holding everything.
-    assert!(complete.iter().all(|&c| c >= 1), "complete belts per level: {complete:?}");
+    assert!(
+        complete.iter().all(|&c| c >= 1),
+        "complete belts per level: {complete:?}"
+    );
     let level0 = manifest.grid(0);
     let resident0 = (0..level0.rows)
         .flat_map(|y| (0..level0.columns).map(move |x| terrain_shared::TileId::new(x, y)))
@@ -131,5 +149,8 @@ fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stay
         resident0 < (level0.columns * level0.rows) as usize,
         "level 0 whole: the limit does not bind"
     );
-    assert!(scene.is_resident(terrain_shared::TileId::at(4, 0, 0)), "the coarsest tile");
+    assert!(
+        scene.is_resident(terrain_shared::TileId::at(4, 0, 0)),
+        "the coarsest tile"
+    );
 }

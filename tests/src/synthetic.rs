@@ -90,7 +90,9 @@ impl SyntheticDb {
     }
 
     fn index(&self, id: TileId) -> usize {
-        self.manifest.index(id).expect("a tile of the synthetic grid")
+        self.manifest
+            .index(id)
+            .expect("a tile of the synthetic grid")
     }
 
     /// The height codes of tile `id`: `1000 + 3 gx + 5 gy + (gx gy mod 7)` at level-0
@@ -141,8 +143,14 @@ impl SyntheticDb {
             max_m: 0.0,
             roughness_m: 0.0,
         };
-        let mut manifest =
-            Manifest::with_geometry("synthetic", raster, TILE_SIZE, [10.0, 10.0], texture, placeholder);
+        let mut manifest = Manifest::with_geometry(
+            "synthetic",
+            raster,
+            TILE_SIZE,
+            [10.0, 10.0],
+            texture,
+            placeholder,
+        );
         let (mut heights, mut textures) = (Vec::new(), Vec::new());
         let (mut min_code, mut max_code) = (i32::MAX, i32::MIN);
         let ids: Vec<TileId> = manifest.tiles().map(|(id, _)| id).collect();

@@ -246,10 +246,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
         let camera = kept[0].1[i].camera;
         let started = Instant::now();
         let (reference, _) = whole.reference(&camera)?;
-        tracing::debug!(
-            ms = started.elapsed().as_millis() as u64,
-            "reference frame"
-        );
+        tracing::debug!(ms = started.elapsed().as_millis() as u64, "reference frame");
         for (result, (_, samples, ..)) in results.iter_mut().zip(&mut kept) {
             let Some(k) = samples.get_mut(i) else {
                 continue;

@@ -362,10 +362,11 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
             let (one, server, args2) = (*scenario, server.clone(), args.clone());
             let whole = std::sync::Arc::clone(&whole);
             // Its own task: a panic is caught and reported as the run's failure.
-            let joined = tokio::spawn(async move {
-                run_one(&one, &server, &args2, method, filler, whole).await
-            })
-            .await;
+            let joined =
+                tokio::spawn(
+                    async move { run_one(&one, &server, &args2, method, filler, whole).await },
+                )
+                .await;
             let result = match joined {
                 Ok(Ok((r, adapter))) => {
                     report.adapter = adapter;
@@ -609,7 +610,10 @@ async fn run_one(
         }
         let (_, whole) = cache.as_mut().expect("just set");
         let centre = whole.centre();
-        if !whole.settle(centre, &last, Duration::from_secs(600)).await? {
+        if !whole
+            .settle(centre, &last, Duration::from_secs(600))
+            .await?
+        {
             return Err(FlightError::BadOption(
                 "the whole database did not load within 10 minutes".into(),
             ));
@@ -700,7 +704,10 @@ pub fn markdown(report: &StabilityReport) -> String {
         s,
         "| scenario | method | crack px (% of terrain) | holes px | coverage (%) | mean / max error (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
     );
-    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+    let _ = writeln!(
+        s,
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+    );
     for r in &report.runs {
         if let Some(why) = &r.failure {
             let _ = writeln!(

@@ -155,9 +155,17 @@ mod tests {
         let s = seams(&chosen);
         // North, east, south, west.
         assert_eq!(s[0], [false; 4], "a child inside the block");
-        assert_eq!(s[1], [false, true, false, false], "faces the coarser tile east");
+        assert_eq!(
+            s[1],
+            [false, true, false, false],
+            "faces the coarser tile east"
+        );
         assert_eq!(s[3], [false, true, false, false]);
-        assert_eq!(s[4], [false, false, false, true], "faces the finer tiles west");
+        assert_eq!(
+            s[4],
+            [false, false, false, true],
+            "faces the finer tiles west"
+        );
         // One level: no seams anywhere.
         assert!(seams(&chosen[..4]).iter().all(|s| *s == [false; 4]));
     }

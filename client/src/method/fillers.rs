@@ -78,10 +78,10 @@ pub fn skirt_strip_sides(tile_size: u32, sides: [Option<u32>; 4]) -> Vec<u32> {
         kept
     };
     let edges: Vec<(Vec<u32>, u32, u32)> = [
-        sides[0].map(|l| (forward(l), 0, 1)),            // north: k
-        sides[1].map(|l| (forward(l), last, n)),         // east: k * n + last
-        sides[2].map(|l| (backward(l), last * n, 1)),    // south: last * n + k
-        sides[3].map(|l| (backward(l), 0, n)),           // west: k * n
+        sides[0].map(|l| (forward(l), 0, 1)),         // north: k
+        sides[1].map(|l| (forward(l), last, n)),      // east: k * n + last
+        sides[2].map(|l| (backward(l), last * n, 1)), // south: last * n + k
+        sides[3].map(|l| (backward(l), 0, n)),        // west: k * n
     ]
     .into_iter()
     .flatten()

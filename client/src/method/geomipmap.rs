@@ -107,7 +107,11 @@ impl LodMethod for GeoMipMaps {
             let near = |dx: i64, dy: i64| {
                 let (x, y) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
                 (x >= 0 && y >= 0)
-                    .then(|| chosen.get(&TileId::at(id.level, x as u32, y as u32)).copied())
+                    .then(|| {
+                        chosen
+                            .get(&TileId::at(id.level, x as u32, y as u32))
+                            .copied()
+                    })
                     .flatten()
             };
             let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
@@ -195,9 +199,8 @@ fn strip_with_skirts(n: u32, stitch: Stitch, skirts: [bool; 4]) -> (Vec<u32>, u3
     let mut triangles = levels::triangles(n, stitch).len() as u32;
     if skirts.contains(&true) {
         // A side stitched at level j keeps every 2^j-th sample: mask level 2^j - 1.
-        let sides: [Option<u32>; 4] = std::array::from_fn(|k| {
-            skirts[k].then(|| (1u32 << stitch.sides[k]) - 1)
-        });
+        let sides: [Option<u32>; 4] =
+            std::array::from_fn(|k| skirts[k].then(|| (1u32 << stitch.sides[k]) - 1));
         if indices.last() != Some(&levels::RESTART) {
             indices.push(levels::RESTART);
         }
@@ -220,7 +223,11 @@ mod tests {
         let (skirted, with) = strip_with_skirts(n, stitch, [false, true, false, false]);
         // The east side is stitched at level 1 (every other sample): 8 cells, 16 triangles.
         assert_eq!(with - bare, 16);
-        let feet: Vec<u32> = skirted.iter().copied().filter(|&i| i != levels::RESTART && i >= n * n).collect();
+        let feet: Vec<u32> = skirted
+            .iter()
+            .copied()
+            .filter(|&i| i != levels::RESTART && i >= n * n)
+            .collect();
         assert!(!feet.is_empty());
         // Every foot hangs under a sample of the east column.
         assert!(feet.iter().all(|&f| (f - n * n) % n == n - 1), "{feet:?}");

@@ -23,7 +23,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 use terrain_shared::manifest::{
-    self, Georeference, GridSize, HeightsInfo, Level, ImageFormat, RasterSize, TextureInfo, TextureSource,
+    self, Georeference, GridSize, HeightsInfo, ImageFormat, Level, RasterSize, TextureInfo,
+    TextureSource,
 };
 use terrain_shared::{EncodeError, Manifest, TileBlob, TileRecord, heights, mask};
 use thiserror::Error;
@@ -560,7 +561,9 @@ pub fn build(
                                 .into_iter()
                                 .flatten()
                                 .filter(|c| c.x < prev_grid.columns && c.y < prev_grid.rows)
-                                .map(|c| &prev[c.y as usize * prev_grid.columns as usize + c.x as usize])
+                                .map(|c| {
+                                    &prev[c.y as usize * prev_grid.columns as usize + c.x as usize]
+                                })
                                 .collect();
                             for child in &children {
                                 stats.min_m = stats.min_m.min(child.min_m);
@@ -577,12 +580,19 @@ pub fn build(
                                     offset_m,
                                 );
                             let finest = texture::from_children(
-                                &id.children().into_iter().flatten().map(|c| {
-                                    (c.x < prev_grid.columns && c.y < prev_grid.rows).then(|| {
-                                        &prev[c.y as usize * prev_grid.columns as usize + c.x as usize]
-                                            .texture
+                                &id.children()
+                                    .into_iter()
+                                    .flatten()
+                                    .map(|c| {
+                                        (c.x < prev_grid.columns && c.y < prev_grid.rows).then(
+                                            || {
+                                                &prev[c.y as usize * prev_grid.columns as usize
+                                                    + c.x as usize]
+                                                    .texture
+                                            },
+                                        )
                                     })
-                                }).collect::<Vec<_>>(),
+                                    .collect::<Vec<_>>(),
                                 texture_size,
                             );
                             (finest, deviation)
@@ -631,7 +641,10 @@ pub fn build(
                 records.push(TileRecord {
                     hash: stored.hash,
                     bytes: stored.bytes,
-                    coarsest_texture_bytes: made.texture_levels.first().map_or(0, |l| l.len() as u64),
+                    coarsest_texture_bytes: made
+                        .texture_levels
+                        .first()
+                        .map_or(0, |l| l.len() as u64),
                     min_m: made.carry.min_m,
                     max_m: made.carry.max_m,
                     roughness_m: made.roughness_m,

@@ -120,7 +120,9 @@ pub fn from_children(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
             .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
             .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)));
         match found {
-            Some((c, x, y)) if x < c.width() && y < c.height() => c.get_pixel(x, y).0.map(u32::from),
+            Some((c, x, y)) if x < c.width() && y < c.height() => {
+                c.get_pixel(x, y).0.map(u32::from)
+            }
             _ => [0, 0, 0],
         }
     };
@@ -131,7 +133,9 @@ pub fn from_children(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
             texel(2 * x, 2 * y + 1),
             texel(2 * x + 1, 2 * y + 1),
         );
-        Rgb(std::array::from_fn(|k| ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8))
+        Rgb(std::array::from_fn(|k| {
+            ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
+        }))
     })
 }
 

@@ -198,19 +198,34 @@ mod tests {
     fn a_coarser_level_keeps_every_other_sample_and_measures_what_it_drops() {
         let (w, h) = (9u32, 6u32);
         let codes: Vec<i32> = (0..(w * h) as i32).collect();
-        let from = RasterSize { width: w, height: h };
-        let to = RasterSize { width: 5, height: 4 };
+        let from = RasterSize {
+            width: w,
+            height: h,
+        };
+        let to = RasterSize {
+            width: 5,
+            height: 4,
+        };
         let coarse = decimate(&codes, from, to);
         // Row 3 of the coarse level is row 6 of the fine one, past its last row 5: it repeats it.
         assert_eq!(&coarse[..5], &[0, 2, 4, 6, 8]);
         assert_eq!(&coarse[15..], &[45, 47, 49, 51, 53]);
         // A plane loses nothing; a spike on a dropped sample is the whole error.
         let plane: Vec<i32> = (0..81).map(|i| 3 * (i % 9) + 2 * (i / 9)).collect();
-        let r9 = RasterSize { width: 9, height: 9 };
-        assert_eq!(decimation_error(&plane, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0), 0.0);
+        let r9 = RasterSize {
+            width: 9,
+            height: 9,
+        };
+        assert_eq!(
+            decimation_error(&plane, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0),
+            0.0
+        );
         let mut spiky = vec![0; 81];
         spiky[3 * 9 + 5] = 7;
-        assert_eq!(decimation_error(&spiky, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0), 7.0);
+        assert_eq!(
+            decimation_error(&spiky, r9, TileId::at(1, 0, 0), 5, 1.0, 0.0),
+            7.0
+        );
         let mut errors = vec![0.0, 0.5];
         add_deviation(&mut errors, 7.0);
         assert_eq!(errors, vec![7.0, 7.5]);

@@ -45,9 +45,7 @@ pub fn heights_template() -> String {
 
 /// axum route template of [`terrain_shared::routes::texture`].
 pub fn texture_template() -> String {
-    format!(
-        "{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/texture/{{mip}}"
-    )
+    format!("{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/texture/{{mip}}")
 }
 
 /// The level-0 spelling of the single-level API, answered with a permanent redirect to
