@@ -712,6 +712,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                                 rows: manifest.grid(0).rows,
                                 memory_limit: budget.limit_bytes(),
                                 nearest_when_outside: !args.no_nearest_when_outside,
+                                current_over_limit: true,
                             };
                             scene = Scene::new(manifest, pager, scene_render());
                             args.stream.configure(&mut scene);

@@ -44,6 +44,12 @@ pub struct PagerConfig {
     /// on by default). Off, the belts are counted from a virtual tile outside the grid, as
     /// for terrains placed side by side.
     pub nearest_when_outside: bool,
+    /// Fetch the current tile even when it alone would take the resident bytes over the
+    /// limit (the paper's rule, so there is always something to draw; on by default). Off,
+    /// as for a finer level of a pyramid whose coarser levels already draw, that tile
+    /// waits until evicting cached belts makes room for it, and the limit always holds.
+    /// Only with sizes known ([`PagerView::expected_bytes`]).
+    pub current_over_limit: bool,
 }
 
 impl PagerConfig {
@@ -54,6 +60,7 @@ impl PagerConfig {
             rows,
             memory_limit,
             nearest_when_outside: true,
+            current_over_limit: true,
         }
     }
 
@@ -314,12 +321,12 @@ pub fn decide(config: &PagerConfig, view: &PagerView<'_>) -> Decision {
                 .total_cmp(&squared_distance(b))
                 .then((a.y, a.x).cmp(&(b.y, b.x)))
         });
-        // Predicted admission: a belt beyond the current tile starts only if all of it fits.
-        // When it does not, the farthest belt beyond it (cached tiles the square does not
+        // Predicted admission: a belt beyond the current tile (or, with `current_over_limit`
+        // off, the current tile too) starts only if all of it fits. When it does not, the farthest belt beyond it (cached tiles the square does not
         // use) makes room, one belt a frame; when nothing is left to drop, the square has
         // reached the largest size that fits and stays.
         if let Some(expected) = view.expected_bytes
-            && complete_belts > 0
+            && (complete_belts > 0 || !config.current_over_limit)
         {
             let needed: u64 = fetch.iter().map(|&id| expected[config.index(id)]).sum();
             if used_bytes.saturating_add(needed) > config.memory_limit {
@@ -1020,7 +1027,14 @@ mod tests {
         predict: bool,
     ) -> u64 {
         let fits = largest_square_that_fits(config, sizes, centre);
-        let k = if predict { fits.max(1) } else { fits + 1 };
+        // The current tile comes over the limit only as the paper's rule has it.
+        let k = if !predict {
+            fits + 1
+        } else if config.current_over_limit {
+            fits.max(1)
+        } else {
+            fits
+        };
         k.min(rings(config, centre))
     }
 
@@ -1296,7 +1310,9 @@ mod tests {
                     .iter()
                     .map(|&id| self.sizes[slot(&config, id)])
                     .sum();
-                let lone_current = d.fetch.len() == 1 && Some(d.fetch[0]) == centre_tile;
+                let lone_current = config.current_over_limit
+                    && d.fetch.len() == 1
+                    && Some(d.fetch[0]) == centre_tile;
                 assert!(
                     used <= limit,
                     "[limit] a belt is requested with {used} bytes resident over the limit {limit}"
@@ -1389,11 +1405,14 @@ mod tests {
 
             // [jump] A missing current tile is requested, first, in the frame the viewpoint
             // reaches it, unless the new square's own tiles are in flight or memory is over
-            // the limit.
+            // the limit (or, with `current_over_limit` off, it would take it over).
             if let Some(tile) = centre_tile
                 && !was_resident(tile)
                 && still_flying == 0
                 && used <= limit
+                && (config.current_over_limit
+                    || !self.predict
+                    || used + self.sizes[slot(&config, tile)] <= limit)
             {
                 assert_eq!(
                     d.fetch.first(),
@@ -1409,7 +1428,7 @@ mod tests {
             let at_rest = k == rings(&config, centre)
                 || (used > limit && farthest_resident.is_none_or(|f| f < k))
                 || (self.predict
-                    && k >= 1
+                    && (k >= 1 || !config.current_over_limit)
                     && used <= limit
                     && used + missing_next > limit
                     && farthest_resident.is_none_or(|f| f <= k));
@@ -1451,6 +1470,32 @@ mod tests {
                 (3, None, 0)
             ]
         );
+    }
+
+    #[test]
+    fn without_the_current_tile_over_the_limit_a_move_makes_room_first_and_the_limit_holds() {
+        // A row of four 4-byte tiles and 8 bytes: from tile 0 the square holds tiles 0 and 1.
+        // Moved to tile 3, the current tile alone would take 12 bytes.
+        let peak = |current_over_limit: bool| {
+            let config = PagerConfig {
+                current_over_limit,
+                ..PagerConfig::new(4, 1, 8)
+            };
+            let mut world = World::new(config, vec![4; 4]);
+            world.predict = true;
+            world.settle([0.5, 0.5], &mut || 0, 10);
+            assert_eq!(world.resident, [4, 4, 0, 0]);
+            let mut peak = 0;
+            for _ in 0..10 {
+                // Bytes resident when the pager decides, deliveries included.
+                peak = peak.max(world.frame([3.5, 0.5], &mut || 0).used_bytes);
+            }
+            (peak, world.resident.clone())
+        };
+        // The paper's rule fetches tile 3 at once and overspends by it...
+        assert_eq!(peak(true).0, 12);
+        // ...while without it tile 0, then tile 1, make room: the same square, never over.
+        assert_eq!(peak(false), (8, vec![0, 0, 4, 4]));
     }
 
     #[test]
@@ -1498,8 +1543,9 @@ mod tests {
     }
 
     /// A random world: grid, per-tile sizes of 1 to 1000 bytes, a limit from 0 (below any
-    /// tile) to 120% of the whole grid, the nearest-tile option on or off, and sizes told to
-    /// the pager or not.
+    /// tile) to 120% of the whole grid, the nearest-tile option on or off, sizes told to
+    /// the pager or not, and then (by the seed) the current tile fetched over the limit or
+    /// not.
     fn world(
         columns: u32,
         rows: u32,
@@ -1515,6 +1561,7 @@ mod tests {
         let limit = sizes.iter().sum::<u64>() * limit_permille / 1000;
         let config = PagerConfig {
             nearest_when_outside: nearest,
+            current_over_limit: !predict || seed % 3 != 0,
             ..PagerConfig::new(columns, rows, limit)
         };
         let mut world = World::new(config, sizes);
@@ -1632,7 +1679,7 @@ mod tests {
             let all = rings(&config, centre);
             let k = complete_rings(&config, centre, &world.resident);
             let fits = largest_square_that_fits(&config, &world.sizes, centre);
-            let least = if predict { fits.max(1) } else { fits + 1 }.min(all);
+            let least = resting_square(&config, &world.sizes, centre, predict);
             prop_assert!(k >= least, "[rest after a walk] {} complete rings, {} fit", k, fits);
             let farthest = grid(&config)
                 .filter(|&(i, _)| world.resident[i] > 0)

@@ -303,6 +303,7 @@ impl Connection {
             rows: grid.rows,
             memory_limit,
             nearest_when_outside,
+            current_over_limit: true,
         };
         Scene::new(Arc::clone(&self.manifest), pager, render)
     }
@@ -783,10 +784,15 @@ impl Scene {
         for (k, range) in ranges.into_iter().enumerate() {
             let level = k as u32;
             let grid = self.manifest.grid(level);
+            // The pager fetches the current tile even alone over its share (the paper's
+            // rule). With levels only the coarsest level used does: a finer level whose
+            // share holds not even that tile waits while cached belts make room, or the
+            // levels together would overspend the limit by a tile each.
             let pager = PagerConfig {
                 columns: grid.columns,
                 rows: grid.rows,
                 memory_limit: shares[k],
+                current_over_limit: level + 1 == self.levels_used,
                 ..self.pager
             };
             let extent = self.layout.tile_extent_m_at(level);
@@ -806,22 +812,7 @@ impl Scene {
             for id in evict {
                 self.drop_tile(id);
             }
-            // The pager always fetches the current tile, even alone over its share (the
-            // paper's rule). With levels, only the coarsest level used may: a finer level
-            // whose share holds not even that tile waits, or the levels together would
-            // overspend the limit by a tile each.
-            let top = level + 1 == self.levels_used;
-            let lone_over = !top
-                && decision.fetch.len() == 1
-                && decision.used_bytes
-                    + self.expected_bytes[range.start + pager.index(decision.fetch[0])]
-                    > pager.memory_limit;
-            let fetch = if lone_over {
-                Vec::new()
-            } else {
-                tag(&decision.fetch)
-            };
-            for (rank, id) in fetch.into_iter().enumerate() {
+            for (rank, id) in tag(&decision.fetch).into_iter().enumerate() {
                 // A tile that failed waits out its delay; one given up is not asked for again.
                 if let Some(failing) = self.failing.get(&id) {
                     if failing.failures >= TILE_REQUESTS_BEFORE_GIVING_UP || now < failing.retry_at
@@ -1461,6 +1452,7 @@ mod tests {
             rows: 1,
             memory_limit: limit,
             nearest_when_outside: true,
+            current_over_limit: true,
         };
         Scene::new(manifest, pager, None)
     }

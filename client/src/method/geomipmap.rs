@@ -19,6 +19,47 @@ use std::collections::HashMap;
 use std::time::Instant;
 use terrain_shared::{Heights, TileId, TileRecord};
 
+/// What an index set of [`GeoMipMaps`] draws.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum SetKey {
+    /// A tile stitched to its neighbours' levels.
+    Stitch(Stitch),
+    /// A skirt along one side (0 north, 1 east, 2 south, 3 west) hanging from the samples
+    /// that side is stitched at (a GeoMipMap level).
+    Skirt { side: u8, level: u32 },
+}
+
+impl SetKey {
+    fn indices(self, n: u32) -> (Vec<u32>, u32) {
+        match self {
+            SetKey::Stitch(stitch) => (
+                levels::strip(n, stitch),
+                levels::triangles(n, stitch).len() as u32,
+            ),
+            SetKey::Skirt { side, level } => {
+                // A side stitched at level j keeps every 2^j-th sample: mask level 2^j - 1.
+                let sides: [Option<u32>; 4] =
+                    std::array::from_fn(|k| (k == usize::from(side)).then(|| (1u32 << level) - 1));
+                (
+                    super::fillers::skirt_strip_sides(n, sides),
+                    super::fillers::skirt_triangles_sides(n, sides),
+                )
+            }
+        }
+    }
+}
+
+/// The sets a tile with `stitch` draws: its stitch, then a skirt along each side marked in
+/// `skirts` (north, east, south, west) at the level that side is stitched at.
+fn sets_of(stitch: Stitch, skirts: [bool; 4]) -> impl Iterator<Item = SetKey> {
+    std::iter::once(SetKey::Stitch(stitch)).chain((0..4u8).filter_map(move |side| {
+        skirts[usize::from(side)].then_some(SetKey::Skirt {
+            side,
+            level: stitch.sides[usize::from(side)],
+        })
+    }))
+}
+
 /// The GeoMipMaps method. See the module documentation.
 #[derive(Debug)]
 pub struct GeoMipMaps {
@@ -28,10 +69,11 @@ pub struct GeoMipMaps {
     /// Per resident tile, the suffix minima of its levels' errors, computed from its
     /// heights when it arrives.
     error_minima: HashMap<TileId, Vec<f32>>,
-    /// Index sets drawn lately (a stitch and the sides with a skirt), shared by every tile,
-    /// with the frame each was last drawn in: a set unused for
-    /// [`super::strip_masks::KEEP_UNUSED_FRAMES`] frames is dropped.
-    index_sets: HashMap<(Stitch, [bool; 4]), (IndexSet, u64)>,
+    /// Index sets drawn lately, shared by every tile, with the frame each was last drawn
+    /// in: a set unused for [`super::strip_masks::KEEP_UNUSED_FRAMES`] frames is dropped.
+    /// A skirt is a set of its own (one side at one level), drawn after the tile's stitch,
+    /// so seams add at most 4 x levels small sets rather than multiplying the stitches.
+    index_sets: HashMap<SetKey, (IndexSet, u64)>,
     frame: u64,
 }
 
@@ -115,16 +157,17 @@ impl LodMethod for GeoMipMaps {
                     .flatten()
             };
             let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
-            let key = (stitch, tile.seams);
-            let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
-                let (indices, triangles) = strip_with_skirts(n, stitch, tile.seams);
-                (IndexSet::new(&gpu, &indices, triangles), now)
-            });
-            *used = now;
+            for key in sets_of(stitch, tile.seams) {
+                let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
+                    let (indices, triangles) = key.indices(n);
+                    (IndexSet::new(&gpu, &indices, triangles), now)
+                });
+                *used = now;
+                plan.triangles += u64::from(set.triangles);
+            }
             plan.draws.push(plan::Draw { id, level });
             plan.importances.push(importance);
-            plan.triangles += u64::from(set.triangles);
-            stitches.push(key);
+            stitches.push((stitch, tile.seams));
             // Skirts reach below the tile's lowest point by a tenth of a level-0 tile and
             // twice its own distance from full resolution: the two edges of a seam lie
             // within their tiles' errors of the true surface, which is above that point.
@@ -153,13 +196,15 @@ impl LodMethod for GeoMipMaps {
         let order = frame.draw_order();
         let mut pass = frame.last_pass();
         for slot in order {
-            let Some(stitch) = stitch_of[slot] else {
+            let Some((stitch, skirts)) = stitch_of[slot] else {
                 continue;
             };
-            let set = &self.index_sets[&stitch].0;
             pass.bind_tile(slot);
-            pass.draw(set);
-            pass.stats_mut().triangles += u64::from(set.triangles);
+            for key in sets_of(stitch, skirts) {
+                let set = &self.index_sets[&key].0;
+                pass.draw(set);
+                pass.stats_mut().triangles += u64::from(set.triangles);
+            }
         }
         drop(pass);
         MethodOutput::of_plan(plan, lod_ms)
@@ -191,44 +236,37 @@ impl LodMethod for GeoMipMaps {
     }
 }
 
-/// The index buffer of `stitch` (see [`levels::strip`]) with skirts along the sides marked
-/// in `skirts` (north, east, south, west), each hanging from the samples its side is
-/// stitched at; and the triangles it draws.
-fn strip_with_skirts(n: u32, stitch: Stitch, skirts: [bool; 4]) -> (Vec<u32>, u32) {
-    let mut indices = levels::strip(n, stitch);
-    let mut triangles = levels::triangles(n, stitch).len() as u32;
-    if skirts.contains(&true) {
-        // A side stitched at level j keeps every 2^j-th sample: mask level 2^j - 1.
-        let sides: [Option<u32>; 4] =
-            std::array::from_fn(|k| skirts[k].then(|| (1u32 << stitch.sides[k]) - 1));
-        if indices.last() != Some(&levels::RESTART) {
-            indices.push(levels::RESTART);
-        }
-        indices.extend(super::fillers::skirt_strip_sides(n, sides));
-        triangles += super::fillers::skirt_triangles_sides(n, sides);
-    }
-    (indices, triangles)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn a_seam_adds_a_skirt_along_its_side_only() {
+    fn a_seam_adds_a_skirt_along_its_side_only_at_the_level_it_is_stitched_at() {
         let n = 17;
         let stitch = Stitch::new(2, [Some(2), Some(1), None, Some(2)]);
-        let (plain, bare) = strip_with_skirts(n, stitch, [false; 4]);
+        assert_eq!(
+            sets_of(stitch, [false; 4]).collect::<Vec<_>>(),
+            [SetKey::Stitch(stitch)]
+        );
+        let sets: Vec<SetKey> = sets_of(stitch, [false, true, false, false]).collect();
+        assert_eq!(
+            sets,
+            [
+                SetKey::Stitch(stitch),
+                SetKey::Skirt { side: 1, level: 1 }
+            ]
+        );
+        let (plain, _) = sets[0].indices(n);
         assert_eq!(plain, levels::strip(n, stitch));
-        let (skirted, with) = strip_with_skirts(n, stitch, [false, true, false, false]);
+        let (skirt, triangles) = sets[1].indices(n);
         // The east side is stitched at level 1 (every other sample): 8 cells, 16 triangles.
-        assert_eq!(with - bare, 16);
-        let feet: Vec<u32> = skirted
+        assert_eq!(triangles, 16);
+        let feet: Vec<u32> = skirt
             .iter()
             .copied()
             .filter(|&i| i != levels::RESTART && i >= n * n)
             .collect();
-        assert!(!feet.is_empty());
+        assert_eq!(feet.len(), 9);
         // Every foot hangs under a sample of the east column.
         assert!(feet.iter().all(|&f| (f - n * n) % n == n - 1), "{feet:?}");
     }
