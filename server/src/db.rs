@@ -412,7 +412,15 @@ pub enum WriteError {
 /// that looks like a database, and the manifest, which makes one, is written last.
 ///
 /// Blobs must be added in manifest order (tile by tile, row-major; texture levels
-/// coarsest first), the order [`TileDb::open`] reads them back in.
+/// coarsest first), the order [`TileDb::open`] reads them back in, with one freedom: the
+/// builder finishes coarse tiles while it still makes level 0's, so
+/// [`DbWriter::add_level_heights`] and [`DbWriter::add_level_texture`] take the pyramid
+/// level. Level 0's blobs (and whatever [`DbWriter::add_heights`] and
+/// [`DbWriter::add_texture`] write) go straight to the packs; each coarser level's go to
+/// files of its own in the temporary directory, in row-major order, which
+/// [`DbWriter::finish`] appends to the packs in level order (`copy_file_range`, no copy
+/// through memory) and removes. Level 0 holds three quarters of the bytes, so only a
+/// quarter is copied twice.
 #[derive(Debug)]
 pub struct DbWriter {
     out: PathBuf,
@@ -420,8 +428,24 @@ pub struct DbWriter {
     tmp: tempfile::TempDir,
     heights: std::io::BufWriter<File>,
     textures: std::io::BufWriter<File>,
+    /// Levels 1, 2, … (index 0 is level 1), opened when first written to.
+    coarser: Vec<Option<LevelFiles>>,
     heights_written: u64,
     textures_written: u64,
+}
+
+/// A coarse level's blobs until [`DbWriter::finish`] appends them to the packs.
+#[derive(Debug)]
+struct LevelFiles {
+    heights: (PathBuf, std::io::BufWriter<File>),
+    textures: (PathBuf, std::io::BufWriter<File>),
+}
+
+/// Which pack a blob goes to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Pack {
+    Heights,
+    Textures,
 }
 
 impl DbWriter {
@@ -454,6 +478,7 @@ impl DbWriter {
             tmp,
             heights: std::io::BufWriter::new(heights),
             textures: std::io::BufWriter::new(textures),
+            coarser: Vec::new(),
             heights_written: 0,
             textures_written: 0,
         })
@@ -466,27 +491,55 @@ impl DbWriter {
 
     /// Appends the next tile's heights.
     pub fn add_heights(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
-        use std::io::Write;
-        self.heights
-            .write_all(bytes)
-            .map_err(|source| WriteError::Io {
-                path: self.out.clone(),
-                source,
-            })?;
-        self.heights_written += bytes.len() as u64;
-        Ok(Blob::of(bytes))
+        self.add(0, Pack::Heights, bytes)
     }
 
     /// Appends the next texture level (coarsest first within a tile).
     pub fn add_texture(&mut self, bytes: &[u8]) -> Result<Blob, WriteError> {
+        self.add(0, Pack::Textures, bytes)
+    }
+
+    /// Appends the heights of the next tile of pyramid level `level`.
+    pub fn add_level_heights(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError> {
+        self.add(level, Pack::Heights, bytes)
+    }
+
+    /// Appends the next texture level of the current tile of pyramid level `level`.
+    pub fn add_level_texture(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError> {
+        self.add(level, Pack::Textures, bytes)
+    }
+
+    fn add(&mut self, level: u32, pack: Pack, bytes: &[u8]) -> Result<Blob, WriteError> {
         use std::io::Write;
-        self.textures
-            .write_all(bytes)
-            .map_err(|source| WriteError::Io {
-                path: self.out.clone(),
-                source,
-            })?;
-        self.textures_written += bytes.len() as u64;
+        let io = |source| WriteError::Io {
+            path: self.out.clone(),
+            source,
+        };
+        let file = match level.checked_sub(1) {
+            None => match pack {
+                Pack::Heights => &mut self.heights,
+                Pack::Textures => &mut self.textures,
+            },
+            Some(index) => {
+                let index = index as usize;
+                if self.coarser.len() <= index {
+                    self.coarser.resize_with(index + 1, || None);
+                }
+                let files = match &mut self.coarser[index] {
+                    Some(files) => files,
+                    empty => empty.insert(LevelFiles::create(self.tmp.path(), level).map_err(io)?),
+                };
+                match pack {
+                    Pack::Heights => &mut files.heights.1,
+                    Pack::Textures => &mut files.textures.1,
+                }
+            }
+        };
+        file.write_all(bytes).map_err(io)?;
+        match pack {
+            Pack::Heights => self.heights_written += bytes.len() as u64,
+            Pack::Textures => self.textures_written += bytes.len() as u64,
+        }
         Ok(Blob::of(bytes))
     }
 
@@ -506,6 +559,11 @@ impl DbWriter {
             path: out.clone(),
             source,
         };
+        for files in std::mem::take(&mut self.coarser).into_iter().flatten() {
+            files
+                .append_to(&mut self.heights, &mut self.textures)
+                .map_err(io)?;
+        }
         for pack in [&mut self.heights, &mut self.textures] {
             pack.flush().map_err(io)?;
             pack.get_ref().sync_all().map_err(io)?;
@@ -547,5 +605,37 @@ impl DbWriter {
             std::fs::remove_dir_all(&aside).map_err(io)?;
         }
         Ok(out)
+    }
+}
+
+impl LevelFiles {
+    fn create(dir: &Path, level: u32) -> std::io::Result<LevelFiles> {
+        let open = |pack: &str| -> std::io::Result<(PathBuf, std::io::BufWriter<File>)> {
+            let path = dir.join(format!("{pack}.level-{level}.part"));
+            let file = File::create(&path)?;
+            Ok((path, std::io::BufWriter::new(file)))
+        };
+        Ok(LevelFiles {
+            heights: open(HEIGHTS_PACK)?,
+            textures: open(TEXTURES_PACK)?,
+        })
+    }
+
+    /// Appends this level's blobs to the packs and removes its files.
+    fn append_to(
+        self,
+        heights: &mut std::io::BufWriter<File>,
+        textures: &mut std::io::BufWriter<File>,
+    ) -> std::io::Result<()> {
+        use std::io::Write;
+        for ((path, part), pack) in [(self.heights, heights), (self.textures, textures)] {
+            let part = part.into_inner().map_err(|e| e.into_error())?;
+            drop(part);
+            pack.flush()?;
+            // File to file: the standard library copies with copy_file_range where it can.
+            std::io::copy(&mut File::open(&path)?, pack.get_mut())?;
+            std::fs::remove_file(&path)?;
+        }
+        Ok(())
     }
 }

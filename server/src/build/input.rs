@@ -3,13 +3,25 @@
 //! input. Everything is turned into integer height *codes* at the source's own precision,
 //! so the database stays lossless.
 //!
-//! Every reader works on bytes in memory ([`decode_heights`]); [`read_heights`] reads the
-//! file first. Any byte string gives a raster or an [`InputError`], never a panic, and never
-//! an allocation the input's size cannot justify (the fuzz targets in `fuzz/` hold it to
-//! that; their corpora are replayed by the end-to-end tests).
+//! Two ways in, one set of rules:
+//!
+//! - *whole*: every reader works on bytes in memory ([`decode_heights`]); [`read_heights`]
+//!   reads the file first. Any byte string gives a raster or an [`InputError`], never a
+//!   panic, and never an allocation the input's size cannot justify (the fuzz targets in
+//!   `fuzz/` hold it to that; their corpora are replayed by the end-to-end tests).
+//! - *row by row* ([`rows`]): the builder's way, in memory bounded by a row whatever the
+//!   file's size, for PNG, GeoTIFF and `.hgt`.
+//!
+//! Both turn samples into codes through [`samples`] (no-data, the float quantum, samples
+//! out of range), so a file gives the same codes either way (tested).
 //!
 //! This module only reads; merging the metadata with command-line flags is `mod.rs`'s job.
 
+pub mod rows;
+mod samples;
+
+pub use rows::{CodeRows, RowHeader, RowReader, Scan};
+use samples::{FloatNodata, FloatRaster, FloatStats, IntNodata};
 use serde::Deserialize;
 use std::fmt;
 use std::io::Cursor;
@@ -113,6 +125,8 @@ pub enum InputError {
     },
     #[error("float quantum {0} m is not a positive finite number")]
     BadQuantum(f64),
+    #[error("{path} changed while it was read: its samples differ from those of the first reading")]
+    Changed { path: PathBuf },
 }
 
 /// Float samples named in a message: `value at (x, y)`, and how many more there are.
@@ -211,8 +225,8 @@ pub struct ReadOptions {
 /// TIFF) tops out near 1032:1 and TIFF's LZW near 2730:1 (4096-byte strings from 12-bit
 /// codes). A header that claims more than this asks for memory its data cannot fill.
 pub const MAX_COMPRESSION_RATIO: u64 = 4096;
-/// Samples named in an out-of-range message; the rest are counted.
-const NAMED_SAMPLES: usize = 5;
+/// The no-data value of SRTM `.hgt` files.
+const HGT_NODATA: IntNodata = IntNodata::Code(-32768);
 
 /// Reads a height raster from a file, choosing the reader by file extension.
 pub fn read_heights(path: &Path, options: &ReadOptions) -> Result<Raster, InputError> {
@@ -239,17 +253,23 @@ pub fn decode_heights(
         Format::Hgt => read_hgt(bytes, path)?,
         Format::Png => read_png(bytes, path, options.nodata)?,
     };
-    if raster.width < 2 || raster.height < 2 {
-        return Err(InputError::TooSmall {
-            path: path.into(),
-            width: raster.width,
-            height: raster.height,
-        });
-    }
+    check_shape(path, raster.width, raster.height)?;
     if !raster.voids.is_empty() && raster.voids.iter().all(|&v| v) {
         return Err(InputError::AllVoid { path: path.into() });
     }
     Ok(raster)
+}
+
+/// Refuses a raster smaller than one cell.
+fn check_shape(path: &Path, width: u32, height: u32) -> Result<(), InputError> {
+    if width < 2 || height < 2 {
+        return Err(InputError::TooSmall {
+            path: path.into(),
+            width,
+            height,
+        });
+    }
+    Ok(())
 }
 
 /// Refuses a header whose decoded size its file cannot hold (see [`MAX_COMPRESSION_RATIO`]).
@@ -303,7 +323,8 @@ fn read_png(bytes: &[u8], path: &Path, nodata: Option<f64>) -> Result<Raster, In
             });
         }
     };
-    let voids = voids_where(&codes, nodata.map(|v| v as i64));
+    let nodata = nodata.map_or(IntNodata::None, |v| IntNodata::Code(v as i64));
+    let voids = voids_where(&codes, nodata);
     Ok(Raster {
         width,
         height,
@@ -318,33 +339,55 @@ fn read_png(bytes: &[u8], path: &Path, nodata: Option<f64>) -> Result<Raster, In
     })
 }
 
-fn voids_where(codes: &[i32], nodata: Option<i64>) -> Vec<bool> {
-    match nodata {
-        Some(v) if codes.iter().any(|&c| i64::from(c) == v) => {
-            codes.iter().map(|&c| i64::from(c) == v).collect()
-        }
-        _ => Vec::new(),
+/// `true` where a sample is no-data; empty when none is.
+fn voids_where(codes: &[i32], nodata: IntNodata) -> Vec<bool> {
+    if codes.iter().any(|&c| nodata.is_void(c)) {
+        codes.iter().map(|&c| nodata.is_void(c)).collect()
+    } else {
+        Vec::new()
     }
 }
 
-fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Raster, InputError> {
-    use tiff::decoder::{Decoder, DecodingResult};
-    use tiff::tags::Tag;
-    let err = |message: String| InputError::Tiff {
+fn tiff_error(path: &Path, message: String) -> InputError {
+    InputError::Tiff {
         path: path.into(),
         message,
-    };
-    let mut decoder = Decoder::new(Cursor::new(bytes)).map_err(|e| err(e.to_string()))?;
-    let (width, height) = decoder.dimensions().map_err(|e| err(e.to_string()))?;
-    let colour = decoder.colortype().map_err(|e| err(e.to_string()))?;
+    }
+}
+
+/// What a GeoTIFF says about itself before its samples.
+#[derive(Debug, Clone)]
+struct GeoTiffHeader {
+    width: u32,
+    height: u32,
+    nodata: Option<f64>,
+    georeference: Option<Georeference>,
+    spacing_m: Option<[f64; 2]>,
+}
+
+/// Reads a GeoTIFF's size, no-data and georeference, refusing more than one sample per
+/// pixel and a size the file cannot hold.
+fn geotiff_header<R: std::io::Read + std::io::Seek>(
+    decoder: &mut tiff::decoder::Decoder<R>,
+    path: &Path,
+    file_bytes: usize,
+    options: &ReadOptions,
+) -> Result<GeoTiffHeader, InputError> {
+    use tiff::tags::Tag;
+    let err = |e: tiff::TiffError| tiff_error(path, e.to_string());
+    let (width, height) = decoder.dimensions().map_err(err)?;
+    let colour = decoder.colortype().map_err(err)?;
     if colour.num_samples() != 1 {
-        return Err(err(format!(
-            "{} samples per pixel: multi-band images are not heights",
-            colour.num_samples()
-        )));
+        return Err(tiff_error(
+            path,
+            format!(
+                "{} samples per pixel: multi-band images are not heights",
+                colour.num_samples()
+            ),
+        ));
     }
     let sample_bytes = u64::from(colour.bit_depth()).div_ceil(8);
-    check_decoded_size(path, (width, height), sample_bytes, bytes.len())?;
+    check_decoded_size(path, (width, height), sample_bytes, file_bytes)?;
     let nodata = match options.nodata {
         Some(v) => Some(v),
         None => decoder
@@ -369,52 +412,6 @@ fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Rast
         .ok()
         .flatten()
         .and_then(|v| v.into_u16_vec().ok());
-    let image = decoder.read_image().map_err(|e| err(e.to_string()))?;
-
-    let is_void_int = |v: i32| nodata.is_some_and(|n| f64::from(v) == n);
-    let floats = |is_void: &dyn Fn(f64) -> bool, values: &mut dyn Iterator<Item = f64>| {
-        let floats = FloatRaster {
-            path,
-            width,
-            quantum_m: options.float_quantum_m,
-            out_of_range: options.out_of_range,
-        };
-        floats.quantize(values, is_void)
-    };
-    let (codes, voids, quantum_m, out_of_range_voids) = match image {
-        DecodingResult::I16(v) => ints(v.into_iter().map(i32::from), &is_void_int),
-        DecodingResult::U16(v) => ints(v.into_iter().map(i32::from), &is_void_int),
-        DecodingResult::U8(v) => ints(v.into_iter().map(i32::from), &is_void_int),
-        DecodingResult::F32(v) => {
-            // Compared in float32, so that a tag of "-3.4028235e+38" matches float32's lowest
-            // value, which as a float64 is -3.4028234663852886e+38.
-            let nodata = nodata.map(|n| n as f32);
-            let is_void = |x: f64| x.is_nan() || nodata.is_some_and(|n| x as f32 == n);
-            floats(&is_void, &mut v.into_iter().map(f64::from))?
-        }
-        DecodingResult::F64(v) => {
-            let is_void = |x: f64| x.is_nan() || nodata.is_some_and(|n| x == n);
-            floats(&is_void, &mut v.into_iter())?
-        }
-        other => {
-            return Err(err(format!(
-                "sample type {} (supported: int16, uint16, uint8, float32, float64)",
-                sample_type_name(&other)
-            )));
-        }
-    };
-    if codes.len() != width as usize * height as usize {
-        return Err(err(format!(
-            "{} samples for {width}x{height}: multi-band images are not heights",
-            codes.len()
-        )));
-    }
-    let voids = if voids.iter().any(|&v| v) {
-        voids
-    } else {
-        Vec::new()
-    };
-
     let crs = keys.as_deref().and_then(epsg_from_geokeys);
     let pixel_is_point = keys.as_deref().and_then(|k| geokey(k, 1025)) == Some(2);
     let georeference = match (scale.as_deref(), tie.as_deref()) {
@@ -432,6 +429,64 @@ fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Rast
     let spacing_m = georeference
         .as_ref()
         .and_then(|g| spacing_from_georeference(g, height));
+    Ok(GeoTiffHeader {
+        width,
+        height,
+        nodata,
+        georeference,
+        spacing_m,
+    })
+}
+
+fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Raster, InputError> {
+    use tiff::decoder::{Decoder, DecodingResult};
+    let err = |e: tiff::TiffError| tiff_error(path, e.to_string());
+    let mut decoder = Decoder::new(Cursor::new(bytes)).map_err(err)?;
+    let header = geotiff_header(&mut decoder, path, bytes.len(), options)?;
+    let (width, height) = (header.width, header.height);
+    let image = decoder.read_image().map_err(err)?;
+
+    let int_nodata = header.nodata.map_or(IntNodata::None, IntNodata::Value);
+    let floats = FloatRaster {
+        path,
+        quantum_m: options.float_quantum_m,
+        out_of_range: options.out_of_range,
+    };
+    let (codes, voids, quantum_m, out_of_range_voids) = match image {
+        DecodingResult::I16(v) => ints(v.into_iter().map(i32::from), int_nodata),
+        DecodingResult::U16(v) => ints(v.into_iter().map(i32::from), int_nodata),
+        DecodingResult::U8(v) => ints(v.into_iter().map(i32::from), int_nodata),
+        DecodingResult::F32(v) => {
+            let values: Vec<f64> = v.into_iter().map(f64::from).collect();
+            quantize(&values, width, FloatNodata::for_f32(header.nodata), &floats)?
+        }
+        DecodingResult::F64(v) => {
+            quantize(&v, width, FloatNodata::for_f64(header.nodata), &floats)?
+        }
+        other => {
+            return Err(tiff_error(
+                path,
+                format!(
+                    "sample type {} (supported: int16, uint16, uint8, float32, float64)",
+                    sample_type_name(&other)
+                ),
+            ));
+        }
+    };
+    if codes.len() != width as usize * height as usize {
+        return Err(tiff_error(
+            path,
+            format!(
+                "{} samples for {width}x{height}: multi-band images are not heights",
+                codes.len()
+            ),
+        ));
+    }
+    let voids = if voids.iter().any(|&v| v) {
+        voids
+    } else {
+        Vec::new()
+    };
     Ok(Raster {
         width,
         height,
@@ -439,21 +494,46 @@ fn read_geotiff(bytes: &[u8], path: &Path, options: &ReadOptions) -> Result<Rast
         voids,
         quantum_m,
         offset_m: 0.0,
-        georeference,
-        spacing_m,
+        georeference: header.georeference,
+        spacing_m: header.spacing_m,
         format: "GeoTIFF",
         out_of_range_voids,
     })
 }
 
+/// Codes, voids, the quantum used, and how many samples became voids for being out of range.
+type Quantized = (Vec<i32>, Vec<bool>, f64, usize);
+
 /// Integer samples: codes as they are, a 1 m quantum.
-fn ints(
-    values: impl Iterator<Item = i32>,
-    is_void: &dyn Fn(i32) -> bool,
-) -> (Vec<i32>, Vec<bool>, f64, usize) {
+fn ints(values: impl Iterator<Item = i32>, nodata: IntNodata) -> Quantized {
     let codes: Vec<i32> = values.collect();
-    let voids = codes.iter().map(|&c| is_void(c)).collect();
+    let voids = codes.iter().map(|&c| nodata.is_void(c)).collect();
     (codes, voids, 1.0, 0)
+}
+
+/// Float samples (`width` a row), turned into codes by the rules of [`samples`]: a first
+/// pass over all of them chooses the quantum, a second converts.
+fn quantize(
+    values: &[f64],
+    width: u32,
+    nodata: FloatNodata,
+    raster: &FloatRaster<'_>,
+) -> Result<Quantized, InputError> {
+    let width = u64::from(width.max(1));
+    let mut stats = FloatStats::new(raster.quantum_m);
+    for (i, &v) in values.iter().enumerate() {
+        let (x, y) = (i as u64 % width, i as u64 / width);
+        stats.add(x as u32, y as u32, v, nodata.is_void(v));
+    }
+    let rule = stats.finish(raster)?;
+    let mut codes = Vec::with_capacity(values.len());
+    let mut voids = Vec::with_capacity(values.len());
+    for &v in values {
+        let code = (!nodata.is_void(v)).then(|| rule.code(v)).flatten();
+        codes.push(code.unwrap_or(0));
+        voids.push(code.is_none());
+    }
+    Ok((codes, voids, rule.quantum_m, rule.out_of_range))
 }
 
 fn sample_type_name(result: &tiff::decoder::DecodingResult) -> &'static str {
@@ -467,109 +547,6 @@ fn sample_type_name(result: &tiff::decoder::DecodingResult) -> &'static str {
         D::F16(_) => "float16",
         _ => "this one",
     }
-}
-
-/// A float raster being turned into codes: where it came from and the caller's choices.
-struct FloatRaster<'a> {
-    path: &'a Path,
-    width: u32,
-    quantum_m: f64,
-    out_of_range: OutOfRange,
-}
-
-/// Codes, voids, the quantum used, and how many samples became voids for being out of range.
-type Quantized = (Vec<i32>, Vec<bool>, f64, usize);
-
-impl FloatRaster<'_> {
-    /// Floating-point heights: whole numbers keep a 1 m quantum (lossless); anything else is
-    /// rounded to the quantum, which the manifest then records. A sample no `i32` code holds
-    /// at that quantum (beyond `i32::MAX` quanta, or infinite) is refused or made a void, as
-    /// [`OutOfRange`] says; a quantum too fine for the samples' own range is refused either
-    /// way, since making voids of real heights would hide the mistake.
-    fn quantize(
-        &self,
-        values: &mut dyn Iterator<Item = f64>,
-        is_void: &dyn Fn(f64) -> bool,
-    ) -> Result<Quantized, InputError> {
-        let values: Vec<f64> = values.collect();
-        let mut voids: Vec<bool> = values.iter().map(|&v| is_void(v)).collect();
-        let heights = || {
-            values
-                .iter()
-                .zip(&voids)
-                .filter(|&(v, &void)| !void && v.is_finite())
-                .map(|(&v, _)| v)
-        };
-        let whole = heights().all(|v| v.fract() == 0.0);
-        let q = if whole { 1.0 } else { self.quantum_m };
-        let limit_m = Metres(q * f64::from(i32::MAX));
-        let code = |v: f64| {
-            let code = (v / q).round();
-            (f64::from(i32::MIN)..=f64::from(i32::MAX))
-                .contains(&code)
-                .then_some(code as i32)
-        };
-
-        // The samples' own range: every finite height the default quantum can hold, which is
-        // any height on Earth in metres or even millimetres (±21,474 km); values past it
-        // are no-data markers such as -3.4e38 and 1e30, not heights.
-        let plausible_m = super::DEFAULT_FLOAT_QUANTUM_M * f64::from(i32::MAX);
-        let (min_m, max_m) = heights()
-            .filter(|v| v.abs() <= plausible_m)
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-                (lo.min(v), hi.max(v))
-            });
-        if min_m <= max_m && (code(min_m).is_none() || code(max_m).is_none()) {
-            return Err(InputError::QuantumTooFine {
-                path: self.path.into(),
-                quantum_m: Metres(q),
-                limit_m,
-                min_m,
-                max_m,
-                needed_m: round_up_2_digits(min_m.abs().max(max_m.abs()) / f64::from(i32::MAX)),
-            });
-        }
-
-        let mut codes = Vec::with_capacity(values.len());
-        let mut outside = SampleList {
-            first: Vec::new(),
-            more: 0,
-        };
-        for (i, (&v, void)) in values.iter().zip(&mut voids).enumerate() {
-            let c = if *void { None } else { code(v) };
-            if !*void && c.is_none() {
-                if outside.first.len() < NAMED_SAMPLES {
-                    let (x, y) = (
-                        i as u64 % u64::from(self.width),
-                        i as u64 / u64::from(self.width),
-                    );
-                    outside.first.push((x as u32, y as u32, v));
-                } else {
-                    outside.more += 1;
-                }
-                *void = true;
-            }
-            codes.push(c.unwrap_or(0));
-        }
-        let count = outside.first.len() + outside.more;
-        if count > 0 && self.out_of_range == OutOfRange::Refuse {
-            return Err(InputError::OutOfRange {
-                path: self.path.into(),
-                count,
-                total: values.len(),
-                quantum_m: Metres(q),
-                limit_m,
-                samples: outside,
-            });
-        }
-        Ok((codes, voids, q, count))
-    }
-}
-
-/// `x` rounded up to two significant digits, so that a suggested quantum is never too fine.
-fn round_up_2_digits(x: f64) -> f64 {
-    let step = 10f64.powf(x.log10().floor() - 1.0);
-    (x / step).ceil() * step
 }
 
 /// The value of one GeoKey, from a GeoKeyDirectory (header of 4, then 4 shorts per key).
@@ -620,31 +597,12 @@ fn metres_per_degree_lon(lat: f64) -> f64 {
 /// SRTM `.hgt`: big-endian int16, 1201^2 (3") or 3601^2 (1") samples, void -32768. The name
 /// (e.g. `N46W122.hgt`) gives the south-west corner; row 0 is the north edge.
 fn read_hgt(bytes: &[u8], path: &Path) -> Result<Raster, InputError> {
-    let corner = hgt_corner(path);
-    let side: u32 = match bytes.len() {
-        n if n == 2 * 1201 * 1201 => 1201,
-        n if n == 2 * 3601 * 3601 => 3601,
-        n => {
-            return Err(InputError::HgtSize {
-                path: path.into(),
-                bytes: n as u64,
-            });
-        }
-    };
+    let (side, georeference, spacing_m) = hgt_header(bytes.len() as u64, path)?;
     let codes: Vec<i32> = bytes
         .chunks_exact(2)
         .map(|b| i32::from(i16::from_be_bytes([b[0], b[1]])))
         .collect();
-    let voids = voids_where(&codes, Some(-32768));
-    let step = 1.0 / f64::from(side - 1);
-    let georeference = corner.map(|(lat, lon)| Georeference {
-        crs: Some("EPSG:4326".into()),
-        origin: [lon, lat + 1.0],
-        sample_step: [step, -step],
-    });
-    let spacing_m = georeference
-        .as_ref()
-        .and_then(|g| spacing_from_georeference(g, side));
+    let voids = voids_where(&codes, HGT_NODATA);
     Ok(Raster {
         width: side,
         height: side,
@@ -657,6 +615,33 @@ fn read_hgt(bytes: &[u8], path: &Path) -> Result<Raster, InputError> {
         format: "SRTM .hgt",
         out_of_range_voids: 0,
     })
+}
+
+/// Side, georeference and spacing of an `.hgt` file of `bytes` bytes.
+type HgtHeader = (u32, Option<Georeference>, Option<[f64; 2]>);
+
+/// What an `.hgt` file's length and name say: its side, and from the name its georeference.
+fn hgt_header(bytes: u64, path: &Path) -> Result<HgtHeader, InputError> {
+    let side: u32 = match bytes {
+        n if n == 2 * 1201 * 1201 => 1201,
+        n if n == 2 * 3601 * 3601 => 3601,
+        n => {
+            return Err(InputError::HgtSize {
+                path: path.into(),
+                bytes: n,
+            });
+        }
+    };
+    let step = 1.0 / f64::from(side - 1);
+    let georeference = hgt_corner(path).map(|(lat, lon)| Georeference {
+        crs: Some("EPSG:4326".into()),
+        origin: [lon, lat + 1.0],
+        sample_step: [step, -step],
+    });
+    let spacing_m = georeference
+        .as_ref()
+        .and_then(|g| spacing_from_georeference(g, side));
+    Ok((side, georeference, spacing_m))
 }
 
 /// South-west corner `(lat, lon)` from an SRTM file name such as `N46W122.hgt`.
@@ -785,11 +770,10 @@ mod tests {
     ) -> Result<Quantized, InputError> {
         let floats = FloatRaster {
             path: Path::new("t.tif"),
-            width: 4,
             quantum_m,
             out_of_range,
         };
-        floats.quantize(&mut values.iter().copied(), &|v: f64| v.is_nan())
+        super::quantize(values, 4, FloatNodata::NanOnly, &floats)
     }
 
     /// Quantizes and checks codes, the voids' indices, the quantum and the out-of-range count.

@@ -2,14 +2,25 @@
 //!
 //! Steps, one module each: [`input`] reads the raster and its metadata, [`voids`] fills
 //! no-data, [`tiles`] cuts tiles and computes their metadata, [`texture`] makes each
-//! tile's mip chain, and [`crate::db::DbWriter`] writes everything atomically. This module
-//! merges flags with what the files say, runs the steps (tiles in parallel, one row of
-//! tiles at a time so memory stays bounded) and reports.
+//! tile's mip chain, [`levels`] builds the pyramid of levels a band of tile rows at a time,
+//! and [`crate::db::DbWriter`] writes everything atomically. This module merges flags with
+//! what the files say, chooses how the heights are read, runs the steps and reports.
+//!
+//! **Memory.** A build holds a band of tile rows per level, never a whole level, so its
+//! memory grows with the raster's width and not with its height ([`levels`]). The heights
+//! are read twice, row by row ([`input::rows`]): a scan first, for what the first tile
+//! already depends on (a float raster's quantum, the heights' range that computed textures
+//! are tinted over, whether there are voids), then the build. Two things are held whole:
+//! a texture image (decoded once and resampled per tile; its size is the user's choice),
+//! and a raster with voids, because filling a void draws on the whole void, which may span
+//! any number of bands ([`voids`]); a void-free raster always streams. Formats the row
+//! reader does not handle (an interlaced PNG, say) are read whole too.
 //!
 //! Precedence of metadata: command-line flags, then the file itself (GeoTIFF tags, `.hgt`
 //! name), then a `dataset.json` beside the input, then defaults (with a warning).
 
 pub mod input;
+pub mod levels;
 pub mod texture;
 pub mod tiles;
 pub mod voids;
@@ -17,16 +28,16 @@ pub mod voids;
 use crate::db::{DbWriter, WriteError};
 use anyhow::Context as _;
 use clap::Args;
-use rayon::prelude::*;
+use input::CodeRows;
+use levels::{LevelZeroTexture, Pyramid, TileContext};
 use std::fmt;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use terrain_shared::manifest::{
-    self, Georeference, GridSize, HeightsInfo, ImageFormat, Level, RasterSize, TextureInfo,
-    TextureSource,
+    self, Georeference, HeightsInfo, ImageFormat, RasterSize, TextureInfo, TextureSource,
 };
-use terrain_shared::{EncodeError, Manifest, TileBlob, TileRecord, heights, mask};
+use terrain_shared::{EncodeError, Manifest, heights, mask};
 use thiserror::Error;
 
 pub use input::{InputError, OutOfRange, Raster};
@@ -247,6 +258,8 @@ pub enum BuildError {
     BadOption(String),
     #[error("build cancelled; nothing was written to the output")]
     Cancelled,
+    #[error("level {level} stopped after {made} of its {rows} tile rows: the heights ended early")]
+    Unfinished { level: u32, made: u32, rows: u32 },
 }
 
 /// Something a user should know about a finished build; the database is still complete.
@@ -305,29 +318,6 @@ pub struct BuildReport {
     pub elapsed: Duration,
 }
 
-/// One tile's output, made in parallel and written in order.
-struct MadeTile {
-    carry: Carry,
-    roughness_m: f32,
-    /// The tile blob (mask errors, texture hashes, heights).
-    blob: Vec<u8>,
-    heights_bytes: u64,
-    /// Encoded texture levels, coarsest first.
-    texture_levels: Vec<Vec<u8>>,
-}
-
-/// What a tile hands to its parent on the next coarser level.
-struct Carry {
-    /// Bounds of the full-resolution surface under the tile.
-    min_m: f32,
-    max_m: f32,
-    /// Largest vertical distance between the tile's own surface and the full-resolution
-    /// surface, at every full-resolution sample under it (0 at level 0).
-    deviation_m: f32,
-    /// Its finest texture, which the parent's is filtered from.
-    texture: image::RgbImage,
-}
-
 /// Progress of a build, for a bar: tiles done out of the total.
 pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
 
@@ -358,7 +348,7 @@ pub fn build(
         Some((path, info)) => (path.parent().map(Path::to_path_buf), info),
         None => (None, input::DatasetInfo::default()),
     };
-    let mut raster = input::read_heights(
+    let heights_input = open_heights(
         &options.heights,
         &input::ReadOptions {
             nodata: options.nodata.or(info.nodata),
@@ -366,9 +356,9 @@ pub fn build(
             out_of_range: options.out_of_range,
         },
     )?;
-    if raster.out_of_range_voids > 0 {
+    if heights_input.out_of_range_voids > 0 {
         warnings.push(BuildWarning::OutOfRangeAsNodata {
-            samples: raster.out_of_range_voids,
+            samples: heights_input.out_of_range_voids,
         });
     }
     let source_bytes = std::fs::metadata(&options.heights)
@@ -385,12 +375,13 @@ pub fn build(
             "height scale {scale} and offset {offset} must be finite, scale positive"
         )));
     }
-    let quantum_m = raster.quantum_m * scale;
-    let offset_m = raster.offset_m * scale + offset;
+    let quantum_m = heights_input.quantum_m * scale;
+    let offset_m = heights_input.offset_m * scale + offset;
+    let (width, height) = (heights_input.width, heights_input.height);
     let spacing_m = match options
         .spacing_m
-        .or(raster.spacing_m)
-        .or_else(|| info.spacing(raster.height))
+        .or(heights_input.spacing_m)
+        .or_else(|| info.spacing(height))
     {
         Some(s) if s.iter().all(|v| v.is_finite() && *v > 0.0) => s,
         Some(s) => {
@@ -403,19 +394,17 @@ pub fn build(
             [1.0, 1.0]
         }
     };
-    let georeference: Option<Georeference> =
-        raster.georeference.clone().or_else(|| info.georeference());
+    let georeference: Option<Georeference> = heights_input
+        .georeference
+        .clone()
+        .or_else(|| info.georeference());
 
-    let (width, height) = (raster.width, raster.height);
-    let voids = std::mem::take(&mut raster.voids);
-    let filled = voids::fill(&mut raster.codes, &voids, width as usize, height as usize);
-    drop(voids);
-    let filled_voids = filled.as_ref().map_or(0, |r| r.samples as u64);
-    warnings.extend(filled.map(BuildWarning::FilledVoids));
-    let codes = raster.codes;
-    let (min_code, max_code) = codes
-        .iter()
-        .fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+    let filled_voids = heights_input
+        .filled
+        .as_ref()
+        .map_or(0, |r| r.samples as u64);
+    warnings.extend(heights_input.filled.clone().map(BuildWarning::FilledVoids));
+    let (min_code, max_code) = heights_input.code_range;
     let (min_m, max_m) = (
         offset_m + quantum_m * f64::from(min_code),
         offset_m + quantum_m * f64::from(max_code),
@@ -433,22 +422,7 @@ pub fn build(
     };
     let source_image = match &texture_path {
         Some(path) => {
-            let image = image::ImageReader::open(path)
-                .map_err(|e| BuildError::Texture {
-                    path: path.clone(),
-                    message: e.to_string(),
-                })?
-                .with_guessed_format()
-                .map_err(|e| BuildError::Texture {
-                    path: path.clone(),
-                    message: e.to_string(),
-                })?
-                .decode()
-                .map_err(|e| BuildError::Texture {
-                    path: path.clone(),
-                    message: e.to_string(),
-                })?
-                .into_rgb8();
+            let image = read_texture(path)?;
             let (tw, th) = (f64::from(image.width()), f64::from(image.height()));
             let (rw, rh) = (f64::from(width - 1), f64::from(height - 1));
             if ((tw / th) / (rw / rh) - 1.0).abs() > 0.02 {
@@ -474,196 +448,36 @@ pub fn build(
         None => n - 1,
     });
     let texture_levels = texture::level_count(texture_size);
-    let field = texture::HeightField {
-        codes: &codes,
-        width,
-        height,
+    let context = TileContext {
+        tile_size: n,
         quantum_m,
         offset_m,
-        spacing_m,
-        min_m,
-        max_m,
+        zstd_level: options.zstd_level,
+        texture_format: options.texture_format,
+        jpeg_quality: options.jpeg_quality,
+        texture_size,
+        level_zero_texture: match &source_image {
+            Some(image) => LevelZeroTexture::Image {
+                image,
+                registration,
+                raster: (width, height),
+            },
+            None => LevelZeroTexture::Generated {
+                spacing_m,
+                min_m,
+                max_m,
+            },
+        },
     };
 
-    let rasters = manifest::level_rasters(RasterSize { width, height }, n);
-    let total_tiles: usize = rasters
-        .iter()
-        .map(|r| {
-            let g = manifest::grid_covering(*r, n);
-            g.columns as usize * g.rows as usize
-        })
-        .sum();
     let mut writer = DbWriter::create(&options.out, options.force)?;
-    let done = AtomicUsize::new(0);
-    let mut levels: Vec<Level> = Vec::with_capacity(rasters.len());
-    let mut heights_bytes = 0u64;
-    let mut texture_bytes = 0u64;
-    let mut texture_level_bytes = vec![0u64; texture_levels as usize];
-    let mut tile_samples = 0u64;
-    // The level being cut, its codes, and what its tiles hand to their parents.
-    // Codes of the level being cut (above level 0) and of the one before it (above level 1).
-    let mut coarse_codes: Vec<i32> = Vec::new();
-    let mut finer_codes: Vec<i32> = Vec::new();
-    let mut finer: Option<(RasterSize, tiles::Grid, Vec<Carry>)> = None;
-    for (k, raster) in rasters.iter().enumerate() {
-        let k = k as u32;
-        if let Some((prev_raster, _, _)) = &finer {
-            let source: &[i32] = if k == 1 { &codes } else { &coarse_codes };
-            let next = tiles::decimate(source, *prev_raster, *raster);
-            finer_codes = std::mem::replace(&mut coarse_codes, next);
-        }
-        let level_codes: &[i32] = if k == 0 { &codes } else { &coarse_codes };
-        let prev_codes: &[i32] = if k == 1 { &codes } else { &finer_codes };
-        let grid = tiles::Grid::covering(raster.width, raster.height, n);
-        let mut carries = Vec::with_capacity(grid.len());
-        let mut records = Vec::with_capacity(grid.len());
-        for row in 0..grid.rows {
-            let made: Vec<Result<MadeTile, BuildError>> = (0..grid.columns)
-                .into_par_iter()
-                .map(|column| {
-                    if cancel.load(Ordering::Relaxed) {
-                        return Err(BuildError::Cancelled);
-                    }
-                    let id = terrain_shared::TileId::at(k, column, row);
-                    let cut = tiles::cut(
-                        level_codes,
-                        raster.width,
-                        raster.height,
-                        grid,
-                        id,
-                        quantum_m,
-                        offset_m,
-                    );
-                    let encoded = cut
-                        .heights
-                        .encode_with_level(options.zstd_level)
-                        .map_err(|source| BuildError::Encode { tile: id, source })?;
-                    let mut stats = tiles::stats(&cut);
-                    // Above level 0: bounds and errors against the full-resolution surface.
-                    let finest = match &finer {
-                        None => {
-                            let finest = match &source_image {
-                                Some(image) => texture::from_image(
-                                    image,
-                                    registration,
-                                    (width, height),
-                                    grid,
-                                    id,
-                                    texture_size,
-                                ),
-                                None => texture::generated(&field, grid, id, texture_size),
-                            };
-                            (finest, 0.0f32)
-                        }
-                        Some((prev_raster, prev_grid, prev)) => {
-                            let children: Vec<&Carry> = id
-                                .children()
-                                .into_iter()
-                                .flatten()
-                                .filter(|c| c.x < prev_grid.columns && c.y < prev_grid.rows)
-                                .map(|c| {
-                                    &prev[c.y as usize * prev_grid.columns as usize + c.x as usize]
-                                })
-                                .collect();
-                            for child in &children {
-                                stats.min_m = stats.min_m.min(child.min_m);
-                                stats.max_m = stats.max_m.max(child.max_m);
-                            }
-                            let below = children.iter().map(|c| c.deviation_m).fold(0.0, f32::max);
-                            let deviation = below
-                                + tiles::decimation_error(
-                                    prev_codes,
-                                    *prev_raster,
-                                    id,
-                                    n,
-                                    quantum_m,
-                                    offset_m,
-                                );
-                            let finest = texture::from_children(
-                                &id.children()
-                                    .into_iter()
-                                    .flatten()
-                                    .map(|c| {
-                                        (c.x < prev_grid.columns && c.y < prev_grid.rows).then(
-                                            || {
-                                                &prev[c.y as usize * prev_grid.columns as usize
-                                                    + c.x as usize]
-                                                    .texture
-                                            },
-                                        )
-                                    })
-                                    .collect::<Vec<_>>(),
-                                texture_size,
-                            );
-                            (finest, deviation)
-                        }
-                    };
-                    let (finest, deviation) = finest;
-                    tiles::add_deviation(&mut stats.mask_errors_m, deviation);
-                    let levels = texture::mip_chain(finest.clone())
-                        .iter()
-                        .map(|level| {
-                            texture::encode(level, options.texture_format, options.jpeg_quality)
-                        })
-                        .collect::<Result<Vec<_>, _>>()
-                        .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
-                    let blob = TileBlob {
-                        mask_errors_m: stats.mask_errors_m,
-                        texture: levels.iter().map(|l| manifest::Blob::of(l)).collect(),
-                        heights: encoded,
-                    };
-                    progress(done.fetch_add(1, Ordering::Relaxed) + 1, total_tiles);
-                    Ok(MadeTile {
-                        carry: Carry {
-                            min_m: stats.min_m,
-                            max_m: stats.max_m,
-                            deviation_m: deviation,
-                            texture: finest,
-                        },
-                        roughness_m: stats.roughness_m,
-                        blob: blob.encode(),
-                        heights_bytes: blob.heights.len() as u64,
-                        texture_levels: levels,
-                    })
-                })
-                .collect();
-            for result in made {
-                let made = result?;
-                let stored = writer.add_heights(&made.blob)?;
-                heights_bytes += made.heights_bytes;
-                for (l, level) in made.texture_levels.iter().enumerate() {
-                    let bytes = writer.add_texture(level)?.bytes;
-                    texture_bytes += bytes;
-                    if let Some(total) = texture_level_bytes.get_mut(l) {
-                        *total += bytes;
-                    }
-                }
-                records.push(TileRecord {
-                    hash: stored.hash,
-                    bytes: stored.bytes,
-                    coarsest_texture_bytes: made
-                        .texture_levels
-                        .first()
-                        .map_or(0, |l| l.len() as u64),
-                    min_m: made.carry.min_m,
-                    max_m: made.carry.max_m,
-                    roughness_m: made.roughness_m,
-                });
-                carries.push(made.carry);
-            }
-        }
-        tile_samples += grid.len() as u64 * u64::from(n) * u64::from(n);
-        levels.push(Level {
-            raster: *raster,
-            grid: GridSize {
-                columns: grid.columns,
-                rows: grid.rows,
-            },
-            tiles: records,
-        });
-        finer = Some((*raster, grid, carries));
+    let mut pyramid = Pyramid::new(RasterSize { width, height }, context, progress, cancel);
+    let mut rows = heights_input.rows;
+    while let Some(row) = rows.next_row()? {
+        pyramid.push_row(row, &mut writer)?;
     }
-    drop(finer);
+    drop(rows);
+    let built = pyramid.finish()?;
 
     let name = options
         .name
@@ -698,11 +512,10 @@ pub fn build(
             },
             size: texture_size,
             levels: texture_levels,
-            level_bytes: texture_level_bytes,
         },
         georeference,
         mask_levels: mask::level_count(n),
-        levels,
+        levels: built.levels,
     };
     manifest.content_version = manifest.compute_content_version();
     if cancel.load(Ordering::Relaxed) {
@@ -711,14 +524,89 @@ pub fn build(
     let out = writer.finish(&manifest)?;
     Ok(BuildReport {
         out,
-        tile_samples,
+        tile_samples: built.tile_samples,
         manifest,
         warnings,
-        heights_bytes,
-        texture_bytes,
+        heights_bytes: built.heights_bytes,
+        texture_bytes: built.texture_bytes,
         source_bytes,
         elapsed: started.elapsed(),
     })
+}
+
+/// The heights a build reads, with what it must know before the first tile.
+#[derive(Debug)]
+struct HeightsInput {
+    width: u32,
+    height: u32,
+    /// Metres per code step and metres at code 0, as far as the file knows.
+    quantum_m: f64,
+    offset_m: f64,
+    georeference: Option<Georeference>,
+    spacing_m: Option<[f64; 2]>,
+    out_of_range_voids: usize,
+    /// Smallest and largest code, voids filled.
+    code_range: (i32, i32),
+    filled: Option<voids::FillReport>,
+    rows: CodeRows,
+}
+
+/// Opens the heights: streamed when the file allows it and has no voids, else read whole
+/// and its voids filled (see the module docs).
+fn open_heights(path: &Path, options: &input::ReadOptions) -> Result<HeightsInput, BuildError> {
+    if let Some(reader) = input::rows::open(path, options)? {
+        let scan = reader.scan()?;
+        if scan.voids == 0 {
+            return Ok(HeightsInput {
+                width: scan.header.width,
+                height: scan.header.height,
+                quantum_m: scan.quantum_m,
+                offset_m: 0.0,
+                georeference: scan.header.georeference.clone(),
+                spacing_m: scan.header.spacing_m,
+                out_of_range_voids: 0,
+                code_range: scan.code_range,
+                rows: CodeRows::stream(&scan)?,
+                filled: None,
+            });
+        }
+    }
+    let mut raster = input::read_heights(path, options)?;
+    let (width, height) = (raster.width, raster.height);
+    let voids = std::mem::take(&mut raster.voids);
+    let filled = voids::fill(&mut raster.codes, &voids, width as usize, height as usize);
+    drop(voids);
+    let code_range = raster
+        .codes
+        .iter()
+        .fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+    Ok(HeightsInput {
+        width,
+        height,
+        quantum_m: raster.quantum_m,
+        offset_m: raster.offset_m,
+        georeference: raster.georeference,
+        spacing_m: raster.spacing_m,
+        out_of_range_voids: raster.out_of_range_voids,
+        code_range,
+        filled,
+        rows: CodeRows::memory(raster.codes, width),
+    })
+}
+
+/// Decodes a texture image whole, as RGB.
+fn read_texture(path: &Path) -> Result<image::RgbImage, BuildError> {
+    let texture_error = |message: String| BuildError::Texture {
+        path: path.into(),
+        message,
+    };
+    Ok(image::ImageReader::open(path)
+        .map_err(|e| texture_error(e.to_string()))?
+        .with_guessed_format()
+        .map_err(|e| texture_error(e.to_string()))?
+        .decode()
+        .map_err(|e| texture_error(e.to_string()))?
+        .into_rgb8())
 }
 
 /// Runs `terrain-server build`: progress bar, Ctrl-C cancels cleanly, summary at the end.

@@ -106,27 +106,74 @@ fn bilinear(image: &RgbImage, x: f64, y: f64) -> Rgb<u8> {
     }))
 }
 
+/// What a tile's finest texture (`size` texels a side) contributes to its parent's: the
+/// texture halved (each texel the mean of four, as a mip level), and its last column and
+/// row at full size, which stand in for a missing neighbour. A quarter of the texture's
+/// bytes, which is what the builder holds for a tile until its parent is made.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChildTexture {
+    size: u32,
+    half: RgbImage,
+    last_column: Vec<[u8; 3]>,
+    last_row: Vec<[u8; 3]>,
+}
+
+impl ChildTexture {
+    pub fn of(finest: &RgbImage) -> ChildTexture {
+        let size = finest.width();
+        let last = size.saturating_sub(1);
+        ChildTexture {
+            size,
+            half: halve(finest),
+            last_column: (0..finest.height())
+                .map(|y| finest.get_pixel(last, y).0)
+                .collect(),
+            last_row: (0..size).map(|x| finest.get_pixel(x, last).0).collect(),
+        }
+    }
+
+    /// Texel `(x, y)` of the finest texture, for one on its last column or row.
+    fn edge_texel(&self, x: u32, y: u32) -> Option<[u8; 3]> {
+        if x + 1 == self.size {
+            self.last_column.get(y as usize).copied()
+        } else if y + 1 == self.size {
+            self.last_row.get(x as usize).copied()
+        } else {
+            None
+        }
+    }
+}
+
 /// A parent tile's finest texture, `size` texels, filtered from its children's (north-west,
 /// north-east, south-west, south-east; `None` past the grid's edge, where the nearest
 /// existing texels are repeated): the 2x2 mosaic, each output texel the mean of four.
-pub fn from_children(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
-    let child = |cx: usize, cy: usize| children.get(cy * 2 + cx).copied().flatten();
+///
+/// The four texels of an output texel lie in one child (for `size >= 2`), so where that
+/// child exists the output is its [`ChildTexture`]'s half; where it is missing, the texels
+/// repeated from a neighbour are on that neighbour's last column or row.
+pub fn from_children(children: &[Option<&ChildTexture>], size: u32) -> RgbImage {
+    let child = |cx: u32, cy: u32| children.get((cy * 2 + cx) as usize).copied().flatten();
+    // Texel (px, py) of the mosaic, where it is a child's edge texel or repeats one.
     let texel = |px: u32, py: u32| -> [u32; 3] {
-        let (cx, cy) = ((px / size) as usize, (py / size) as usize);
+        let (cx, cy) = (px / size, py / size);
         let (ix, iy) = (px % size, py % size);
         let found = child(cx, cy)
             .map(|c| (c, ix, iy))
             .or_else(|| child(0, cy).map(|c| (c, size - 1, iy)))
             .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
             .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)));
-        match found {
-            Some((c, x, y)) if x < c.width() && y < c.height() => {
-                c.get_pixel(x, y).0.map(u32::from)
-            }
-            _ => [0, 0, 0],
-        }
+        found
+            .and_then(|(c, x, y)| c.edge_texel(x, y))
+            .map_or([0, 0, 0], |t| t.map(u32::from))
     };
     RgbImage::from_fn(size, size, |x, y| {
+        let (cx, cy) = (2 * x / size, 2 * y / size);
+        if size >= 2
+            && let Some(c) = child(cx, cy)
+        {
+            let half = size / 2;
+            return *c.half.get_pixel(x - cx * half, y - cy * half);
+        }
         let (a, b, c, d) = (
             texel(2 * x, 2 * y),
             texel(2 * x + 1, 2 * y),
@@ -139,10 +186,13 @@ pub fn from_children(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
     })
 }
 
-/// The whole raster in metres, for computed textures.
+/// Heights in metres for computed textures: rows `first_row..` of a `width x height`
+/// raster (a tile row's band and a row either side, or the whole raster).
 #[derive(Debug, Clone, Copy)]
 pub struct HeightField<'a> {
+    /// Row-major, `width` a row, starting at raster row `first_row`.
     pub codes: &'a [i32],
+    pub first_row: u32,
     pub width: u32,
     pub height: u32,
     pub quantum_m: f64,
@@ -154,10 +204,19 @@ pub struct HeightField<'a> {
 }
 
 impl HeightField<'_> {
+    /// Height at sample `(x, y)`, the raster's edge repeated beyond it. The row must be
+    /// held (a caller's bug otherwise; release builds read the nearest row held).
     fn at(&self, x: i64, y: i64) -> f64 {
+        let width = self.width as usize;
         let x = x.clamp(0, i64::from(self.width) - 1) as usize;
-        let y = y.clamp(0, i64::from(self.height) - 1) as usize;
-        self.offset_m + self.quantum_m * f64::from(self.codes[y * self.width as usize + x])
+        let y = y.clamp(0, i64::from(self.height) - 1) - i64::from(self.first_row);
+        let rows = self.codes.len() / width.max(1);
+        debug_assert!(
+            (0..rows as i64).contains(&y),
+            "row {y} of the field is not held"
+        );
+        let y = y.clamp(0, (rows as i64 - 1).max(0)) as usize;
+        self.offset_m + self.quantum_m * f64::from(self.codes[y * width + x])
     }
 
     /// Hypsometric tint shaded by a light from the north-west, 45 degrees up (the
@@ -211,8 +270,13 @@ fn tint(h: f64, min: f64, max: f64) -> [f64; 3] {
     std::array::from_fn(|k| c0[k] + (c1[k] - c0[k]) * f)
 }
 
+/// Rows a computed texture reads beyond its tile's, above and below: a texel's colour is
+/// shaded with the slope at the samples around it, which reach one row further.
+pub const GENERATED_HALO_ROWS: u32 = 1;
+
 /// Computes tile `id`'s texture from the heights at `size x size` texels: colours at the
-/// samples around each texel centre, blended bilinearly.
+/// samples around each texel centre, blended bilinearly. Reads the field's rows from
+/// [`GENERATED_HALO_ROWS`] above the tile's first to as many below its last.
 pub fn generated(field: &HeightField<'_>, grid: Grid, id: TileId, size: u32) -> RgbImage {
     let cells = f64::from(grid.tile_size - 1);
     let (x0, y0) = (f64::from(id.x) * cells, f64::from(id.y) * cells);
@@ -242,18 +306,23 @@ pub fn mip_chain(finest: RgbImage) -> Vec<RgbImage> {
     let mut chain = vec![finest];
     for _ in 1..levels {
         let Some(prev) = chain.last() else { break };
-        let half = prev.width() / 2;
-        let next = RgbImage::from_fn(half, half, |x, y| {
-            let p = |dx, dy| prev.get_pixel(2 * x + dx, 2 * y + dy).0.map(u32::from);
-            let (a, b, c, d) = (p(0, 0), p(1, 0), p(0, 1), p(1, 1));
-            Rgb(std::array::from_fn(|k| {
-                ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
-            }))
-        });
+        let next = halve(prev);
         chain.push(next);
     }
     chain.reverse();
     chain
+}
+
+/// `image` at half its size, each texel the mean of four (2x2 box filter, rounded).
+fn halve(image: &RgbImage) -> RgbImage {
+    let half = image.width() / 2;
+    RgbImage::from_fn(half, half, |x, y| {
+        let p = |dx, dy| image.get_pixel(2 * x + dx, 2 * y + dy).0.map(u32::from);
+        let (a, b, c, d) = (p(0, 0), p(1, 0), p(0, 1), p(1, 1));
+        Rgb(std::array::from_fn(|k| {
+            ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
+        }))
+    })
 }
 
 /// Encodes one level.
@@ -348,6 +417,7 @@ mod tests {
         let codes: Vec<i32> = (0..25).map(|i| (i % 5) * 10).collect(); // rises to the east
         let field = HeightField {
             codes: &codes,
+            first_row: 0,
             width: 5,
             height: 5,
             quantum_m: 1.0,

@@ -1,6 +1,10 @@
-//! Cutting the raster into tiles of `(2^n + 1)^2` samples that share their border rows
-//! and columns, and the per-tile metadata a client needs before the heights: bounds,
+//! Cutting a level's raster into tiles of `(2^n + 1)^2` samples that share their border
+//! rows and columns, and the per-tile metadata a client needs before the heights: bounds,
 //! roughness and the error of every strip-mask level.
+//!
+//! The builder holds a level a [`Band`] of rows at a time and cuts from that; [`cut`],
+//! [`decimate`] and [`decimation_error`] are the same operations on a whole raster in
+//! memory, the definitions the band-wise builder is tested against.
 
 use terrain_shared::manifest::RasterSize;
 use terrain_shared::{Heights, TileId, mask};
@@ -56,14 +60,28 @@ pub fn cut(
     quantum_m: f64,
     offset_m: f64,
 ) -> TileSamples {
+    let row = |y: u32| &codes[y as usize * width as usize..][..width as usize];
+    cut_rows(row, width, height, grid, id, (quantum_m, offset_m))
+}
+
+/// Cuts tile `id` from rows given by `row` (raster row `y`, `y < height`). Samples past the
+/// last row or column repeat it, also for a tile that lies wholly past the raster (the
+/// virtual children of [`Band::cut`]).
+fn cut_rows<'a>(
+    row: impl Fn(u32) -> &'a [i32],
+    width: u32,
+    height: u32,
+    grid: Grid,
+    id: TileId,
+    (quantum_m, offset_m): (f64, f64),
+) -> TileSamples {
     let n = grid.tile_size;
     let (x0, y0) = (id.x * (n - 1), id.y * (n - 1));
     let mut tile = Vec::with_capacity((n * n) as usize);
     for y in 0..n {
-        let sy = (y0 + y).min(height - 1) as usize;
+        let source = row((y0 + y).min(height - 1));
         for x in 0..n {
-            let sx = (x0 + x).min(width - 1) as usize;
-            tile.push(codes[sy * width as usize + sx]);
+            tile.push(source[(x0 + x).min(width - 1) as usize]);
         }
     }
     TileSamples {
@@ -75,7 +93,109 @@ pub fn cut(
             offset_m,
             codes: tile,
         },
-        valid: [(width - x0).min(n), (height - y0).min(n)],
+        valid: [
+            width.saturating_sub(x0).min(n),
+            height.saturating_sub(y0).min(n),
+        ],
+    }
+}
+
+/// Consecutive rows of one level's raster: what the builder holds of a level at a time.
+#[derive(Debug, Clone)]
+pub struct Band {
+    width: u32,
+    /// The whole raster's height.
+    height: u32,
+    /// Raster row of the first row held.
+    first: u32,
+    codes: Vec<i32>,
+}
+
+impl Band {
+    /// An empty band of a `width x height` raster, starting at row 0.
+    pub fn new(width: u32, height: u32) -> Band {
+        Band {
+            width,
+            height,
+            first: 0,
+            codes: Vec::new(),
+        }
+    }
+
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Raster row of the first row held.
+    pub fn first(&self) -> u32 {
+        self.first
+    }
+
+    /// The rows held, row-major from [`Band::first`].
+    pub fn codes(&self) -> &[i32] {
+        &self.codes
+    }
+
+    /// The raster row the next [`Band::push_row`] adds.
+    pub fn next_row(&self) -> u32 {
+        self.first + (self.codes.len() / self.width.max(1) as usize) as u32
+    }
+
+    /// Adds the next row (`width` codes).
+    pub fn push_row(&mut self, row: &[i32]) {
+        debug_assert_eq!(row.len(), self.width as usize);
+        self.codes.extend_from_slice(row);
+    }
+
+    /// Forgets the rows above raster row `y`.
+    pub fn drop_before(&mut self, y: u32) {
+        let rows = y
+            .saturating_sub(self.first)
+            .min(self.next_row() - self.first);
+        self.codes.drain(..rows as usize * self.width as usize);
+        self.first += rows;
+    }
+
+    /// Raster row `y`, or the last row for `y` past it. The row must be held (a caller's
+    /// bug otherwise, which debug builds catch; release builds read the nearest row held).
+    pub fn row(&self, y: u32) -> &[i32] {
+        let y = y.min(self.height - 1);
+        debug_assert!(
+            y >= self.first && y < self.next_row(),
+            "row {y} is not in the band {}..{}",
+            self.first,
+            self.next_row()
+        );
+        let held = (self.codes.len() / self.width.max(1) as usize).max(1) - 1;
+        let index = (y.saturating_sub(self.first) as usize).min(held);
+        &self.codes[index * self.width as usize..][..self.width as usize]
+    }
+
+    /// Tile `id` of `grid`, cut as [`cut`] cuts it from the whole raster. Its rows (clamped
+    /// to the raster) must be held; the tile may lie past the raster's edge, wholly padding.
+    pub fn cut(&self, grid: Grid, id: TileId, quantum_m: f64, offset_m: f64) -> TileSamples {
+        cut_rows(
+            |y| self.row(y),
+            self.width,
+            self.height,
+            grid,
+            id,
+            (quantum_m, offset_m),
+        )
+    }
+
+    /// Row `y` of the next coarser level (`width` samples): every other sample of this
+    /// level's row `2y`, a sample one past the last repeating it, as [`decimate`] does.
+    pub fn decimated_row(&self, y: u32, width: u32) -> Vec<i32> {
+        let row = self.row(2 * y);
+        let last = row.len().saturating_sub(1);
+        (0..width as usize)
+            .map(|x| row[(2 * x).min(last)])
+            .collect()
     }
 }
 
@@ -98,6 +218,11 @@ pub fn decimate(source: &[i32], from: RasterSize, to: RasterSize) -> Vec<i32> {
 /// surfaces are triangulated the strip masks' way, and the coarse one's cells are unions of
 /// the fine one's, so the distance is largest at a fine sample: it bounds the distance
 /// everywhere, not only there.
+///
+/// The block is the tile's four children side by side (or, past the finer grid's edge,
+/// what cutting them would give: padding), and no coarse cell straddles two of them, so
+/// this is the largest of the children's [`TileStats::half_resolution_error_m`]: the
+/// builder takes it from them and never holds the block.
 pub fn decimation_error(
     finer: &[i32],
     finer_raster: RasterSize,
@@ -121,6 +246,14 @@ pub fn decimation_error(
     mask::max_vertical_error(&metres, side, 1)
 }
 
+/// The error of keeping every other sample of `tile` (mask level 1), as
+/// [`TileStats::half_resolution_error_m`]: for the padding-only children a parent on the
+/// grid's edge lacks.
+pub fn half_resolution_error(tile: &TileSamples) -> f32 {
+    let n = u32::from(tile.heights.width);
+    mask::max_vertical_error(&tile.heights.to_metres_f32(), n, 1)
+}
+
 /// Adds a tile's distance from the full-resolution surface to each of its mask errors (the
 /// triangle inequality: mask to tile, tile to full resolution), rounding up to the
 /// centimetre so the sums stay upper bounds.
@@ -139,6 +272,9 @@ pub struct TileStats {
     pub max_m: f32,
     pub roughness_m: f32,
     pub mask_errors_m: Vec<f32>,
+    /// The error of keeping every other sample of the tile (mask level 1), not rounded:
+    /// what the tile adds to its parent's [`decimation_error`]. 0 for a tile of 2 samples.
+    pub half_resolution_error_m: f32,
 }
 
 /// Computes [`TileStats`] for a tile. Mask errors are rounded up to the centimetre so they
@@ -149,14 +285,18 @@ pub fn stats(tile: &TileSamples) -> TileStats {
     let (min_m, max_m) = metres
         .iter()
         .fold((f32::MAX, f32::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
-    let mask_errors_m = (0..mask::level_count(n as u32))
-        .map(|level| (mask::max_vertical_error(&metres, n as u32, level) * 100.0).ceil() / 100.0)
+    let errors_m: Vec<f32> = (0..mask::level_count(n as u32))
+        .map(|level| mask::max_vertical_error(&metres, n as u32, level))
         .collect();
     TileStats {
         min_m,
         max_m,
         roughness_m: roughness(&metres, n, tile.valid),
-        mask_errors_m,
+        mask_errors_m: errors_m
+            .iter()
+            .map(|e| (e * 100.0).ceil() / 100.0)
+            .collect(),
+        half_resolution_error_m: errors_m.get(1).copied().unwrap_or(0.0),
     }
 }
 

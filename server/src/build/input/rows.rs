@@ -1,0 +1,727 @@
+//! Reading a height file a row at a time, in memory bounded by a row (a strip, or a row of
+//! tiles, for GeoTIFF) whatever the file's size: 8- and 16-bit greyscale PNG through the
+//! `png` crate's row reader, GeoTIFF strip by strip or by rows of tiles through the `tiff`
+//! crate, `.hgt` row by row from the file. Samples go through the same rules as in the
+//! whole-file readers ([`super::samples`]).
+//!
+//! A build reads a streamed file twice: [`RowReader::scan`] first, because what must be
+//! known before the first tile depends on every sample (a float raster's quantum, the
+//! heights' range that computed textures are tinted over, whether there are voids to
+//! fill), then [`CodeRows`] while building. A file whose second reading differs from its
+//! scan is refused ([`InputError::Changed`]). What the row reader does not handle (an
+//! interlaced or animated PNG, an image that is not a PNG) gives `None` from [`open`], and
+//! the caller reads the file whole.
+
+use super::samples::{FloatCodes, FloatNodata, FloatRaster, FloatStats, IntNodata};
+use super::{Format, InputError, ReadOptions};
+use std::fs::File;
+use std::io::{BufReader, Read};
+use std::path::{Path, PathBuf};
+use terrain_shared::manifest::Georeference;
+
+/// What a streamed file says about itself before its samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RowHeader {
+    pub width: u32,
+    pub height: u32,
+    /// The file's format, for messages.
+    pub format: &'static str,
+    pub georeference: Option<Georeference>,
+    /// Sample spacing in metres when the file implies it (GeoTIFF, `.hgt`).
+    pub spacing_m: Option<[f64; 2]>,
+}
+
+/// A height file opened for reading row by row.
+#[derive(Debug)]
+pub struct RowReader {
+    path: PathBuf,
+    options: ReadOptions,
+    header: RowHeader,
+    decoder: Decoder,
+    rows_read: u32,
+}
+
+/// One row as the file holds it, with the rule that says which samples are no-data.
+#[derive(Debug)]
+enum RawRow<'a> {
+    Int(&'a [i32], IntNodata),
+    Float(&'a [f64], FloatNodata),
+}
+
+#[derive(Debug)]
+enum Decoder {
+    Png(Box<PngRows>),
+    Tiff(Box<TiffRows>),
+    Hgt(HgtRows),
+}
+
+/// Opens `path` for reading row by row, or `None` when it must be read whole (see the
+/// module docs). Refuses what the whole-file reader refuses before the samples: an
+/// unreadable header, a header whose decoded size the file cannot hold.
+pub fn open(path: &Path, options: &ReadOptions) -> Result<Option<RowReader>, InputError> {
+    if !(options.float_quantum_m.is_finite() && options.float_quantum_m > 0.0) {
+        return Err(InputError::BadQuantum(options.float_quantum_m));
+    }
+    let io = |source| InputError::Io {
+        path: path.into(),
+        source,
+    };
+    let file = File::open(path).map_err(io)?;
+    let file_bytes = file.metadata().map_err(io)?.len();
+    let file = BufReader::new(file);
+    let opened = match Format::of(path) {
+        Format::Png => PngRows::open(file, path, file_bytes, options.nodata)?
+            .map(|(header, rows)| (header, Decoder::Png(Box::new(rows)))),
+        Format::GeoTiff => {
+            let (header, rows) = TiffRows::open(file, path, file_bytes, options)?;
+            Some((header, Decoder::Tiff(Box::new(rows))))
+        }
+        Format::Hgt => {
+            let (header, rows) = HgtRows::open(file, path, file_bytes)?;
+            Some((header, Decoder::Hgt(rows)))
+        }
+    };
+    Ok(opened.map(|(header, decoder)| RowReader {
+        path: path.into(),
+        options: *options,
+        header,
+        decoder,
+        rows_read: 0,
+    }))
+}
+
+/// What a first pass over a streamed file found: everything a build must know before its
+/// first tile.
+#[derive(Debug, Clone)]
+pub struct Scan {
+    path: PathBuf,
+    options: ReadOptions,
+    pub header: RowHeader,
+    /// Samples that are voids: no-data, and (with [`super::OutOfRange::Nodata`]) float
+    /// samples no code holds.
+    pub voids: usize,
+    /// Float samples no code holds, counted in `voids`.
+    pub out_of_range_voids: usize,
+    /// Metres per code step, as far as the file knows (1 for integers).
+    pub quantum_m: f64,
+    /// Smallest and largest code of the samples that are not voids.
+    pub code_range: (i32, i32),
+    floats: Option<FloatCodes>,
+}
+
+impl RowReader {
+    pub fn header(&self) -> &RowHeader {
+        &self.header
+    }
+
+    /// Reads every row once and returns what they hold ([`Scan`]), or the error the
+    /// whole-file reader gives for the same file.
+    pub fn scan(mut self) -> Result<Scan, InputError> {
+        let mut ints = IntScan::default();
+        let mut floats: Option<FloatStats> = None;
+        let quantum_m = self.options.float_quantum_m;
+        let path = self.path.clone();
+        let mut y = 0;
+        while let Some(row) = self.next_raw()? {
+            match row {
+                RawRow::Int(codes, nodata) => ints.add(codes, nodata),
+                RawRow::Float(values, nodata) => {
+                    let stats = floats.get_or_insert_with(|| FloatStats::new(quantum_m));
+                    for (x, &v) in values.iter().enumerate() {
+                        stats.add(x as u32, y, v, nodata.is_void(v));
+                    }
+                }
+            }
+            y += 1;
+        }
+        if ints.samples > 0 && floats.is_some() {
+            return Err(InputError::Tiff {
+                path,
+                message: "its chunks mix integer and float samples".into(),
+            });
+        }
+        let header = self.header.clone();
+        let (voids, out_of_range_voids, quantum_m, code_range, floats) = match floats {
+            None => (ints.voids, 0, 1.0, (ints.min, ints.max), None),
+            Some(stats) => {
+                let codes = stats.finish(&FloatRaster {
+                    path: &path,
+                    quantum_m,
+                    out_of_range: self.options.out_of_range,
+                })?;
+                let range = codes.finite.map_or((0, 0), |(lo, hi)| {
+                    (codes.code(lo).unwrap_or(0), codes.code(hi).unwrap_or(0))
+                });
+                let voids = codes.no_data + codes.out_of_range;
+                (
+                    voids,
+                    codes.out_of_range,
+                    codes.quantum_m,
+                    range,
+                    Some(codes),
+                )
+            }
+        };
+        super::check_shape(&path, header.width, header.height)?;
+        let samples = header.width as usize * header.height as usize;
+        if voids > 0 && voids == samples {
+            return Err(InputError::AllVoid { path });
+        }
+        Ok(Scan {
+            path,
+            options: self.options,
+            header,
+            voids,
+            out_of_range_voids,
+            quantum_m,
+            code_range,
+            floats,
+        })
+    }
+
+    /// The next row as the file holds it; `None` after the last.
+    fn next_raw(&mut self) -> Result<Option<RawRow<'_>>, InputError> {
+        if self.rows_read == self.header.height {
+            return Ok(None);
+        }
+        let path = &self.path;
+        let row = match &mut self.decoder {
+            Decoder::Png(rows) => rows.next(path)?,
+            Decoder::Tiff(rows) => rows.next(path)?,
+            Decoder::Hgt(rows) => rows.next(path)?,
+        };
+        let Some(row) = row else {
+            return Err(InputError::Image {
+                path: path.clone(),
+                message: format!(
+                    "its data ends after {} of {} rows",
+                    self.rows_read, self.header.height
+                ),
+            });
+        };
+        let width = self.header.width as usize;
+        let length = match &row {
+            RawRow::Int(codes, _) => codes.len(),
+            RawRow::Float(values, _) => values.len(),
+        };
+        if length != width {
+            return Err(InputError::Image {
+                path: path.clone(),
+                message: format!("row {} has {length} samples, not {width}", self.rows_read),
+            });
+        }
+        self.rows_read += 1;
+        Ok(Some(row))
+    }
+}
+
+/// Voids and range of integer samples.
+#[derive(Debug)]
+struct IntScan {
+    samples: usize,
+    voids: usize,
+    min: i32,
+    max: i32,
+}
+
+impl Default for IntScan {
+    fn default() -> IntScan {
+        IntScan {
+            samples: 0,
+            voids: 0,
+            min: i32::MAX,
+            max: i32::MIN,
+        }
+    }
+}
+
+impl IntScan {
+    fn add(&mut self, codes: &[i32], nodata: IntNodata) {
+        self.samples += codes.len();
+        for &c in codes {
+            if nodata.is_void(c) {
+                self.voids += 1;
+            } else {
+                self.min = self.min.min(c);
+                self.max = self.max.max(c);
+            }
+        }
+    }
+}
+
+/// Rows of height codes for the builder: a streamed file converted as its [`Scan`] decided,
+/// or a raster held whole.
+#[derive(Debug)]
+pub struct CodeRows {
+    /// The file, for messages (empty for a raster in memory).
+    path: PathBuf,
+    source: Source,
+    row: Vec<i32>,
+    next: u32,
+}
+
+#[derive(Debug)]
+enum Source {
+    Stream {
+        reader: Box<RowReader>,
+        floats: Option<FloatCodes>,
+    },
+    Memory {
+        codes: Vec<i32>,
+        width: usize,
+        height: u32,
+    },
+}
+
+impl CodeRows {
+    /// Opens the scanned file again to read its codes. The file must have no voids: the
+    /// builder fills voids on the whole raster ([`crate::build::voids`]).
+    pub fn stream(scan: &Scan) -> Result<CodeRows, InputError> {
+        let changed = || InputError::Changed {
+            path: scan.path.clone(),
+        };
+        let reader = open(&scan.path, &scan.options)?.ok_or_else(changed)?;
+        if reader.header != scan.header || scan.voids > 0 {
+            return Err(changed());
+        }
+        Ok(CodeRows {
+            path: scan.path.clone(),
+            source: Source::Stream {
+                reader: Box::new(reader),
+                floats: scan.floats,
+            },
+            row: Vec::new(),
+            next: 0,
+        })
+    }
+
+    /// The rows of a raster in memory (`codes` row-major, `width` samples a row).
+    pub fn memory(codes: Vec<i32>, width: u32) -> CodeRows {
+        let height = codes.len().checked_div(width as usize).unwrap_or(0) as u32;
+        CodeRows {
+            path: PathBuf::new(),
+            source: Source::Memory {
+                codes,
+                width: width as usize,
+                height,
+            },
+            row: Vec::new(),
+            next: 0,
+        }
+    }
+
+    /// The next row of codes, north first; `None` after the last.
+    pub fn next_row(&mut self) -> Result<Option<&[i32]>, InputError> {
+        let y = self.next;
+        match &mut self.source {
+            Source::Memory {
+                codes,
+                width,
+                height,
+            } => {
+                if y == *height {
+                    return Ok(None);
+                }
+                self.next += 1;
+                Ok(codes.get(y as usize * *width..(y as usize + 1) * *width))
+            }
+            Source::Stream { reader, floats } => {
+                let Some(raw) = reader.next_raw()? else {
+                    return Ok(None);
+                };
+                self.row.clear();
+                let converted = match (raw, floats) {
+                    (RawRow::Int(codes, nodata), None) => codes.iter().all(|&c| {
+                        self.row.push(c);
+                        !nodata.is_void(c)
+                    }),
+                    (RawRow::Float(values, nodata), Some(floats)) => values.iter().all(|&v| {
+                        let code = (!nodata.is_void(v)).then(|| floats.code(v)).flatten();
+                        self.row.push(code.unwrap_or(0));
+                        code.is_some()
+                    }),
+                    _ => false,
+                };
+                if !converted {
+                    return Err(InputError::Changed {
+                        path: self.path.clone(),
+                    });
+                }
+                self.next += 1;
+                Ok(Some(&self.row))
+            }
+        }
+    }
+}
+
+/// 8- or 16-bit greyscale PNG rows.
+struct PngRows {
+    reader: png::Reader<BufReader<File>>,
+    sixteen: bool,
+    nodata: IntNodata,
+    row: Vec<i32>,
+}
+
+impl std::fmt::Debug for PngRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PngRows")
+            .field("sixteen", &self.sixteen)
+            .finish_non_exhaustive()
+    }
+}
+
+impl PngRows {
+    /// `None` for what the whole-file reader must handle: not a PNG by content (the image
+    /// reader guesses by content, as the whole-file reader does), interlaced, animated, or
+    /// anything but 8- or 16-bit grey once expanded as the `image` crate expands it.
+    fn open(
+        mut file: BufReader<File>,
+        path: &Path,
+        file_bytes: u64,
+        nodata: Option<f64>,
+    ) -> Result<Option<(RowHeader, PngRows)>, InputError> {
+        use std::io::{BufRead, Seek};
+        let image_error = |e: png::DecodingError| InputError::Image {
+            path: path.into(),
+            message: e.to_string(),
+        };
+        let io = |source| InputError::Io {
+            path: path.into(),
+            source,
+        };
+        let start = file.fill_buf().map_err(io)?;
+        if !start.starts_with(&[137, 80, 78, 71, 13, 10, 26, 10]) {
+            return Ok(None);
+        }
+        file.rewind().map_err(io)?;
+        let mut decoder = png::Decoder::new(file);
+        decoder.set_transformations(png::Transformations::EXPAND);
+        let reader = decoder.read_info().map_err(image_error)?;
+        let info = reader.info();
+        let (width, height) = (info.width, info.height);
+        let sixteen = match reader.output_color_type() {
+            (png::ColorType::Grayscale, png::BitDepth::Eight) => false,
+            (png::ColorType::Grayscale, png::BitDepth::Sixteen) => true,
+            _ => return Ok(None),
+        };
+        if info.interlaced || info.is_animated() {
+            return Ok(None);
+        }
+        let sample_bytes = if sixteen { 2 } else { 1 };
+        super::check_decoded_size(path, (width, height), sample_bytes, file_bytes as usize)?;
+        let header = RowHeader {
+            width,
+            height,
+            format: "PNG",
+            georeference: None,
+            spacing_m: None,
+        };
+        let rows = PngRows {
+            reader,
+            sixteen,
+            nodata: nodata.map_or(IntNodata::None, |v| IntNodata::Code(v as i64)),
+            row: Vec::with_capacity(width as usize),
+        };
+        Ok(Some((header, rows)))
+    }
+
+    fn next(&mut self, path: &Path) -> Result<Option<RawRow<'_>>, InputError> {
+        let row = self.reader.next_row().map_err(|e| InputError::Image {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+        let Some(row) = row else { return Ok(None) };
+        self.row.clear();
+        if self.sixteen {
+            let samples = row.data().chunks_exact(2);
+            self.row
+                .extend(samples.map(|b| i32::from(u16::from_be_bytes([b[0], b[1]]))));
+        } else {
+            self.row.extend(row.data().iter().map(|&b| i32::from(b)));
+        }
+        Ok(Some(RawRow::Int(&self.row, self.nodata)))
+    }
+}
+
+/// GeoTIFF rows, read a strip or a row of tiles at a time.
+struct TiffRows {
+    decoder: tiff::decoder::Decoder<BufReader<File>>,
+    width: u32,
+    height: u32,
+    /// Samples of a chunk (strip or tile) across and down.
+    chunk: (u32, u32),
+    /// Chunks in a row of chunks, and in the file.
+    across: u32,
+    chunks: u32,
+    nodata: Option<f64>,
+    /// The current row of chunks, full rows, and how many of them have been handed out.
+    buffered: Buffered,
+    buffered_rows: u32,
+    handed_out: u32,
+    next_chunk_row: u32,
+}
+
+#[derive(Debug)]
+enum Buffered {
+    Int(Vec<i32>),
+    Float(Vec<f64>, FloatNodata),
+}
+
+impl std::fmt::Debug for TiffRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TiffRows")
+            .field("chunk", &self.chunk)
+            .field("next_chunk_row", &self.next_chunk_row)
+            .finish_non_exhaustive()
+    }
+}
+
+impl TiffRows {
+    fn open(
+        file: BufReader<File>,
+        path: &Path,
+        file_bytes: u64,
+        options: &ReadOptions,
+    ) -> Result<(RowHeader, TiffRows), InputError> {
+        use tiff::decoder::{ChunkType, Decoder};
+        let err = |e: tiff::TiffError| super::tiff_error(path, e.to_string());
+        let mut decoder = Decoder::new(file).map_err(err)?;
+        let header = super::geotiff_header(&mut decoder, path, file_bytes as usize, options)?;
+        let chunk = decoder.chunk_dimensions();
+        if chunk.0 == 0 || chunk.1 == 0 {
+            return Err(super::tiff_error(
+                path,
+                format!("chunks of {chunk:?} samples"),
+            ));
+        }
+        let (across, chunks) = match decoder.get_chunk_type() {
+            ChunkType::Strip => (1, decoder.strip_count().map_err(err)?),
+            ChunkType::Tile => (
+                header.width.div_ceil(chunk.0),
+                decoder.tile_count().map_err(err)?,
+            ),
+        };
+        let rows = TiffRows {
+            decoder,
+            width: header.width,
+            height: header.height,
+            chunk,
+            across,
+            chunks,
+            nodata: header.nodata,
+            buffered: Buffered::Int(Vec::new()),
+            buffered_rows: 0,
+            handed_out: 0,
+            next_chunk_row: 0,
+        };
+        let header = RowHeader {
+            width: header.width,
+            height: header.height,
+            format: "GeoTIFF",
+            georeference: header.georeference,
+            spacing_m: header.spacing_m,
+        };
+        Ok((header, rows))
+    }
+
+    fn next(&mut self, path: &Path) -> Result<Option<RawRow<'_>>, InputError> {
+        if self.handed_out == self.buffered_rows {
+            if self.rows_before(self.next_chunk_row) >= self.height {
+                return Ok(None);
+            }
+            self.read_chunk_row(path)?;
+        }
+        let width = self.width as usize;
+        let at = self.handed_out as usize * width;
+        self.handed_out += 1;
+        Ok(Some(match &self.buffered {
+            Buffered::Int(codes) => RawRow::Int(
+                &codes[at..at + width],
+                self.nodata.map_or(IntNodata::None, IntNodata::Value),
+            ),
+            Buffered::Float(values, nodata) => RawRow::Float(&values[at..at + width], *nodata),
+        }))
+    }
+
+    /// Image rows above row of chunks `chunk_row`, at most the image's height.
+    fn rows_before(&self, chunk_row: u32) -> u32 {
+        (u64::from(chunk_row) * u64::from(self.chunk.1)).min(u64::from(self.height)) as u32
+    }
+
+    /// Reads the next row of chunks into full-width rows.
+    fn read_chunk_row(&mut self, path: &Path) -> Result<(), InputError> {
+        let err = |message: String| super::tiff_error(path, message);
+        let done = self.rows_before(self.next_chunk_row);
+        let rows = self.chunk.1.min(self.height.saturating_sub(done));
+        let width = self.width as usize;
+        let first = self.next_chunk_row * self.across;
+        for column in 0..self.across {
+            let index = first + column;
+            if index >= self.chunks {
+                return Err(err(format!(
+                    "{} chunks, fewer than its size needs",
+                    self.chunks
+                )));
+            }
+            let (chunk_width, chunk_rows) = self.decoder.chunk_data_dimensions(index);
+            let x0 = (column * self.chunk.0) as usize;
+            if chunk_rows != rows || x0 + chunk_width as usize > width {
+                return Err(err(format!(
+                    "chunk {index} is {chunk_width}x{chunk_rows} samples, which does not fit the image"
+                )));
+            }
+            let result = self
+                .decoder
+                .read_chunk(index)
+                .map_err(|e| err(e.to_string()))?;
+            let chunk = Chunk::of(result, self.nodata).map_err(err)?;
+            let expected = chunk_width as usize * chunk_rows as usize;
+            if chunk.len() != expected {
+                return Err(err(format!(
+                    "{} samples in chunk {index} of {chunk_width}x{chunk_rows}: multi-band images are not heights",
+                    chunk.len()
+                )));
+            }
+            if column == 0 {
+                self.buffered =
+                    chunk.empty_like(std::mem::take(&mut self.buffered), width * rows as usize);
+            }
+            if !self.buffered.place(&chunk, x0, chunk_width as usize, width) {
+                return Err(err("its chunks mix sample types".into()));
+            }
+        }
+        self.buffered_rows = rows;
+        self.handed_out = 0;
+        self.next_chunk_row += 1;
+        Ok(())
+    }
+}
+
+/// One decoded chunk's samples.
+#[derive(Debug)]
+enum Chunk {
+    Int(Vec<i32>),
+    Float(Vec<f64>, FloatNodata),
+}
+
+impl Chunk {
+    fn of(result: tiff::decoder::DecodingResult, nodata: Option<f64>) -> Result<Chunk, String> {
+        use tiff::decoder::DecodingResult;
+        Ok(match result {
+            DecodingResult::I16(v) => Chunk::Int(v.into_iter().map(i32::from).collect()),
+            DecodingResult::U16(v) => Chunk::Int(v.into_iter().map(i32::from).collect()),
+            DecodingResult::U8(v) => Chunk::Int(v.into_iter().map(i32::from).collect()),
+            DecodingResult::F32(v) => Chunk::Float(
+                v.into_iter().map(f64::from).collect(),
+                FloatNodata::for_f32(nodata),
+            ),
+            DecodingResult::F64(v) => Chunk::Float(v, FloatNodata::for_f64(nodata)),
+            other => {
+                return Err(format!(
+                    "sample type {} (supported: int16, uint16, uint8, float32, float64)",
+                    super::sample_type_name(&other)
+                ));
+            }
+        })
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Chunk::Int(v) => v.len(),
+            Chunk::Float(v, _) => v.len(),
+        }
+    }
+
+    /// A buffer of `size` samples of this chunk's kind, reusing `old`'s allocation when it
+    /// is of that kind.
+    fn empty_like(&self, old: Buffered, size: usize) -> Buffered {
+        match (self, old) {
+            (Chunk::Int(_), Buffered::Int(mut codes)) => {
+                codes.clear();
+                codes.resize(size, 0);
+                Buffered::Int(codes)
+            }
+            (Chunk::Int(_), _) => Buffered::Int(vec![0; size]),
+            (Chunk::Float(_, nodata), Buffered::Float(mut values, _)) => {
+                values.clear();
+                values.resize(size, 0.0);
+                Buffered::Float(values, *nodata)
+            }
+            (Chunk::Float(_, nodata), _) => Buffered::Float(vec![0.0; size], *nodata),
+        }
+    }
+}
+
+impl Default for Buffered {
+    fn default() -> Buffered {
+        Buffered::Int(Vec::new())
+    }
+}
+
+impl Buffered {
+    /// Copies a chunk's rows (`chunk_width` samples each) to columns `x0..` of rows `width`
+    /// samples long; `false` when the chunk is not of the buffer's kind.
+    fn place(&mut self, chunk: &Chunk, x0: usize, chunk_width: usize, width: usize) -> bool {
+        fn copy<T: Copy>(out: &mut [T], source: &[T], x0: usize, chunk_width: usize, width: usize) {
+            for (y, source) in source.chunks_exact(chunk_width.max(1)).enumerate() {
+                let at = y * width + x0;
+                out[at..at + chunk_width].copy_from_slice(source);
+            }
+        }
+        match (self, chunk) {
+            (Buffered::Int(out), Chunk::Int(source)) => copy(out, source, x0, chunk_width, width),
+            (Buffered::Float(out, _), Chunk::Float(source, _)) => {
+                copy(out, source, x0, chunk_width, width);
+            }
+            _ => return false,
+        }
+        true
+    }
+}
+
+/// SRTM `.hgt` rows: big-endian int16, void -32768.
+#[derive(Debug)]
+struct HgtRows {
+    file: BufReader<File>,
+    bytes: Vec<u8>,
+    row: Vec<i32>,
+}
+
+impl HgtRows {
+    fn open(
+        file: BufReader<File>,
+        path: &Path,
+        file_bytes: u64,
+    ) -> Result<(RowHeader, HgtRows), InputError> {
+        let (side, georeference, spacing_m) = super::hgt_header(file_bytes, path)?;
+        let header = RowHeader {
+            width: side,
+            height: side,
+            format: "SRTM .hgt",
+            georeference,
+            spacing_m,
+        };
+        let rows = HgtRows {
+            file,
+            bytes: vec![0; 2 * side as usize],
+            row: Vec::with_capacity(side as usize),
+        };
+        Ok((header, rows))
+    }
+
+    fn next(&mut self, path: &Path) -> Result<Option<RawRow<'_>>, InputError> {
+        self.file
+            .read_exact(&mut self.bytes)
+            .map_err(|source| InputError::Io {
+                path: path.into(),
+                source,
+            })?;
+        self.row.clear();
+        self.row.extend(
+            self.bytes
+                .chunks_exact(2)
+                .map(|b| i32::from(i16::from_be_bytes([b[0], b[1]]))),
+        );
+        Ok(Some(RawRow::Int(&self.row, super::HGT_NODATA)))
+    }
+}

@@ -1,0 +1,470 @@
+//! The pyramid of levels, built a band of tile rows at a time while level 0 streams in, so
+//! that a build's memory does not grow with the raster's height, and grows with its width
+//! only by a band.
+//!
+//! Level 0 is the raster; level `k + 1` keeps every other sample of level `k`
+//! ([`tiles::decimate`]) and is cut into the same `(2^n + 1)^2` tiles, until a level fits
+//! in one tile ([`terrain_shared::manifest::level_rasters`]). Rows of level 0 arrive one at
+//! a time ([`Pyramid::push_row`]). Each level holds only what its next tile row needs:
+//!
+//! - its band: that tile row's `tile_size` rows (consecutive tile rows share one), and at
+//!   level 0 [`texture::GENERATED_HALO_ROWS`] more on either side for computed textures;
+//! - per tile of that row, what its children handed up ([`Parent`]): their bounds, their
+//!   distance from full resolution, their half-resolution errors and a quarter of their
+//!   textures ([`texture::ChildTexture`]).
+//!
+//! When a level's band is complete it cuts the row's tiles in parallel (rayon), writes them
+//! in row-major order ([`DbWriter::add_level_heights`]: each level to files of its own,
+//! put in manifest order at the end), hands their carries and every other row of its band
+//! to the next level, and when that completes the next level's band (after every second
+//! tile row, or the last) makes that level's row at once.
+//!
+//! A tile's decimation error needs the finer level's samples under it
+//! ([`tiles::decimation_error`]), but no coarse cell straddles two children, so it is the
+//! largest of the children's half-resolution errors, which each child computes with its
+//! own mask errors. Only where a parent on the grid's edge lacks children is a padding
+//! child cut from the finer band to stand in. No level keeps the finer level's rows.
+
+use super::texture::{self, ChildTexture, HeightField, Registration};
+use super::tiles::{self, Band, Grid, TileStats};
+use super::{BuildError, ProgressFn};
+use crate::db::DbWriter;
+use image::RgbImage;
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use terrain_shared::manifest::{self, GridSize, ImageFormat, Level, RasterSize};
+use terrain_shared::{TileBlob, TileId, TileRecord};
+
+/// What every tile of a build shares.
+#[derive(Debug)]
+pub(super) struct TileContext<'a> {
+    pub tile_size: u32,
+    pub quantum_m: f64,
+    pub offset_m: f64,
+    pub zstd_level: i32,
+    pub texture_format: ImageFormat,
+    pub jpeg_quality: u8,
+    /// Finest texture side, texels.
+    pub texture_size: u32,
+    pub level_zero_texture: LevelZeroTexture<'a>,
+}
+
+/// Where level 0's textures come from (coarser levels' are filtered from their children's).
+#[derive(Debug)]
+pub(super) enum LevelZeroTexture<'a> {
+    /// Resampled from an image held whole, covering a raster of `raster` samples.
+    Image {
+        image: &'a RgbImage,
+        registration: Registration,
+        raster: (u32, u32),
+    },
+    /// Computed from the heights, tinted over the dataset's range.
+    Generated {
+        spacing_m: [f64; 2],
+        min_m: f64,
+        max_m: f64,
+    },
+}
+
+/// What a finished pyramid made.
+#[derive(Debug)]
+pub(super) struct Built {
+    pub levels: Vec<Level>,
+    pub heights_bytes: u64,
+    pub texture_bytes: u64,
+    /// Samples stored in tiles, padding included.
+    pub tile_samples: u64,
+}
+
+/// The levels being built. See the module docs.
+pub(super) struct Pyramid<'a> {
+    context: TileContext<'a>,
+    levels: Vec<LevelState>,
+    progress: ProgressFn<'a>,
+    cancel: &'a AtomicBool,
+    done: AtomicUsize,
+    total: usize,
+    heights_bytes: u64,
+    texture_bytes: u64,
+}
+
+impl std::fmt::Debug for Pyramid<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pyramid")
+            .field("levels", &self.levels.len())
+            .field("done", &self.done)
+            .field("total", &self.total)
+            .finish_non_exhaustive()
+    }
+}
+
+/// One level being built.
+#[derive(Debug)]
+struct LevelState {
+    level: u32,
+    raster: RasterSize,
+    grid: Grid,
+    band: Band,
+    next_tile_row: u32,
+    /// Per tile of the next tile row, what its children handed up (levels above 0).
+    parents: Vec<Parent>,
+    records: Vec<TileRecord>,
+}
+
+/// What a tile's children have handed up so far.
+#[derive(Debug, Default)]
+struct Parent {
+    /// North-west, north-east, south-west, south-east; `None` past the finer grid's edge.
+    children: [Option<Carry>; 4],
+    /// Half-resolution error of the padding that stands in for missing children.
+    padding_error_m: f32,
+}
+
+/// What a tile hands to its parent.
+#[derive(Debug)]
+struct Carry {
+    /// Bounds of the full-resolution surface under the tile.
+    min_m: f32,
+    max_m: f32,
+    /// Largest vertical distance between the tile's own surface and the full-resolution
+    /// surface, at every full-resolution sample under it (0 at level 0).
+    deviation_m: f32,
+    /// [`TileStats::half_resolution_error_m`].
+    half_resolution_error_m: f32,
+    texture: ChildTexture,
+}
+
+/// One tile's output, made in parallel and written in order.
+#[derive(Debug)]
+struct MadeTile {
+    carry: Carry,
+    roughness_m: f32,
+    /// The tile blob (mask errors, texture hashes, heights).
+    blob: Vec<u8>,
+    heights_bytes: u64,
+    /// Encoded texture levels, coarsest first.
+    texture_levels: Vec<Vec<u8>>,
+}
+
+impl<'a> Pyramid<'a> {
+    /// The empty pyramid over a `raster` of level 0.
+    pub fn new(
+        raster: RasterSize,
+        context: TileContext<'a>,
+        progress: ProgressFn<'a>,
+        cancel: &'a AtomicBool,
+    ) -> Pyramid<'a> {
+        let n = context.tile_size;
+        let levels: Vec<LevelState> = manifest::level_rasters(raster, n)
+            .into_iter()
+            .zip(0..)
+            .map(|(raster, level)| LevelState {
+                level,
+                raster,
+                grid: Grid::covering(raster.width, raster.height, n),
+                band: Band::new(raster.width, raster.height),
+                next_tile_row: 0,
+                parents: Vec::new(),
+                records: Vec::new(),
+            })
+            .collect();
+        let total = levels.iter().map(|l| l.grid.len()).sum();
+        Pyramid {
+            context,
+            levels,
+            progress,
+            cancel,
+            done: AtomicUsize::new(0),
+            total,
+            heights_bytes: 0,
+            texture_bytes: 0,
+        }
+    }
+
+    /// Adds the next row of level 0 and makes every tile row that completes.
+    pub fn push_row(&mut self, row: &[i32], writer: &mut DbWriter) -> Result<(), BuildError> {
+        if self.cancel.load(Ordering::Relaxed) {
+            return Err(BuildError::Cancelled);
+        }
+        self.levels[0].band.push_row(row);
+        while self.level_zero_ready() {
+            self.make_rows_from(0, writer)?;
+        }
+        Ok(())
+    }
+
+    /// The levels, once every row of level 0 has been pushed.
+    pub fn finish(self) -> Result<Built, BuildError> {
+        let n = u64::from(self.context.tile_size);
+        if let Some(level) = self.levels.iter().find(|l| l.next_tile_row != l.grid.rows) {
+            return Err(BuildError::Unfinished {
+                level: level.level,
+                made: level.next_tile_row,
+                rows: level.grid.rows,
+            });
+        }
+        let tile_samples = self.total as u64 * n * n;
+        let levels = self
+            .levels
+            .into_iter()
+            .map(|l| Level {
+                raster: l.raster,
+                grid: GridSize {
+                    columns: l.grid.columns,
+                    rows: l.grid.rows,
+                },
+                tiles: l.records,
+            })
+            .collect();
+        Ok(Built {
+            levels,
+            heights_bytes: self.heights_bytes,
+            texture_bytes: self.texture_bytes,
+            tile_samples,
+        })
+    }
+
+    /// Whether level 0 holds every row its next tile row reads, halo included.
+    fn level_zero_ready(&self) -> bool {
+        let level = &self.levels[0];
+        let step = self.context.tile_size - 1;
+        let j = level.next_tile_row;
+        let last_needed =
+            (j * step + step + texture::GENERATED_HALO_ROWS).min(level.raster.height - 1);
+        j < level.grid.rows && level.band.next_row() > last_needed
+    }
+
+    /// Makes level `k`'s next tile row, then the coarser rows that completes, one level up
+    /// at a time.
+    fn make_rows_from(&mut self, mut k: usize, writer: &mut DbWriter) -> Result<(), BuildError> {
+        loop {
+            let j = self.make_row(k, writer)?;
+            let completes_parents = j % 2 == 1 || j + 1 == self.levels[k].grid.rows;
+            if k + 1 == self.levels.len() || !completes_parents {
+                return Ok(());
+            }
+            k += 1;
+        }
+    }
+
+    /// Makes, writes and hands up level `k`'s next tile row; returns its index.
+    fn make_row(&mut self, k: usize, writer: &mut DbWriter) -> Result<u32, BuildError> {
+        let level = &self.levels[k];
+        let j = level.next_tile_row;
+        let made: Vec<Result<MadeTile, BuildError>> = (0..level.grid.columns)
+            .into_par_iter()
+            .map(|x| self.make_tile(level, TileId::at(level.level, x, j)))
+            .collect();
+        let mut carries = Vec::with_capacity(made.len());
+        for result in made {
+            let made = result?;
+            carries.push(self.write(k, made, writer)?);
+        }
+        let level = &mut self.levels[k];
+        level.next_tile_row += 1;
+        level.parents.clear();
+        if k + 1 < self.levels.len() {
+            self.hand_up(k, j, carries);
+        }
+        let step = self.context.tile_size - 1;
+        let halo = if k == 0 {
+            texture::GENERATED_HALO_ROWS
+        } else {
+            0
+        };
+        self.levels[k]
+            .band
+            .drop_before(((j + 1) * step).saturating_sub(halo));
+        Ok(j)
+    }
+
+    /// Writes a made tile to level `k`'s files and records it; returns its carry.
+    fn write(
+        &mut self,
+        k: usize,
+        made: MadeTile,
+        writer: &mut DbWriter,
+    ) -> Result<Carry, BuildError> {
+        let level = k as u32;
+        let stored = writer.add_level_heights(level, &made.blob)?;
+        self.heights_bytes += made.heights_bytes;
+        for encoded in &made.texture_levels {
+            self.texture_bytes += writer.add_level_texture(level, encoded)?.bytes;
+        }
+        self.levels[k].records.push(TileRecord {
+            hash: stored.hash,
+            bytes: stored.bytes,
+            min_m: made.carry.min_m,
+            max_m: made.carry.max_m,
+            roughness_m: made.roughness_m,
+        });
+        Ok(made.carry)
+    }
+
+    /// Hands level `k`'s tile row `j` up to level `k + 1`: the tiles' carries, padding for
+    /// the children the coarser grid's edge lacks, and every other row of the band.
+    fn hand_up(&mut self, k: usize, j: u32, carries: Vec<Carry>) {
+        let (finer, coarser) = self.levels.split_at_mut(k + 1);
+        let (fine, coarse) = (&finer[k], &mut coarser[0]);
+        if coarse.parents.is_empty() {
+            coarse
+                .parents
+                .resize_with(coarse.grid.columns as usize, Parent::default);
+        }
+        for (x, carry) in carries.into_iter().enumerate() {
+            let slot = x % 2 + 2 * (j as usize % 2);
+            coarse.parents[x / 2].children[slot] = Some(carry);
+        }
+        let (q, o) = (self.context.quantum_m, self.context.offset_m);
+        let padding: Vec<(usize, f32)> = padding_children(fine.level, fine.grid, j)
+            .into_par_iter()
+            .map(|id| {
+                let tile = fine.band.cut(fine.grid, id, q, o);
+                (id.x as usize / 2, tiles::half_resolution_error(&tile))
+            })
+            .collect();
+        for (x, error) in padding {
+            let parent = &mut coarse.parents[x];
+            parent.padding_error_m = parent.padding_error_m.max(error);
+        }
+        let step = self.context.tile_size - 1;
+        let last_fine_row = (j * step + step).min(fine.raster.height - 1);
+        loop {
+            let y = coarse.band.next_row();
+            if y >= coarse.raster.height || (2 * y).min(fine.raster.height - 1) > last_fine_row {
+                break;
+            }
+            let row = fine.band.decimated_row(y, coarse.raster.width);
+            coarse.band.push_row(&row);
+        }
+    }
+
+    /// Cuts, measures, textures and encodes one tile of `level`'s next tile row.
+    fn make_tile(&self, level: &LevelState, id: TileId) -> Result<MadeTile, BuildError> {
+        if self.cancel.load(Ordering::Relaxed) {
+            return Err(BuildError::Cancelled);
+        }
+        let c = &self.context;
+        let cut = level.band.cut(level.grid, id, c.quantum_m, c.offset_m);
+        let encoded = cut
+            .heights
+            .encode_with_level(c.zstd_level)
+            .map_err(|source| BuildError::Encode { tile: id, source })?;
+        let mut stats = tiles::stats(&cut);
+        let (finest, deviation_m) = if level.level == 0 {
+            (self.level_zero_texture(level, id), 0.0)
+        } else {
+            // Every tile above level 0 has a parent record: hand_up makes the row's.
+            debug_assert!(
+                level.parents.len() > id.x as usize,
+                "no parent record for {id}"
+            );
+            let none = Parent::default();
+            let parent = level.parents.get(id.x as usize).unwrap_or(&none);
+            (
+                texture::from_children(&parent.textures(), c.texture_size),
+                parent.fold_into(&mut stats),
+            )
+        };
+        tiles::add_deviation(&mut stats.mask_errors_m, deviation_m);
+        let carried_texture = ChildTexture::of(&finest);
+        let texture_levels = texture::mip_chain(finest)
+            .iter()
+            .map(|level| texture::encode(level, c.texture_format, c.jpeg_quality))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
+        let blob = TileBlob {
+            mask_errors_m: stats.mask_errors_m,
+            texture: texture_levels
+                .iter()
+                .map(|l| manifest::Blob::of(l))
+                .collect(),
+            heights: encoded,
+        };
+        (self.progress)(self.done.fetch_add(1, Ordering::Relaxed) + 1, self.total);
+        Ok(MadeTile {
+            carry: Carry {
+                min_m: stats.min_m,
+                max_m: stats.max_m,
+                deviation_m,
+                half_resolution_error_m: stats.half_resolution_error_m,
+                texture: carried_texture,
+            },
+            roughness_m: stats.roughness_m,
+            blob: blob.encode(),
+            heights_bytes: blob.heights.len() as u64,
+            texture_levels,
+        })
+    }
+
+    /// The finest texture of tile `id` of level 0.
+    fn level_zero_texture(&self, level: &LevelState, id: TileId) -> RgbImage {
+        let c = &self.context;
+        let grid = level.grid;
+        match &c.level_zero_texture {
+            LevelZeroTexture::Image {
+                image,
+                registration,
+                raster,
+            } => texture::from_image(image, *registration, *raster, grid, id, c.texture_size),
+            LevelZeroTexture::Generated {
+                spacing_m,
+                min_m,
+                max_m,
+            } => {
+                let field = HeightField {
+                    codes: level.band.codes(),
+                    first_row: level.band.first(),
+                    width: level.raster.width,
+                    height: level.raster.height,
+                    quantum_m: c.quantum_m,
+                    offset_m: c.offset_m,
+                    spacing_m: *spacing_m,
+                    min_m: *min_m,
+                    max_m: *max_m,
+                };
+                texture::generated(&field, grid, id, c.texture_size)
+            }
+        }
+    }
+}
+
+impl Parent {
+    fn textures(&self) -> [Option<&ChildTexture>; 4] {
+        self.children
+            .each_ref()
+            .map(|c| c.as_ref().map(|c| &c.texture))
+    }
+
+    /// Widens `stats`' bounds to the children's (the full-resolution surface under the
+    /// tile) and returns the tile's distance from full resolution: its children's largest,
+    /// plus its own decimation error (the largest of its children's half-resolution errors,
+    /// padding's included; see the module docs).
+    fn fold_into(&self, stats: &mut TileStats) -> f32 {
+        let children = || self.children.iter().flatten();
+        for child in children() {
+            stats.min_m = stats.min_m.min(child.min_m);
+            stats.max_m = stats.max_m.max(child.max_m);
+        }
+        let below = children().map(|c| c.deviation_m).fold(0.0, f32::max);
+        let decimation = children()
+            .map(|c| c.half_resolution_error_m)
+            .fold(self.padding_error_m, f32::max);
+        below + decimation
+    }
+}
+
+/// The children a coarser grid's edge tiles lack at tile row `j` of `grid` (level `level`): the column past
+/// its last when it has an odd number of columns, and, after its last row when it has an
+/// odd number of rows, the row past it. Cutting them gives padding (the edge repeated).
+fn padding_children(level: u32, grid: Grid, j: u32) -> Vec<TileId> {
+    let mut ids = Vec::new();
+    if grid.columns % 2 == 1 {
+        ids.push(TileId::at(level, grid.columns, j));
+    }
+    if j + 1 == grid.rows && grid.rows % 2 == 1 {
+        let columns = grid.columns + grid.columns % 2;
+        ids.extend((0..columns).map(|x| TileId::at(level, x, j + 1)));
+    }
+    ids
+}
