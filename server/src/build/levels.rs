@@ -41,6 +41,8 @@ pub(super) struct TileContext<'a> {
     pub tile_size: u32,
     pub quantum_m: f64,
     pub offset_m: f64,
+    /// Smallest and largest code of level 0 (and so of every level).
+    pub code_range: (i32, i32),
     pub zstd_level: i32,
     pub texture_format: ImageFormat,
     pub jpeg_quality: u8,
@@ -77,21 +79,29 @@ pub(super) struct Built {
 }
 
 /// The levels being built. See the module docs.
+#[derive(Debug)]
 pub(super) struct Pyramid<'a> {
-    context: TileContext<'a>,
+    tiles: TileMaker<'a>,
     levels: Vec<LevelState>,
-    progress: ProgressFn<'a>,
-    cancel: &'a AtomicBool,
-    done: AtomicUsize,
-    total: usize,
+    /// Per level, the records of the tiles written so far.
+    records: Vec<Vec<TileRecord>>,
     heights_bytes: u64,
     texture_bytes: u64,
 }
 
-impl std::fmt::Debug for Pyramid<'_> {
+/// Makes tiles, from any thread.
+struct TileMaker<'a> {
+    context: TileContext<'a>,
+    progress: ProgressFn<'a>,
+    cancel: &'a AtomicBool,
+    done: AtomicUsize,
+    total: usize,
+}
+
+impl std::fmt::Debug for TileMaker<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Pyramid")
-            .field("levels", &self.levels.len())
+        f.debug_struct("TileMaker")
+            .field("context", &self.context)
             .field("done", &self.done)
             .field("total", &self.total)
             .finish_non_exhaustive()
@@ -108,7 +118,6 @@ struct LevelState {
     next_tile_row: u32,
     /// Per tile of the next tile row, what its children handed up (levels above 0).
     parents: Vec<Parent>,
-    records: Vec<TileRecord>,
 }
 
 /// What a tile's children have handed up so far.
@@ -158,24 +167,33 @@ impl<'a> Pyramid<'a> {
         let levels: Vec<LevelState> = manifest::level_rasters(raster, n)
             .into_iter()
             .zip(0..)
-            .map(|(raster, level)| LevelState {
-                level,
-                raster,
-                grid: Grid::covering(raster.width, raster.height, n),
-                band: Band::new(raster.width, raster.height),
-                next_tile_row: 0,
-                parents: Vec::new(),
-                records: Vec::new(),
+            .map(|(raster, level)| {
+                let halo = if level == 0 {
+                    2 * texture::GENERATED_HALO_ROWS
+                } else {
+                    0
+                };
+                LevelState {
+                    level,
+                    raster,
+                    grid: Grid::covering(raster.width, raster.height, n),
+                    band: Band::new(raster.width, raster.height, n + halo, context.code_range),
+                    next_tile_row: 0,
+                    parents: Vec::new(),
+                }
             })
             .collect();
         let total = levels.iter().map(|l| l.grid.len()).sum();
         Pyramid {
-            context,
+            tiles: TileMaker {
+                context,
+                progress,
+                cancel,
+                done: AtomicUsize::new(0),
+                total,
+            },
+            records: levels.iter().map(|_| Vec::new()).collect(),
             levels,
-            progress,
-            cancel,
-            done: AtomicUsize::new(0),
-            total,
             heights_bytes: 0,
             texture_bytes: 0,
         }
@@ -183,7 +201,7 @@ impl<'a> Pyramid<'a> {
 
     /// Adds the next row of level 0 and makes every tile row that completes.
     pub fn push_row(&mut self, row: &[i32], writer: &mut DbWriter) -> Result<(), BuildError> {
-        if self.cancel.load(Ordering::Relaxed) {
+        if self.tiles.cancel.load(Ordering::Relaxed) {
             return Err(BuildError::Cancelled);
         }
         self.levels[0].band.push_row(row);
@@ -195,7 +213,7 @@ impl<'a> Pyramid<'a> {
 
     /// The levels, once every row of level 0 has been pushed.
     pub fn finish(self) -> Result<Built, BuildError> {
-        let n = u64::from(self.context.tile_size);
+        let n = u64::from(self.tiles.context.tile_size);
         if let Some(level) = self.levels.iter().find(|l| l.next_tile_row != l.grid.rows) {
             return Err(BuildError::Unfinished {
                 level: level.level,
@@ -203,17 +221,18 @@ impl<'a> Pyramid<'a> {
                 rows: level.grid.rows,
             });
         }
-        let tile_samples = self.total as u64 * n * n;
+        let tile_samples = self.tiles.total as u64 * n * n;
         let levels = self
             .levels
             .into_iter()
-            .map(|l| Level {
+            .zip(self.records)
+            .map(|(l, records)| Level {
                 raster: l.raster,
                 grid: GridSize {
                     columns: l.grid.columns,
                     rows: l.grid.rows,
                 },
-                tiles: l.records,
+                tiles: records,
             })
             .collect();
         Ok(Built {
@@ -227,7 +246,7 @@ impl<'a> Pyramid<'a> {
     /// Whether level 0 holds every row its next tile row reads, halo included.
     fn level_zero_ready(&self) -> bool {
         let level = &self.levels[0];
-        let step = self.context.tile_size - 1;
+        let step = self.tiles.context.tile_size - 1;
         let j = level.next_tile_row;
         let last_needed =
             (j * step + step + texture::GENERATED_HALO_ROWS).min(level.raster.height - 1);
@@ -248,17 +267,59 @@ impl<'a> Pyramid<'a> {
     }
 
     /// Makes, writes and hands up level `k`'s next tile row; returns its index.
+    ///
+    /// The tiles are made on rayon's threads, queued in row order; this thread writes each
+    /// as soon as those before it are written, so a row's outputs are never all held.
     fn make_row(&mut self, k: usize, writer: &mut DbWriter) -> Result<u32, BuildError> {
         let level = &self.levels[k];
         let j = level.next_tile_row;
-        let made: Vec<Result<MadeTile, BuildError>> = (0..level.grid.columns)
-            .into_par_iter()
-            .map(|x| self.make_tile(level, TileId::at(level.level, x, j)))
-            .collect();
-        let mut carries = Vec::with_capacity(made.len());
-        for result in made {
-            let made = result?;
-            carries.push(self.write(k, made, writer)?);
+        let (tiles, records) = (&self.tiles, &mut self.records[k]);
+        let (heights_bytes, texture_bytes) = (&mut self.heights_bytes, &mut self.texture_bytes);
+        let stop = AtomicBool::new(false);
+        let mut carries = Vec::with_capacity(level.grid.columns as usize);
+        let mut failure = None;
+        rayon::in_place_scope(|scope| {
+            let (sender, receiver) = std::sync::mpsc::channel();
+            for x in 0..level.grid.columns {
+                let (sender, stop) = (sender.clone(), &stop);
+                scope.spawn(move |_| {
+                    let made = if stop.load(Ordering::Relaxed) {
+                        Err(BuildError::Cancelled)
+                    } else {
+                        tiles.make(level, TileId::at(level.level, x, j))
+                    };
+                    // The receiver outlives every sender: it is read until they are gone.
+                    let _ = sender.send((x, made));
+                });
+            }
+            drop(sender);
+            let mut early = std::collections::BTreeMap::new();
+            for (x, made) in receiver {
+                early.insert(x, made);
+                while let Some(made) = early.remove(&(carries.len() as u32)) {
+                    let written = made.and_then(|made| {
+                        *heights_bytes += made.heights_bytes;
+                        let (record, carry, bytes) = write(level.level, made, writer)?;
+                        *texture_bytes += bytes;
+                        records.push(record);
+                        Ok(carry)
+                    });
+                    match written {
+                        Ok(carry) => carries.push(carry),
+                        Err(error) => {
+                            stop.store(true, Ordering::Relaxed);
+                            failure = Some(error);
+                            break;
+                        }
+                    }
+                }
+                if failure.is_some() {
+                    break;
+                }
+            }
+        });
+        if let Some(error) = failure {
+            return Err(error);
         }
         let level = &mut self.levels[k];
         level.next_tile_row += 1;
@@ -266,7 +327,7 @@ impl<'a> Pyramid<'a> {
         if k + 1 < self.levels.len() {
             self.hand_up(k, j, carries);
         }
-        let step = self.context.tile_size - 1;
+        let step = self.tiles.context.tile_size - 1;
         let halo = if k == 0 {
             texture::GENERATED_HALO_ROWS
         } else {
@@ -276,29 +337,6 @@ impl<'a> Pyramid<'a> {
             .band
             .drop_before(((j + 1) * step).saturating_sub(halo));
         Ok(j)
-    }
-
-    /// Writes a made tile to level `k`'s files and records it; returns its carry.
-    fn write(
-        &mut self,
-        k: usize,
-        made: MadeTile,
-        writer: &mut DbWriter,
-    ) -> Result<Carry, BuildError> {
-        let level = k as u32;
-        let stored = writer.add_level_heights(level, &made.blob)?;
-        self.heights_bytes += made.heights_bytes;
-        for encoded in &made.texture_levels {
-            self.texture_bytes += writer.add_level_texture(level, encoded)?.bytes;
-        }
-        self.levels[k].records.push(TileRecord {
-            hash: stored.hash,
-            bytes: stored.bytes,
-            min_m: made.carry.min_m,
-            max_m: made.carry.max_m,
-            roughness_m: made.roughness_m,
-        });
-        Ok(made.carry)
     }
 
     /// Hands level `k`'s tile row `j` up to level `k + 1`: the tiles' carries, padding for
@@ -315,7 +353,8 @@ impl<'a> Pyramid<'a> {
             let slot = x % 2 + 2 * (j as usize % 2);
             coarse.parents[x / 2].children[slot] = Some(carry);
         }
-        let (q, o) = (self.context.quantum_m, self.context.offset_m);
+        let context = &self.tiles.context;
+        let (q, o) = (context.quantum_m, context.offset_m);
         let padding: Vec<(usize, f32)> = padding_children(fine.level, fine.grid, j)
             .into_par_iter()
             .map(|id| {
@@ -327,7 +366,7 @@ impl<'a> Pyramid<'a> {
             let parent = &mut coarse.parents[x];
             parent.padding_error_m = parent.padding_error_m.max(error);
         }
-        let step = self.context.tile_size - 1;
+        let step = context.tile_size - 1;
         let last_fine_row = (j * step + step).min(fine.raster.height - 1);
         loop {
             let y = coarse.band.next_row();
@@ -338,9 +377,33 @@ impl<'a> Pyramid<'a> {
             coarse.band.push_row(&row);
         }
     }
+}
 
-    /// Cuts, measures, textures and encodes one tile of `level`'s next tile row.
-    fn make_tile(&self, level: &LevelState, id: TileId) -> Result<MadeTile, BuildError> {
+/// Writes a made tile to level `level`'s files; returns its record, its carry and the
+/// bytes of its textures.
+fn write(
+    level: u32,
+    made: MadeTile,
+    writer: &mut DbWriter,
+) -> Result<(TileRecord, Carry, u64), BuildError> {
+    let stored = writer.add_level_heights(level, &made.blob)?;
+    let mut texture_bytes = 0;
+    for encoded in &made.texture_levels {
+        texture_bytes += writer.add_level_texture(level, encoded)?.bytes;
+    }
+    let record = TileRecord {
+        hash: stored.hash,
+        bytes: stored.bytes,
+        min_m: made.carry.min_m,
+        max_m: made.carry.max_m,
+        roughness_m: made.roughness_m,
+    };
+    Ok((record, made.carry, texture_bytes))
+}
+
+impl TileMaker<'_> {
+    /// Cuts, measures, textures and encodes tile `id` of `level`'s next tile row.
+    fn make(&self, level: &LevelState, id: TileId) -> Result<MadeTile, BuildError> {
         if self.cancel.load(Ordering::Relaxed) {
             return Err(BuildError::Cancelled);
         }
@@ -413,10 +476,7 @@ impl<'a> Pyramid<'a> {
                 max_m,
             } => {
                 let field = HeightField {
-                    codes: level.band.codes(),
-                    first_row: level.band.first(),
-                    width: level.raster.width,
-                    height: level.raster.height,
+                    band: &level.band,
                     quantum_m: c.quantum_m,
                     offset_m: c.offset_m,
                     spacing_m: *spacing_m,

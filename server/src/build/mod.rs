@@ -452,6 +452,7 @@ pub fn build(
         tile_size: n,
         quantum_m,
         offset_m,
+        code_range: heights_input.code_range,
         zstd_level: options.zstd_level,
         texture_format: options.texture_format,
         jpeg_quality: options.jpeg_quality,

@@ -17,7 +17,7 @@ use image::{Rgb, RgbImage};
 use terrain_shared::TileId;
 use terrain_shared::manifest::ImageFormat;
 
-use super::tiles::Grid;
+use super::tiles::{Band, Grid};
 
 /// Coarsest level's side, or the finest's if smaller: 8 texels still show a tile's main colour.
 pub const COARSEST_SIZE: u32 = 8;
@@ -186,15 +186,11 @@ pub fn from_children(children: &[Option<&ChildTexture>], size: u32) -> RgbImage 
     })
 }
 
-/// Heights in metres for computed textures: rows `first_row..` of a `width x height`
-/// raster (a tile row's band and a row either side, or the whole raster).
+/// Heights in metres for computed textures, from the rows a [`Band`] holds (a tile row's
+/// and [`GENERATED_HALO_ROWS`] either side, or a whole raster).
 #[derive(Debug, Clone, Copy)]
 pub struct HeightField<'a> {
-    /// Row-major, `width` a row, starting at raster row `first_row`.
-    pub codes: &'a [i32],
-    pub first_row: u32,
-    pub width: u32,
-    pub height: u32,
+    pub band: &'a Band,
     pub quantum_m: f64,
     pub offset_m: f64,
     pub spacing_m: [f64; 2],
@@ -204,19 +200,11 @@ pub struct HeightField<'a> {
 }
 
 impl HeightField<'_> {
-    /// Height at sample `(x, y)`, the raster's edge repeated beyond it. The row must be
-    /// held (a caller's bug otherwise; release builds read the nearest row held).
+    /// Height at sample `(x, y)`, the raster's edge repeated beyond it.
     fn at(&self, x: i64, y: i64) -> f64 {
-        let width = self.width as usize;
-        let x = x.clamp(0, i64::from(self.width) - 1) as usize;
-        let y = y.clamp(0, i64::from(self.height) - 1) - i64::from(self.first_row);
-        let rows = self.codes.len() / width.max(1);
-        debug_assert!(
-            (0..rows as i64).contains(&y),
-            "row {y} of the field is not held"
-        );
-        let y = y.clamp(0, (rows as i64 - 1).max(0)) as usize;
-        self.offset_m + self.quantum_m * f64::from(self.codes[y * width + x])
+        let x = x.clamp(0, i64::from(self.band.width()) - 1) as usize;
+        let y = y.clamp(0, i64::from(self.band.height()) - 1) as u32;
+        self.offset_m + self.quantum_m * f64::from(self.band.row(y).get(x))
     }
 
     /// Hypsometric tint shaded by a light from the north-west, 45 degrees up (the
@@ -415,11 +403,9 @@ mod tests {
         assert_eq!(tint(10.0, 10.0, 100.0), [58.0, 125.0, 68.0]);
         // Shading: a slope facing the north-west light is brighter than one facing away.
         let codes: Vec<i32> = (0..25).map(|i| (i % 5) * 10).collect(); // rises to the east
+        let band = Band::whole(&codes, 5, 5);
         let field = HeightField {
-            codes: &codes,
-            first_row: 0,
-            width: 5,
-            height: 5,
+            band: &band,
             quantum_m: 1.0,
             offset_m: 1.0,
             spacing_m: [10.0, 10.0],
@@ -428,8 +414,9 @@ mod tests {
         };
         let west_facing = field.colour(2, 2);
         let mirrored: Vec<i32> = (0..25).map(|i| (4 - i % 5) * 10).collect();
+        let mirrored = Band::whole(&mirrored, 5, 5);
         let east_facing = HeightField {
-            codes: &mirrored,
+            band: &mirrored,
             ..field
         }
         .colour(2, 2);

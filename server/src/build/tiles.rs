@@ -60,15 +60,15 @@ pub fn cut(
     quantum_m: f64,
     offset_m: f64,
 ) -> TileSamples {
-    let row = |y: u32| &codes[y as usize * width as usize..][..width as usize];
+    let row = |y: u32| Row::Wide(&codes[y as usize * width as usize..][..width as usize]);
     cut_rows(row, width, height, grid, id, (quantum_m, offset_m))
 }
 
 /// Cuts tile `id` from rows given by `row` (raster row `y`, `y < height`). Samples past the
 /// last row or column repeat it, also for a tile that lies wholly past the raster (the
-/// virtual children of [`Band::cut`]).
+/// padding children of [`crate::build::levels`]).
 fn cut_rows<'a>(
-    row: impl Fn(u32) -> &'a [i32],
+    row: impl Fn(u32) -> Row<'a>,
     width: u32,
     height: u32,
     grid: Grid,
@@ -79,10 +79,7 @@ fn cut_rows<'a>(
     let (x0, y0) = (id.x * (n - 1), id.y * (n - 1));
     let mut tile = Vec::with_capacity((n * n) as usize);
     for y in 0..n {
-        let source = row((y0 + y).min(height - 1));
-        for x in 0..n {
-            tile.push(source[(x0 + x).min(width - 1) as usize]);
-        }
+        row((y0 + y).min(height - 1)).extend_clamped(&mut tile, x0, n);
     }
     TileSamples {
         id,
@@ -100,26 +97,104 @@ fn cut_rows<'a>(
     }
 }
 
-/// Consecutive rows of one level's raster: what the builder holds of a level at a time.
+/// One row of codes as a [`Band`] holds it.
+#[derive(Debug, Clone, Copy)]
+pub enum Row<'a> {
+    /// Offsets from a base code.
+    Narrow(&'a [u16], i32),
+    Wide(&'a [i32]),
+}
+
+impl Row<'_> {
+    pub fn len(&self) -> usize {
+        match self {
+            Row::Narrow(values, _) => values.len(),
+            Row::Wide(codes) => codes.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Code `x`, or the last one for `x` past it.
+    pub fn get(&self, x: usize) -> i32 {
+        let x = x.min(self.len().saturating_sub(1));
+        match self {
+            Row::Narrow(values, base) => base + i32::from(values[x]),
+            Row::Wide(codes) => codes[x],
+        }
+    }
+
+    /// Appends codes `x0..x0 + count`, those past the last repeating it.
+    fn extend_clamped(&self, out: &mut Vec<i32>, x0: u32, count: u32) {
+        let last = self.len().saturating_sub(1);
+        let xs = (x0..x0 + count).map(|x| (x as usize).min(last));
+        match self {
+            Row::Narrow(values, base) => out.extend(xs.map(|x| base + i32::from(values[x]))),
+            Row::Wide(codes) => out.extend(xs.map(|x| codes[x])),
+        }
+    }
+}
+
+/// Consecutive rows of one level's raster, at most a fixed number: what the builder holds
+/// of a level at a time. Rows live in a ring of slots allocated once. Codes are held as
+/// 16-bit offsets from the raster's lowest code when its range allows (every 8- or 16-bit
+/// input, and any level made from one), else as they are: a band costs 2 bytes a sample
+/// for most DEMs.
 #[derive(Debug, Clone)]
 pub struct Band {
     width: u32,
     /// The whole raster's height.
     height: u32,
-    /// Raster row of the first row held.
+    /// Slots, rows.
+    capacity: u32,
+    /// Raster rows held: `first..next`.
     first: u32,
-    codes: Vec<i32>,
+    next: u32,
+    codes: Codes,
+}
+
+#[derive(Debug, Clone)]
+enum Codes {
+    Narrow { base: i32, values: Vec<u16> },
+    Wide(Vec<i32>),
 }
 
 impl Band {
-    /// An empty band of a `width x height` raster, starting at row 0.
-    pub fn new(width: u32, height: u32) -> Band {
+    /// An empty band of a `width x height` raster whose codes lie in `code_range`, holding
+    /// at most `rows` rows, starting at row 0.
+    pub fn new(width: u32, height: u32, rows: u32, code_range: (i32, i32)) -> Band {
+        let size = width as usize * rows as usize;
+        let (low, high) = code_range;
+        let codes = if i64::from(high) - i64::from(low) <= i64::from(u16::MAX) {
+            Codes::Narrow {
+                base: low,
+                values: vec![0; size],
+            }
+        } else {
+            Codes::Wide(vec![0; size])
+        };
         Band {
             width,
             height,
+            capacity: rows,
             first: 0,
-            codes: Vec::new(),
+            next: 0,
+            codes,
         }
+    }
+
+    /// A band holding all of a raster (`codes` row-major, `width x height`).
+    pub fn whole(codes: &[i32], width: u32, height: u32) -> Band {
+        let range = codes
+            .iter()
+            .fold((i32::MAX, i32::MIN), |(lo, hi), &c| (lo.min(c), hi.max(c)));
+        let mut band = Band::new(width, height, height, range);
+        for row in codes.chunks_exact(width.max(1) as usize) {
+            band.push_row(row);
+        }
+        band
     }
 
     pub fn width(&self) -> u32 {
@@ -135,44 +210,57 @@ impl Band {
         self.first
     }
 
-    /// The rows held, row-major from [`Band::first`].
-    pub fn codes(&self) -> &[i32] {
-        &self.codes
-    }
-
     /// The raster row the next [`Band::push_row`] adds.
     pub fn next_row(&self) -> u32 {
-        self.first + (self.codes.len() / self.width.max(1) as usize) as u32
+        self.next
     }
 
-    /// Adds the next row (`width` codes).
+    /// Adds the next row (`width` codes within the band's code range).
+    ///
+    /// Panics if the band is full (a caller's bug, never data-dependent).
     pub fn push_row(&mut self, row: &[i32]) {
-        debug_assert_eq!(row.len(), self.width as usize);
-        self.codes.extend_from_slice(row);
+        assert!(
+            self.next - self.first < self.capacity,
+            "band of {} rows is full",
+            self.capacity
+        );
+        let width = self.width as usize;
+        let at = (self.next % self.capacity) as usize * width;
+        match &mut self.codes {
+            Codes::Narrow { base, values } => {
+                let base = *base;
+                for (out, &c) in values[at..at + width].iter_mut().zip(row) {
+                    debug_assert!(u16::try_from(c - base).is_ok(), "code {c} out of range");
+                    *out = (c - base).clamp(0, i32::from(u16::MAX)) as u16;
+                }
+            }
+            Codes::Wide(codes) => codes[at..at + width].copy_from_slice(&row[..width]),
+        }
+        self.next += 1;
     }
 
     /// Forgets the rows above raster row `y`.
     pub fn drop_before(&mut self, y: u32) {
-        let rows = y
-            .saturating_sub(self.first)
-            .min(self.next_row() - self.first);
-        self.codes.drain(..rows as usize * self.width as usize);
-        self.first += rows;
+        self.first = y.clamp(self.first, self.next);
     }
 
     /// Raster row `y`, or the last row for `y` past it. The row must be held (a caller's
     /// bug otherwise, which debug builds catch; release builds read the nearest row held).
-    pub fn row(&self, y: u32) -> &[i32] {
+    pub fn row(&self, y: u32) -> Row<'_> {
         let y = y.min(self.height - 1);
         debug_assert!(
-            y >= self.first && y < self.next_row(),
+            y >= self.first && y < self.next,
             "row {y} is not in the band {}..{}",
             self.first,
-            self.next_row()
+            self.next
         );
-        let held = (self.codes.len() / self.width.max(1) as usize).max(1) - 1;
-        let index = (y.saturating_sub(self.first) as usize).min(held);
-        &self.codes[index * self.width as usize..][..self.width as usize]
+        let y = y.clamp(self.first, self.next.saturating_sub(1).max(self.first));
+        let width = self.width as usize;
+        let at = (y % self.capacity.max(1)) as usize * width;
+        match &self.codes {
+            Codes::Narrow { base, values } => Row::Narrow(&values[at..at + width], *base),
+            Codes::Wide(codes) => Row::Wide(&codes[at..at + width]),
+        }
     }
 
     /// Tile `id` of `grid`, cut as [`cut`] cuts it from the whole raster. Its rows (clamped
@@ -192,10 +280,7 @@ impl Band {
     /// level's row `2y`, a sample one past the last repeating it, as [`decimate`] does.
     pub fn decimated_row(&self, y: u32, width: u32) -> Vec<i32> {
         let row = self.row(2 * y);
-        let last = row.len().saturating_sub(1);
-        (0..width as usize)
-            .map(|x| row[(2 * x).min(last)])
-            .collect()
+        (0..width as usize).map(|x| row.get(2 * x)).collect()
     }
 }
 

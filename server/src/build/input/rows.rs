@@ -265,6 +265,8 @@ enum Source {
     Stream {
         reader: Box<RowReader>,
         floats: Option<FloatCodes>,
+        /// The scan's code range: a code outside it means the file changed.
+        range: (i32, i32),
     },
     Memory {
         codes: Vec<i32>,
@@ -289,6 +291,7 @@ impl CodeRows {
             source: Source::Stream {
                 reader: Box::new(reader),
                 floats: scan.floats,
+                range: scan.code_range,
             },
             row: Vec::new(),
             next: 0,
@@ -325,20 +328,25 @@ impl CodeRows {
                 self.next += 1;
                 Ok(codes.get(y as usize * *width..(y as usize + 1) * *width))
             }
-            Source::Stream { reader, floats } => {
+            Source::Stream {
+                reader,
+                floats,
+                range: (low, high),
+            } => {
                 let Some(raw) = reader.next_raw()? else {
                     return Ok(None);
                 };
                 self.row.clear();
+                let in_range = |c: i32| (*low..=*high).contains(&c);
                 let converted = match (raw, floats) {
                     (RawRow::Int(codes, nodata), None) => codes.iter().all(|&c| {
                         self.row.push(c);
-                        !nodata.is_void(c)
+                        !nodata.is_void(c) && in_range(c)
                     }),
                     (RawRow::Float(values, nodata), Some(floats)) => values.iter().all(|&v| {
                         let code = (!nodata.is_void(v)).then(|| floats.code(v)).flatten();
                         self.row.push(code.unwrap_or(0));
-                        code.is_some()
+                        code.is_some_and(in_range)
                     }),
                     _ => false,
                 };

@@ -1,0 +1,216 @@
+//! Builder memory benchmark: peak memory and speed of `terrain-server build` on
+//! himalaya_4097 (4097^2 samples) and on a mosaic of four mirrored copies of it (8193^2,
+//! four times the samples; `common/mosaic.rs`), each built by the release binary as a
+//! child process.
+//!
+//! ```text
+//! cargo bench -p terrain-server --bench build_memory
+//! ```
+//!
+//! The builder holds a band of tile rows per level, never a level, so four times the
+//! samples (twice the width) must not mean four times the memory. It prints, per input,
+//! the samples, the wall time, samples per second and the peak resident memory; then the
+//! ratio of the peaks (target: at most 1.25, with a PASS or FAIL line; the exit status is 0
+//! either way) and, per input, the pyramid's bytes over level 0's (heights, textures, both;
+//! about 4/3, since each level has a quarter of the samples of the one below).
+//!
+//! Peak memory is the kernel's high-water mark of the child's resident set (`VmHWM` in
+//! `/proc/<pid>/status`), read every [`POLL`] while it runs: the mark only rises, so the
+//! last reading is the peak unless the child grew in its last milliseconds (it then writes
+//! its manifest, a few hundred kilobytes). Linux only.
+//!
+//! Data: `$TERRAIN_DATA_DIR`, else `../shared/data` beside the repository; without it the
+//! benchmark says NOT RUN. The mosaic and the databases go to a temporary directory,
+//! removed at the end. Takes about 5 minutes on 2 cores.
+
+mod common;
+
+use anyhow::{Context, bail};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+use terrain_server::db::{TileDb, Verify};
+
+/// How often the child's high-water mark is read.
+const POLL: Duration = Duration::from_millis(2);
+/// Most the mosaic's peak may exceed the source's, as a ratio.
+const TARGET_RATIO: f64 = 1.25;
+const SOURCE: &str = "himalaya_4097/g10g_himalaya_4097.png";
+
+fn main() {
+    let Some(data) = common::data_dir() else {
+        println!(
+            "NOT RUN: build_memory needs the data kit: set {} to its data/ directory",
+            common::DATA_DIR_VAR
+        );
+        return;
+    };
+    if let Err(error) = run(&data) {
+        eprintln!("build_memory: {error:#}");
+        std::process::exit(1);
+    }
+}
+
+/// One input's build.
+struct Measured {
+    name: String,
+    samples: u64,
+    elapsed: Duration,
+    peak_kib: u64,
+    /// Bytes of heights and textures, level 0 and all levels.
+    heights: [u64; 2],
+    textures: [u64; 2],
+}
+
+fn run(data: &Path) -> anyhow::Result<()> {
+    let source = data.join(SOURCE);
+    if !source.exists() {
+        println!("NOT RUN: build_memory needs {}", source.display());
+        return Ok(());
+    }
+    let work = tempfile::Builder::new()
+        .prefix("build-memory-")
+        .tempdir()
+        .context("cannot create a temporary directory")?;
+    let mosaic_dir = work.path().join("himalaya_mosaic_8193");
+    std::fs::create_dir_all(&mosaic_dir)?;
+    let mosaic = mosaic_dir.join("himalaya_mosaic_8193.png");
+    let started = Instant::now();
+    let [w, h] = common::mosaic::write_mirrored(&source, &mosaic)?;
+    write_dataset_json(&source, &mosaic_dir)?;
+    println!("machine: {}", common::machine());
+    println!(
+        "mosaic: {w} x {h} samples written in {:.1} s ({:.0} MiB)",
+        started.elapsed().as_secs_f64(),
+        std::fs::metadata(&mosaic)?.len() as f64 / (1024.0 * 1024.0)
+    );
+    println!();
+    let small = measure(&source, &work.path().join("db-4097"))?;
+    let large = measure(&mosaic, &work.path().join("db-8193"))?;
+
+    println!("| input | samples | seconds | M samples/s | peak RSS MiB |");
+    println!("|---|---|---|---|---|");
+    for m in [&small, &large] {
+        println!(
+            "| {} | {} | {:.1} | {:.2} | {:.1} |",
+            m.name,
+            m.samples,
+            m.elapsed.as_secs_f64(),
+            m.samples as f64 / m.elapsed.as_secs_f64() / 1e6,
+            m.peak_kib as f64 / 1024.0
+        );
+    }
+    println!();
+    let ratio = large.peak_kib as f64 / small.peak_kib as f64;
+    println!(
+        "peak RSS, 4x the samples over 1x: {ratio:.3} (target <= {TARGET_RATIO}): {}",
+        if ratio <= TARGET_RATIO {
+            "PASS"
+        } else {
+            "FAIL"
+        }
+    );
+    println!();
+    println!("| input | pyramid / level 0, heights | textures | both |");
+    println!("|---|---|---|---|");
+    for m in [&small, &large] {
+        let over = |[level0, all]: [u64; 2]| all as f64 / level0 as f64;
+        let both = [m.heights[0] + m.textures[0], m.heights[1] + m.textures[1]];
+        println!(
+            "| {} | {:.3} | {:.3} | {:.3} |",
+            m.name,
+            over(m.heights),
+            over(m.textures),
+            over(both)
+        );
+    }
+    Ok(())
+}
+
+/// The source's dataset.json minus what names its own files and place, so the mosaic gets
+/// the same spacing and height scale (and a computed texture, as the source has).
+fn write_dataset_json(source: &Path, dir: &Path) -> anyhow::Result<()> {
+    let beside = source.with_file_name("dataset.json");
+    let text =
+        std::fs::read(&beside).with_context(|| format!("cannot read {}", beside.display()))?;
+    let mut info: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&text)?;
+    for key in [
+        "heights",
+        "texture",
+        "width",
+        "height",
+        "north_west_corner_deg",
+        "spacing_deg",
+    ] {
+        info.remove(key);
+    }
+    std::fs::write(dir.join("dataset.json"), serde_json::to_vec_pretty(&info)?)?;
+    Ok(())
+}
+
+/// Builds `input` into `out` with the release binary, reading its high-water mark.
+fn measure(input: &Path, out: &Path) -> anyhow::Result<Measured> {
+    let name = input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    eprintln!("building {name} ...");
+    let started = Instant::now();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_terrain-server"))
+        .arg("build")
+        .arg(input)
+        .arg("--out")
+        .arg(out)
+        .args(["--force", "--quiet"])
+        .stdout(Stdio::null())
+        .spawn()
+        .context("cannot start terrain-server")?;
+    let status_path = PathBuf::from(format!("/proc/{}/status", child.id()));
+    let mut peak_kib = 0;
+    let status = loop {
+        if let Some(kib) = high_water_mark_kib(&status_path) {
+            peak_kib = peak_kib.max(kib);
+        }
+        if let Some(status) = child.try_wait()? {
+            break status;
+        }
+        std::thread::sleep(POLL);
+    };
+    let elapsed = started.elapsed();
+    if !status.success() {
+        bail!("terrain-server build {} failed: {status}", input.display());
+    }
+    if peak_kib == 0 {
+        bail!("no VmHWM in {} (not Linux?)", status_path.display());
+    }
+    let db = TileDb::open(out, Verify::SizesOnly)?;
+    let manifest = db.manifest();
+    let (mut heights, mut textures) = ([0u64; 2], [0u64; 2]);
+    for (id, record) in manifest.tiles() {
+        let texture: u64 = (0..manifest.texture.levels)
+            .filter_map(|level| db.texture(id, level))
+            .map(|blob| blob.bytes.len() as u64)
+            .sum();
+        if id.level == 0 {
+            heights[0] += record.bytes;
+            textures[0] += texture;
+        }
+        heights[1] += record.bytes;
+        textures[1] += texture;
+    }
+    Ok(Measured {
+        name,
+        samples: u64::from(manifest.raster.width) * u64::from(manifest.raster.height),
+        elapsed,
+        peak_kib,
+        heights,
+        textures,
+    })
+}
+
+/// `VmHWM` of a `/proc/<pid>/status`, in KiB; `None` once the process has exited.
+fn high_water_mark_kib(status: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(status).ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmHWM:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
