@@ -10,8 +10,8 @@
 //! - its band: that tile row's `tile_size` rows (consecutive tile rows share one), and at
 //!   level 0 [`texture::GENERATED_HALO_ROWS`] more on either side for computed textures;
 //! - per tile of that row, what its children handed up ([`Parent`]): their bounds, their
-//!   distance from full resolution, their half-resolution errors and a quarter of their
-//!   textures ([`texture::ChildTexture`]).
+//!   distance from full resolution, their half-resolution errors and their textures
+//!   halved and compressed ([`texture::ChildTexture`]).
 //!
 //! When a level's band is complete it cuts the row's tiles in parallel (rayon), writes them
 //! in row-major order ([`DbWriter::add_level_heights`]: each level to files of its own,
@@ -25,7 +25,7 @@
 //! own mask errors. Only where a parent on the grid's edge lacks children is a padding
 //! child cut from the finer band to stand in. No level keeps the finer level's rows.
 
-use super::texture::{self, ChildTexture, HeightField, Registration};
+use super::texture::{self, ChildTexture, Edges, HeightField, Registration};
 use super::tiles::{self, Band, Grid, TileStats};
 use super::{BuildError, ProgressFn};
 use crate::db::DbWriter;
@@ -84,7 +84,7 @@ pub(super) struct Pyramid<'a> {
     tiles: TileMaker<'a>,
     levels: Vec<LevelState>,
     /// Per level, the records of the tiles written so far.
-    records: Vec<Vec<TileRecord>>,
+    records: Vec<Vec<Written>>,
     heights_bytes: u64,
     texture_bytes: u64,
 }
@@ -143,6 +143,16 @@ struct Carry {
     texture: ChildTexture,
 }
 
+impl Carry {
+    /// The same carry in allocations made by the calling thread.
+    fn rehomed(self) -> Carry {
+        Carry {
+            texture: self.texture.clone(),
+            ..self
+        }
+    }
+}
+
 /// One tile's output, made in parallel and written in order.
 #[derive(Debug)]
 struct MadeTile {
@@ -192,7 +202,10 @@ impl<'a> Pyramid<'a> {
                 done: AtomicUsize::new(0),
                 total,
             },
-            records: levels.iter().map(|_| Vec::new()).collect(),
+            records: levels
+                .iter()
+                .map(|l| Vec::with_capacity(l.grid.len()))
+                .collect(),
             levels,
             heights_bytes: 0,
             texture_bytes: 0,
@@ -232,7 +245,7 @@ impl<'a> Pyramid<'a> {
                     columns: l.grid.columns,
                     rows: l.grid.rows,
                 },
-                tiles: records,
+                tiles: records.into_iter().map(Written::record).collect(),
             })
             .collect();
         Ok(Built {
@@ -379,26 +392,60 @@ impl<'a> Pyramid<'a> {
     }
 }
 
+/// A written tile's record, its hash as bytes: the manifest's [`TileRecord`] holds it as a
+/// string, twice the size and an allocation of its own, for every tile of the pyramid.
+#[derive(Debug, Clone, Copy)]
+struct Written {
+    hash: [u8; 16],
+    bytes: u64,
+    min_m: f32,
+    max_m: f32,
+    roughness_m: f32,
+}
+
+impl Written {
+    fn record(self) -> TileRecord {
+        TileRecord {
+            hash: self.hash.iter().map(|b| format!("{b:02x}")).collect(),
+            bytes: self.bytes,
+            min_m: self.min_m,
+            max_m: self.max_m,
+            roughness_m: self.roughness_m,
+        }
+    }
+}
+
+/// The bytes of a 32-digit hex hash ([`manifest::content_hash`] makes nothing else).
+fn hash_bytes(hex: &str) -> [u8; 16] {
+    std::array::from_fn(|i| {
+        hex.get(2 * i..2 * i + 2)
+            .and_then(|pair| u8::from_str_radix(pair, 16).ok())
+            .unwrap_or(0)
+    })
+}
+
 /// Writes a made tile to level `level`'s files; returns its record, its carry and the
 /// bytes of its textures.
 fn write(
     level: u32,
     made: MadeTile,
     writer: &mut DbWriter,
-) -> Result<(TileRecord, Carry, u64), BuildError> {
+) -> Result<(Written, Carry, u64), BuildError> {
     let stored = writer.add_level_heights(level, &made.blob)?;
     let mut texture_bytes = 0;
     for encoded in &made.texture_levels {
         texture_bytes += writer.add_level_texture(level, encoded)?.bytes;
     }
-    let record = TileRecord {
-        hash: stored.hash,
+    let record = Written {
+        hash: hash_bytes(&stored.hash),
         bytes: stored.bytes,
         min_m: made.carry.min_m,
         max_m: made.carry.max_m,
         roughness_m: made.roughness_m,
     };
-    Ok((record, made.carry, texture_bytes))
+    // The carry lives until the parent is made, rows later: copied here, on the writing
+    // thread, it leaves the worker's arena to the buffers of one tile at a time.
+    Ok((record, made.carry.rehomed(), texture_bytes))
 }
 
 impl TileMaker<'_> {
@@ -424,13 +471,15 @@ impl TileMaker<'_> {
             );
             let none = Parent::default();
             let parent = level.parents.get(id.x as usize).unwrap_or(&none);
-            (
-                texture::from_children(&parent.textures(), c.texture_size),
-                parent.fold_into(&mut stats),
-            )
+            let finest = texture::from_children(&parent.textures(), c.texture_size)
+                .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
+            (finest, parent.fold_into(&mut stats))
         };
         tiles::add_deviation(&mut stats.mask_errors_m, deviation_m);
-        let carried_texture = ChildTexture::of(&finest);
+        let g = level.grid;
+        let edges = Edges::for_tile(id.x, id.y, g.columns, g.rows, c.texture_size);
+        let carried_texture = ChildTexture::of(&finest, edges)
+            .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
         let texture_levels = texture::mip_chain(finest)
             .iter()
             .map(|level| texture::encode(level, c.texture_format, c.jpeg_quality))
@@ -527,4 +576,263 @@ fn padding_children(level: u32, grid: Grid, j: u32) -> Vec<TileId> {
         ids.extend((0..columns).map(|x| TileId::at(level, x, j + 1)));
     }
     ids
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::{BuildOptions, TextureChoice, build};
+    use crate::db::{TileDb, Verify};
+    use terrain_shared::Heights;
+
+    const OFFSET_M: f64 = -20.0;
+    const TEXTURE_SIZE: u32 = 16;
+
+    /// Codes of a `width x height` raster: hills and a ridge, rough enough that every
+    /// decimation loses something.
+    fn terrain(width: u32, height: u32) -> Vec<i32> {
+        (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let (x, y) = (f64::from(x), f64::from(y));
+                let hills = 300.0 * (x / 5.0).sin() * (y / 7.0).cos();
+                let ridge = 400.0 / (1.0 + ((x - 1.5 * y) / 4.0).powi(2));
+                let roughness = f64::from((x as u32 * 7919 + y as u32 * 104_729) % 23);
+                (1000.0 + hills + ridge + roughness) as i32
+            })
+            .collect()
+    }
+
+    /// Every level of the raster, each the whole raster, as the definitions make them.
+    fn whole_levels(codes: Vec<i32>, raster: RasterSize, n: u32) -> Vec<(RasterSize, Vec<i32>)> {
+        let rasters = manifest::level_rasters(raster, n);
+        let mut levels = vec![(raster, codes)];
+        for pair in rasters.windows(2) {
+            let (from, to) = (pair[0], pair[1]);
+            let finer = &levels[levels.len() - 1].1;
+            let coarser = tiles::decimate(finer, from, to);
+            levels.push((to, coarser));
+        }
+        levels
+    }
+
+    /// What a tile must be, computed from whole rasters.
+    struct Expected {
+        codes: Vec<i32>,
+        min_m: f32,
+        max_m: f32,
+        mask_errors_m: Vec<f32>,
+        /// Distance from full resolution, and the finest texture.
+        deviation_m: f32,
+        finest: RgbImage,
+    }
+
+    /// Tile `id` from the whole rasters of its level and those below (`below[level]`: the
+    /// expected tiles of the finer levels, row-major).
+    fn expected(
+        levels: &[(RasterSize, Vec<i32>)],
+        below: &[Vec<Expected>],
+        id: TileId,
+        (n, quantum_m): (u32, f64),
+    ) -> Expected {
+        let k = id.level as usize;
+        let (raster, codes) = &levels[k];
+        let grid = Grid::covering(raster.width, raster.height, n);
+        let cut = tiles::cut(
+            codes,
+            raster.width,
+            raster.height,
+            grid,
+            id,
+            quantum_m,
+            OFFSET_M,
+        );
+        let stats = tiles::stats(&cut);
+        // Bounds: the full-resolution samples under the tile.
+        let (full, full_codes) = &levels[0];
+        let span = (n - 1) << k;
+        let columns = (id.x * span).min(full.width - 1)..=((id.x + 1) * span).min(full.width - 1);
+        let rows = (id.y * span).min(full.height - 1)..=((id.y + 1) * span).min(full.height - 1);
+        let metres: Vec<f32> = rows
+            .flat_map(|y| columns.clone().map(move |x| (x, y)))
+            .map(|(x, y)| full_codes[(y * full.width + x) as usize])
+            .map(|c| (OFFSET_M + quantum_m * f64::from(c)) as f32)
+            .collect();
+        let min_m = metres.iter().copied().fold(f32::MAX, f32::min);
+        let max_m = metres.iter().copied().fold(f32::MIN, f32::max);
+        let (deviation_m, finest) = if k == 0 {
+            let band = Band::whole(codes, raster.width, raster.height);
+            let (low, high) = codes
+                .iter()
+                .fold((i32::MAX, i32::MIN), |(l, h), &c| (l.min(c), h.max(c)));
+            let field = HeightField {
+                band: &band,
+                quantum_m,
+                offset_m: OFFSET_M,
+                spacing_m: [1.0, 1.0],
+                min_m: OFFSET_M + quantum_m * f64::from(low),
+                max_m: OFFSET_M + quantum_m * f64::from(high),
+            };
+            (0.0, texture::generated(&field, grid, id, TEXTURE_SIZE))
+        } else {
+            let (finer, _) = &levels[k - 1];
+            let finer_grid = Grid::covering(finer.width, finer.height, n);
+            let children: Vec<Option<&Expected>> = id
+                .children()
+                .into_iter()
+                .flatten()
+                .map(|c| {
+                    (c.x < finer_grid.columns && c.y < finer_grid.rows)
+                        .then(|| &below[k - 1][(c.y * finer_grid.columns + c.x) as usize])
+                })
+                .collect();
+            let deepest = children
+                .iter()
+                .flatten()
+                .map(|c| c.deviation_m)
+                .fold(0.0, f32::max);
+            let decimation =
+                tiles::decimation_error(&levels[k - 1].1, *finer, id, n, quantum_m, OFFSET_M);
+            let textures: Vec<Option<&RgbImage>> =
+                children.iter().map(|c| c.map(|c| &c.finest)).collect();
+            (
+                deepest + decimation,
+                texture::filter_mosaic(&textures, TEXTURE_SIZE),
+            )
+        };
+        let mut mask_errors_m = stats.mask_errors_m;
+        tiles::add_deviation(&mut mask_errors_m, deviation_m);
+        Expected {
+            codes: cut.heights.codes,
+            min_m,
+            max_m,
+            mask_errors_m,
+            deviation_m,
+            finest,
+        }
+    }
+
+    /// Builds a `width x height` raster of `codes` (metres: `quantum_m` a code) with
+    /// `n`-sample tiles and checks every tile of every level against its computation from
+    /// whole rasters: heights, bounds, mask errors (the distance from full resolution
+    /// included) and textures.
+    fn check_levels_against_whole_rasters(
+        codes: Vec<i32>,
+        width: u32,
+        height: u32,
+        n: u32,
+        quantum_m: f64,
+    ) {
+        let dir = tempfile::tempdir().expect("temporary directory");
+        let input = dir.path().join("terrain.png");
+        let raw: Vec<u16> = codes.iter().map(|&c| c as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, raw)
+            .expect("size")
+            .save(&input)
+            .expect("write the input");
+        let mut options = BuildOptions::new(&input, dir.path().join("db"));
+        options.tile_size = n;
+        options.height_scale = Some(quantum_m);
+        options.height_offset = Some(OFFSET_M);
+        options.texture = TextureChoice::Generated;
+        options.texture_size = Some(TEXTURE_SIZE);
+        options.texture_format = ImageFormat::Png;
+        options.zstd_level = 1;
+        let report = build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("builds");
+        let db = TileDb::open(&report.out, Verify::Hashes).expect("opens");
+        let levels = whole_levels(codes, RasterSize { width, height }, n);
+        assert_eq!(db.manifest().level_count() as usize, levels.len());
+        let mut made: Vec<Vec<Expected>> = Vec::new();
+        for (k, (raster, _)) in levels.iter().enumerate() {
+            let grid = Grid::covering(raster.width, raster.height, n);
+            let tiles: Vec<Expected> = grid
+                .tiles()
+                .map(|t| {
+                    expected(
+                        &levels,
+                        &made,
+                        TileId::at(k as u32, t.x, t.y),
+                        (n, quantum_m),
+                    )
+                })
+                .collect();
+            for (t, want) in grid.tiles().zip(&tiles) {
+                let id = TileId::at(k as u32, t.x, t.y);
+                let stored = db.heights(id).expect("tile");
+                let blob = TileBlob::decode(&stored.bytes).expect("blob");
+                let heights = Heights::decode(&blob.heights).expect("heights");
+                assert_eq!(heights.codes, want.codes, "{id} heights");
+                let record =
+                    db.manifest().levels[k].tiles[(t.y * grid.columns + t.x) as usize].clone();
+                assert_eq!(
+                    (record.min_m, record.max_m),
+                    (want.min_m, want.max_m),
+                    "{id} bounds"
+                );
+                assert_eq!(blob.mask_errors_m, want.mask_errors_m, "{id} mask errors");
+                let textures: Vec<manifest::Blob> = texture::mip_chain(want.finest.clone())
+                    .iter()
+                    .map(|l| {
+                        manifest::Blob::of(&texture::encode(l, ImageFormat::Png, 85).expect("png"))
+                    })
+                    .collect();
+                assert_eq!(blob.texture, textures, "{id} textures");
+            }
+            made.push(tiles);
+        }
+    }
+
+    #[test]
+    fn every_level_matches_its_computation_from_whole_rasters() {
+        // Sizes that are not multiples of the tile step, with odd numbers of tile columns
+        // and rows at some levels (the padding children).
+        for (width, height, n) in [(45, 38, 9), (41, 50, 9), (70, 17, 5), (9, 9, 9)] {
+            check_levels_against_whole_rasters(terrain(width, height), width, height, n, 0.5);
+        }
+    }
+
+    /// Heights `low < high` (codes at `quantum_m`) for which the two triangles of a cell
+    /// round the midpoint between them differently: `high` and `low` so far apart that their
+    /// difference is inexact in f32. The first such pair, searched for rather than written
+    /// down, so the case follows the arithmetic.
+    fn inexact_midpoint(quantum_m: f64) -> (i32, i32) {
+        let metres = |c: i32| (OFFSET_M + quantum_m * f64::from(c)) as f32;
+        (201..400)
+            .flat_map(|low| (20_000..20_400).map(move |high| (low, high)))
+            .find(|&(low, high)| {
+                let (t, b) = (metres(low), metres(high));
+                // The left edge of a cell whose columns repeat (first triangle) and the
+                // right edge of one (second triangle), half-way down.
+                terrain_shared::mask::cell_height(t, t, b, b, 0.0, 0.5)
+                    < terrain_shared::mask::cell_height(t, t, b, b, 1.0, 0.5)
+            })
+            .expect("f32 rounds some midpoint differently")
+    }
+
+    #[test]
+    fn a_padding_child_can_hold_its_parents_decimation_error() {
+        // 13 x 5 samples in tiles of 5: three tile columns, so the parent of the third has
+        // a padding child east of it, which repeats the last column. Every column rises
+        // from a low height to a high one; the last has a bump half-way, which is the
+        // parent's largest error. The real child measures it with the second triangle of
+        // its last cell, the padding child also with the first, which rounds the midpoint
+        // lower: its error is an f32 step larger, and it is the parent's.
+        let quantum_m = 0.1;
+        let (low, high) = inexact_midpoint(quantum_m);
+        let middle = (low + high) / 2;
+        // A few metres above the midpoint: an error far smaller than the heights keeps the
+        // f32 step between the two interpolations.
+        let spike = middle + 50;
+        let (width, height) = (13u32, 5u32);
+        let codes = (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .map(|(x, y)| match (y, x + 1 == width) {
+                (0, _) => low,
+                (1, false) => middle,
+                (1, true) => spike,
+                _ => high,
+            })
+            .collect();
+        check_levels_against_whole_rasters(codes, width, height, 5, quantum_m);
+    }
 }

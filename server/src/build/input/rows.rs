@@ -149,7 +149,7 @@ impl RowReader {
                     quantum_m,
                     out_of_range: self.options.out_of_range,
                 })?;
-                let range = codes.finite.map_or((0, 0), |(lo, hi)| {
+                let range = codes.coded.map_or((0, 0), |(lo, hi)| {
                     (codes.code(lo).unwrap_or(0), codes.code(hi).unwrap_or(0))
                 });
                 let voids = codes.no_data + codes.out_of_range;
@@ -731,5 +731,258 @@ impl HgtRows {
                 .map(|b| i32::from(i16::from_be_bytes([b[0], b[1]]))),
         );
         Ok(Some(RawRow::Int(&self.row, super::HGT_NODATA)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::build::input::{OutOfRange, decode_heights};
+    use tiff::encoder::{TiffEncoder, colortype};
+
+    const OPTIONS: ReadOptions = ReadOptions {
+        nodata: None,
+        float_quantum_m: 0.01,
+        out_of_range: OutOfRange::Refuse,
+    };
+
+    /// Codes of a `width x height` raster that rise, fall and repeat without a pattern a
+    /// reader could get right by accident.
+    fn samples(width: u32, height: u32) -> Vec<i32> {
+        (0..width * height)
+            .map(|i| ((i * 7919) % 4001) as i32 - 1000 + (i / width) as i32)
+            .collect()
+    }
+
+    fn png_bytes(width: u32, height: u32, values: &[i32], sixteen: bool) -> Vec<u8> {
+        let mut out = std::io::Cursor::new(Vec::new());
+        let encoder = image::codecs::png::PngEncoder::new(&mut out);
+        if sixteen {
+            let raw: Vec<u16> = values.iter().map(|&v| v.clamp(0, 65535) as u16).collect();
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, raw)
+                .expect("size")
+                .write_with_encoder(encoder)
+                .expect("encodes");
+        } else {
+            let raw: Vec<u8> = values.iter().map(|&v| v.clamp(0, 255) as u8).collect();
+            image::GrayImage::from_raw(width, height, raw)
+                .expect("size")
+                .write_with_encoder(encoder)
+                .expect("encodes");
+        }
+        out.into_inner()
+    }
+
+    /// A GeoTIFF in strips of `rows_per_strip` rows, with a no-data tag when given.
+    fn tiff_bytes<C: colortype::ColorType>(
+        width: u32,
+        height: u32,
+        values: &[C::Inner],
+        rows_per_strip: u32,
+        nodata: Option<&str>,
+    ) -> Vec<u8>
+    where
+        [C::Inner]: tiff::encoder::TiffValue,
+    {
+        let mut out = std::io::Cursor::new(Vec::new());
+        let mut encoder = TiffEncoder::new(&mut out).expect("encoder");
+        let mut image = encoder.new_image::<C>(width, height).expect("image");
+        image.rows_per_strip(rows_per_strip).expect("strips");
+        if let Some(nodata) = nodata {
+            image
+                .encoder()
+                .write_tag(tiff::tags::Tag::GdalNodata, nodata)
+                .expect("tag");
+        }
+        image.write_data(values).expect("data");
+        out.into_inner()
+    }
+
+    /// An uncompressed little-endian int16 TIFF in `tile x tile` tiles, written by hand (the
+    /// `tiff` crate writes strips only); tiles past the edge are padded with zeros.
+    fn tiled_tiff_bytes(width: u32, height: u32, values: &[i32], tile: u32) -> Vec<u8> {
+        let (across, down) = (width.div_ceil(tile), height.div_ceil(tile));
+        let tile_bytes = tile * tile * 2;
+        let count = across * down;
+        let entries: u16 = 10;
+        let ifd = 8u32;
+        let offsets_at = ifd + 2 + 12 * u32::from(entries) + 4;
+        let counts_at = offsets_at + 4 * count;
+        let data_at = counts_at + 4 * count;
+        let mut out = Vec::new();
+        out.extend_from_slice(b"II*\0");
+        out.extend_from_slice(&ifd.to_le_bytes());
+        out.extend_from_slice(&entries.to_le_bytes());
+        let mut entry = |tag: u16, kind: u16, n: u32, value: u32| {
+            out.extend_from_slice(&tag.to_le_bytes());
+            out.extend_from_slice(&kind.to_le_bytes());
+            out.extend_from_slice(&n.to_le_bytes());
+            out.extend_from_slice(&value.to_le_bytes());
+        };
+        let (short, long) = (3, 4);
+        entry(256, long, 1, width);
+        entry(257, long, 1, height);
+        entry(258, short, 1, 16);
+        entry(259, short, 1, 1);
+        entry(262, short, 1, 1);
+        entry(277, short, 1, 1);
+        entry(322, long, 1, tile);
+        entry(323, long, 1, tile);
+        entry(324, long, count, offsets_at);
+        entry(325, long, count, counts_at);
+        out.extend_from_slice(&0u32.to_le_bytes());
+        // SampleFormat is left out: unsigned 16-bit, so keep the samples non-negative.
+        for i in 0..count {
+            out.extend_from_slice(&(data_at + i * tile_bytes).to_le_bytes());
+        }
+        for _ in 0..count {
+            out.extend_from_slice(&tile_bytes.to_le_bytes());
+        }
+        for t in 0..count {
+            let (tx, ty) = (t % across, t / across);
+            for y in ty * tile..(ty + 1) * tile {
+                for x in tx * tile..(tx + 1) * tile {
+                    let v = if x < width && y < height {
+                        values[(y * width + x) as usize]
+                    } else {
+                        0
+                    };
+                    out.extend_from_slice(&(v.clamp(0, 65535) as u16).to_le_bytes());
+                }
+            }
+        }
+        out
+    }
+
+    /// Reads a file row by row as a build does: the scan, then (without voids) the codes.
+    fn stream(path: &Path, options: &ReadOptions) -> Result<(Scan, Option<Vec<i32>>), InputError> {
+        let reader = open(path, options)?.expect("a format the row reader handles");
+        let scan = reader.scan()?;
+        if scan.voids > 0 {
+            return Ok((scan, None));
+        }
+        let mut rows = CodeRows::stream(&scan)?;
+        let mut codes = Vec::new();
+        while let Some(row) = rows.next_row()? {
+            codes.extend_from_slice(row);
+        }
+        Ok((scan, Some(codes)))
+    }
+
+    /// Writes `bytes` as the file `name` and checks that reading it row by row gives what
+    /// reading it whole gives: the same error, or the same size, georeference, quantum,
+    /// voids, code range and (without voids) codes.
+    fn check_streams_as_read_whole(name: &str, bytes: &[u8], options: ReadOptions) {
+        let dir = tempfile::tempdir().expect("temporary directory");
+        let path = dir.path().join(name);
+        std::fs::write(&path, bytes).expect("write");
+        let whole = decode_heights(bytes, Format::of(&path), &path, &options);
+        let streamed = stream(&path, &options);
+        let (raster, (scan, codes)) = match (whole, streamed) {
+            (Err(w), Err(s)) => return assert_eq!(w.to_string(), s.to_string(), "{name}"),
+            (Ok(raster), Ok(streamed)) => (raster, streamed),
+            (w, s) => panic!("{name}: whole {:?}, streamed {:?}", w.err(), s.err()),
+        };
+        let header = &scan.header;
+        assert_eq!(
+            (header.width, header.height, header.format),
+            (raster.width, raster.height, raster.format),
+            "{name}"
+        );
+        assert_eq!(header.georeference, raster.georeference, "{name}");
+        assert_eq!(header.spacing_m, raster.spacing_m, "{name}");
+        assert_eq!(scan.quantum_m, raster.quantum_m, "{name}");
+        assert_eq!(scan.voids, raster.void_count(), "{name}");
+        assert_eq!(scan.out_of_range_voids, raster.out_of_range_voids, "{name}");
+        let valid = raster
+            .codes
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| raster.voids.get(i) != Some(&true))
+            .map(|(_, &c)| c);
+        let range = valid.fold((i32::MAX, i32::MIN), |(lo, hi), c| (lo.min(c), hi.max(c)));
+        assert_eq!(scan.code_range, range, "{name}");
+        assert_eq!(codes.is_none(), scan.voids > 0, "{name}");
+        if let Some(codes) = codes {
+            assert_eq!(codes, raster.codes, "{name}");
+        }
+    }
+
+    #[test]
+    fn every_streamed_format_reads_as_the_whole_file_reader_reads_it() {
+        let (w, h) = (37, 21);
+        let values = samples(w, h);
+        let positive: Vec<i32> = values.iter().map(|v| v + 1000).collect();
+        let with_nodata = ReadOptions {
+            nodata: Some(1000.0),
+            ..OPTIONS
+        };
+        check_streams_as_read_whole("a.png", &png_bytes(w, h, &positive, true), OPTIONS);
+        check_streams_as_read_whole("a.png", &png_bytes(w, h, &positive, true), with_nodata);
+        check_streams_as_read_whole("b.png", &png_bytes(w, h, &positive, false), OPTIONS);
+        let ints: Vec<i16> = values.iter().map(|&v| v as i16).collect();
+        for rows_per_strip in [1, 4, h] {
+            let tiff = tiff_bytes::<colortype::GrayI16>(w, h, &ints, rows_per_strip, None);
+            check_streams_as_read_whole("c.tif", &tiff, OPTIONS);
+        }
+        let tiff = tiff_bytes::<colortype::GrayI16>(w, h, &ints, 5, Some("-1000"));
+        check_streams_as_read_whole("d.tif", &tiff, OPTIONS);
+        check_streams_as_read_whole("e.tif", &tiled_tiff_bytes(w, h, &positive, 16), OPTIONS);
+        let whole: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+        let fractions: Vec<f32> = values.iter().map(|&v| v as f32 / 8.0).collect();
+        let fractions_f64: Vec<f64> = values.iter().map(|&v| f64::from(v) / 3.0).collect();
+        for (name, floats) in [("f.tif", &whole), ("g.tif", &fractions)] {
+            let tiff = tiff_bytes::<colortype::Gray32Float>(w, h, floats, 3, None);
+            check_streams_as_read_whole(name, &tiff, OPTIONS);
+        }
+        let tiff = tiff_bytes::<colortype::Gray64Float>(w, h, &fractions_f64, 7, None);
+        check_streams_as_read_whole("h.tif", &tiff, OPTIONS);
+        // Floats no code holds: refused alike, or voids alike.
+        let mut marked = fractions.clone();
+        marked[40] = f32::MIN;
+        marked[700] = 1e30;
+        let tiff = tiff_bytes::<colortype::Gray32Float>(w, h, &marked, 2, None);
+        check_streams_as_read_whole("i.tif", &tiff, OPTIONS);
+        let as_nodata = ReadOptions {
+            out_of_range: OutOfRange::Nodata,
+            ..OPTIONS
+        };
+        check_streams_as_read_whole("i.tif", &tiff, as_nodata);
+        // SRTM: 1201^2 big-endian samples, voids at -32768.
+        let side = 1201;
+        let mut hgt: Vec<u8> = samples(side, side)
+            .iter()
+            .flat_map(|&v| (v as i16).to_be_bytes())
+            .collect();
+        check_streams_as_read_whole("N46W122.hgt", &hgt, OPTIONS);
+        hgt[2 * 5000..2 * 5000 + 2].copy_from_slice(&(-32768i16).to_be_bytes());
+        check_streams_as_read_whole("N46W122.hgt", &hgt, OPTIONS);
+        check_streams_as_read_whole("N46W122.hgt", &hgt[..1000], OPTIONS);
+        // Too small, and not a PNG at all (the whole-file reader's case).
+        check_streams_as_read_whole("j.png", &png_bytes(1, 5, &[1, 2, 3, 4, 5], true), OPTIONS);
+    }
+
+    #[test]
+    fn a_file_that_changes_between_the_scan_and_the_build_is_refused() {
+        let (w, h) = (9, 6);
+        let dir = tempfile::tempdir().expect("temporary directory");
+        let path = dir.path().join("changing.png");
+        let values: Vec<i32> = (0..w * h).map(|i| i as i32).collect();
+        std::fs::write(&path, png_bytes(w, h, &values, true)).expect("write");
+        let scan = open(&path, &OPTIONS)
+            .expect("opens")
+            .expect("streams")
+            .scan()
+            .expect("scans");
+        let mut changed = values.clone();
+        changed[30] = 1000;
+        std::fs::write(&path, png_bytes(w, h, &changed, true)).expect("write");
+        let mut rows = CodeRows::stream(&scan).expect("same header");
+        let error = std::iter::from_fn(|| rows.next_row().transpose().map(|r| r.map(<[i32]>::len)))
+            .find_map(Result::err);
+        assert!(
+            matches!(error, Some(InputError::Changed { .. })),
+            "{error:?}"
+        );
     }
 }

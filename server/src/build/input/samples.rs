@@ -86,11 +86,12 @@ pub(crate) struct FloatStats {
     whole: bool,
     /// Range of the finite heights any quantum worth using holds (see `finish`).
     plausible: (f64, f64),
-    /// Range of all finite heights.
-    finite: (f64, f64),
-    /// Samples no code holds at a 1 m quantum, and at `quantum_m`.
+    /// Samples no code holds at a 1 m quantum, and at `quantum_m`, and the range of those
+    /// one does.
     outside_whole: SampleList,
     outside_quantum: SampleList,
+    coded_whole: (f64, f64),
+    coded_quantum: (f64, f64),
 }
 
 /// How a float raster's samples become codes, decided from all of them ([`FloatStats`]).
@@ -101,8 +102,8 @@ pub(crate) struct FloatCodes {
     pub out_of_range: usize,
     /// No-data samples, those out of range not counted.
     pub no_data: usize,
-    /// Smallest and largest finite height, `None` when there is none.
-    pub finite: Option<(f64, f64)>,
+    /// Smallest and largest sample a code holds, `None` when there is none.
+    pub coded: Option<(f64, f64)>,
 }
 
 impl FloatCodes {
@@ -139,9 +140,10 @@ impl FloatStats {
             no_data: 0,
             whole: true,
             plausible: (f64::INFINITY, f64::NEG_INFINITY),
-            finite: (f64::INFINITY, f64::NEG_INFINITY),
             outside_whole: empty.clone(),
             outside_quantum: empty,
+            coded_whole: (f64::INFINITY, f64::NEG_INFINITY),
+            coded_quantum: (f64::INFINITY, f64::NEG_INFINITY),
         }
     }
 
@@ -155,16 +157,23 @@ impl FloatStats {
         }
         if v.is_finite() {
             self.whole &= v.fract() == 0.0;
-            self.finite = (self.finite.0.min(v), self.finite.1.max(v));
             if v.abs() <= plausible_m() {
                 self.plausible = (self.plausible.0.min(v), self.plausible.1.max(v));
             }
         }
-        if code_at(v, 1.0).is_none() {
-            note(&mut self.outside_whole, x, y, v);
-        }
-        if code_at(v, self.quantum_m).is_none() {
-            note(&mut self.outside_quantum, x, y, v);
+        for (q, outside, coded) in [
+            (1.0, &mut self.outside_whole, &mut self.coded_whole),
+            (
+                self.quantum_m,
+                &mut self.outside_quantum,
+                &mut self.coded_quantum,
+            ),
+        ] {
+            if code_at(v, q).is_none() {
+                note(outside, x, y, v);
+            } else {
+                *coded = (coded.0.min(v), coded.1.max(v));
+            }
         }
     }
 
@@ -173,10 +182,10 @@ impl FloatStats {
     /// for the samples' own range is refused either way, since making voids of real heights
     /// would hide the mistake.
     pub(crate) fn finish(self, raster: &FloatRaster<'_>) -> Result<FloatCodes, InputError> {
-        let (q, outside) = if self.whole {
-            (1.0, self.outside_whole)
+        let (q, outside, coded) = if self.whole {
+            (1.0, self.outside_whole, self.coded_whole)
         } else {
-            (self.quantum_m, self.outside_quantum)
+            (self.quantum_m, self.outside_quantum, self.coded_quantum)
         };
         let limit_m = Metres(q * f64::from(i32::MAX));
         let (min_m, max_m) = self.plausible;
@@ -205,7 +214,7 @@ impl FloatStats {
             quantum_m: q,
             out_of_range: count,
             no_data: self.no_data,
-            finite: (self.finite.0 <= self.finite.1).then_some(self.finite),
+            coded: (coded.0 <= coded.1).then_some(coded),
         })
     }
 }
