@@ -30,7 +30,6 @@ use super::tiles::{self, Band, Grid, TileStats};
 use super::{BuildError, ProgressFn};
 use crate::db::DbWriter;
 use image::RgbImage;
-use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use terrain_shared::manifest::{self, GridSize, ImageFormat, Level, RasterSize};
 use terrain_shared::{TileBlob, TileId, TileRecord};
@@ -83,6 +82,9 @@ pub(super) struct Built {
 pub(super) struct Pyramid<'a> {
     tiles: TileMaker<'a>,
     levels: Vec<LevelState>,
+    /// Per level (none at level 0), per tile of its next tile row, what its children have
+    /// handed up so far.
+    pending: Vec<Vec<Parent>>,
     /// Per level, the records of the tiles written so far.
     records: Vec<Vec<Written>>,
     heights_bytes: u64,
@@ -116,8 +118,6 @@ struct LevelState {
     grid: Grid,
     band: Band,
     next_tile_row: u32,
-    /// Per tile of the next tile row, what its children handed up (levels above 0).
-    parents: Vec<Parent>,
 }
 
 /// What a tile's children have handed up so far.
@@ -125,8 +125,15 @@ struct LevelState {
 struct Parent {
     /// North-west, north-east, south-west, south-east; `None` past the finer grid's edge.
     children: [Option<Carry>; 4],
-    /// Half-resolution error of the padding that stands in for missing children.
-    padding_error_m: f32,
+}
+
+/// A tile to make: its level and column (its row is the level's next), and above level 0
+/// what its children handed up.
+#[derive(Debug)]
+struct Job {
+    level: usize,
+    x: u32,
+    parent: Option<Parent>,
 }
 
 /// What a tile hands to its parent.
@@ -140,6 +147,9 @@ struct Carry {
     deviation_m: f32,
     /// [`TileStats::half_resolution_error_m`].
     half_resolution_error_m: f32,
+    /// The same of the padding that stands in for the siblings the tile lacks (see the
+    /// module docs); 0 when it lacks none.
+    padding_error_m: f32,
     texture: ChildTexture,
 }
 
@@ -178,18 +188,19 @@ impl<'a> Pyramid<'a> {
             .into_iter()
             .zip(0..)
             .map(|(raster, level)| {
-                let halo = if level == 0 {
-                    2 * texture::GENERATED_HALO_ROWS
+                // Level 0 stores its band and the halo; a coarser level only the rows that
+                // outlive the finer band they are seen through (see `store_for`).
+                let rows = if level == 0 {
+                    n + 2 * texture::GENERATED_HALO_ROWS
                 } else {
-                    0
+                    (n - 1) / 2 + 1
                 };
                 LevelState {
                     level,
                     raster,
                     grid: Grid::covering(raster.width, raster.height, n),
-                    band: Band::new(raster.width, raster.height, n + halo, context.code_range),
+                    band: Band::new(raster.width, raster.height, rows, context.code_range),
                     next_tile_row: 0,
-                    parents: Vec::new(),
                 }
             })
             .collect();
@@ -202,6 +213,13 @@ impl<'a> Pyramid<'a> {
                 done: AtomicUsize::new(0),
                 total,
             },
+            pending: levels
+                .iter()
+                .map(|l| match l.level {
+                    0 => Vec::new(),
+                    _ => (0..l.grid.columns).map(|_| Parent::default()).collect(),
+                })
+                .collect(),
             records: levels
                 .iter()
                 .map(|l| Vec::with_capacity(l.grid.len()))
@@ -219,7 +237,7 @@ impl<'a> Pyramid<'a> {
         }
         self.levels[0].band.push_row(row);
         while self.level_zero_ready() {
-            self.make_rows_from(0, writer)?;
+            self.make_climb(writer)?;
         }
         Ok(())
     }
@@ -266,130 +284,217 @@ impl<'a> Pyramid<'a> {
         j < level.grid.rows && level.band.next_row() > last_needed
     }
 
-    /// Makes level `k`'s next tile row, then the coarser rows that completes, one level up
-    /// at a time.
-    fn make_rows_from(&mut self, mut k: usize, writer: &mut DbWriter) -> Result<(), BuildError> {
-        loop {
-            let j = self.make_row(k, writer)?;
-            let completes_parents = j % 2 == 1 || j + 1 == self.levels[k].grid.rows;
-            if k + 1 == self.levels.len() || !completes_parents {
-                return Ok(());
+    /// Makes level 0's next tile row and the coarser rows it completes (level `k + 1`'s when
+    /// level `k`'s row is odd or its last); then, top down, lets each of those levels forget
+    /// the rows its next tile row does not read, once the level above has stored what it
+    /// still needs of them.
+    fn make_climb(&mut self, writer: &mut DbWriter) -> Result<(), BuildError> {
+        let mut top = 0;
+        while top + 1 < self.levels.len() && completes_parents(&self.levels[top]) {
+            top += 1;
+        }
+        self.make_rows(top, writer)?;
+        for level in &mut self.levels[..=top] {
+            level.next_tile_row += 1;
+        }
+        let step = self.tiles.context.tile_size - 1;
+        for level in (0..=top).rev() {
+            if level + 1 < self.levels.len() {
+                self.store_for(level + 1);
             }
-            k += 1;
+            let halo = if level == 0 {
+                texture::GENERATED_HALO_ROWS
+            } else {
+                0
+            };
+            let l = &mut self.levels[level];
+            l.band
+                .drop_before((l.next_tile_row * step).saturating_sub(halo));
+        }
+        Ok(())
+    }
+
+    /// Stores in level `k`'s band the rows its next tile row reads that it sees through
+    /// level `k - 1`'s rows, which that level is about to forget (those above its next tile
+    /// row, halo aside). The level above a band's top half thus keeps it until its bottom
+    /// half arrives, and sees the bottom half through the finer band when it makes the row.
+    fn store_for(&mut self, k: usize) {
+        let step = self.tiles.context.tile_size - 1;
+        let (finer, coarser) = self.levels.split_at_mut(k);
+        let coarse = &mut coarser[0];
+        let Some((fine, below)) = finer.split_last() else {
+            return;
+        };
+        if coarse.next_tile_row == coarse.grid.rows {
+            return;
+        }
+        let halo = if k == 1 {
+            texture::GENERATED_HALO_ROWS
+        } else {
+            0
+        };
+        let fine_keeps = (fine.next_tile_row * step).saturating_sub(halo);
+        let needed = coarse.next_tile_row * step;
+        let from = needed.max(coarse.band.next_row());
+        let band = &mut coarse.band;
+        if band.next_row() < from {
+            band.restart_at(from);
+        }
+        band.drop_before(needed);
+        let mut row = Vec::with_capacity(coarse.raster.width as usize);
+        for y in from..coarse.raster.height {
+            let fine_y = (2 * y).min(fine.raster.height - 1);
+            if fine_y >= fine_keeps {
+                break;
+            }
+            row.clear();
+            let seen = level_row(below, fine, fine_y).halved(coarse.raster.width);
+            row.extend((0..seen.len()).map(|x| seen.get(x)));
+            band.push_row(&row);
         }
     }
 
-    /// Makes, writes and hands up level `k`'s next tile row; returns its index.
+    /// Makes and writes the next tile row of levels `0..=top`.
     ///
-    /// The tiles are made on rayon's threads, queued in row order; this thread writes each
-    /// as soon as those before it are written, so a row's outputs are never all held.
-    fn make_row(&mut self, k: usize, writer: &mut DbWriter) -> Result<u32, BuildError> {
-        let level = &self.levels[k];
-        let j = level.next_tile_row;
-        let (tiles, records) = (&self.tiles, &mut self.records[k]);
-        let (heights_bytes, texture_bytes) = (&mut self.heights_bytes, &mut self.texture_bytes);
+    /// Tiles are made on rayon's threads, a few at a time, and written on this one in row
+    /// order per level as soon as those before them are. A parent is queued as soon as its
+    /// last child is written, ahead of the finer level's remaining tiles: so a row's outputs
+    /// are never all held, and of the carries only those of the north children wait, for
+    /// the south row.
+    fn make_rows(&mut self, top: usize, writer: &mut DbWriter) -> Result<(), BuildError> {
+        let Pyramid {
+            tiles,
+            levels,
+            pending,
+            records,
+            heights_bytes,
+            texture_bytes,
+        } = self;
+        let (levels, tiles) = (&levels[..], &*tiles);
+        let window = 2 * rayon::current_num_threads();
         let stop = AtomicBool::new(false);
-        let mut carries = Vec::with_capacity(level.grid.columns as usize);
         let mut failure = None;
         rayon::in_place_scope(|scope| {
             let (sender, receiver) = std::sync::mpsc::channel();
-            for x in 0..level.grid.columns {
+            let spawn = |job: Job| {
                 let (sender, stop) = (sender.clone(), &stop);
                 scope.spawn(move |_| {
+                    let id = TileId::at(job.level as u32, job.x, levels[job.level].next_tile_row);
                     let made = if stop.load(Ordering::Relaxed) {
                         Err(BuildError::Cancelled)
                     } else {
-                        tiles.make(level, TileId::at(level.level, x, j))
+                        tiles.make(&levels[..=job.level], id, job.parent)
                     };
-                    // The receiver outlives every sender: it is read until they are gone.
-                    let _ = sender.send((x, made));
+                    // The receiver outlives every sender: it is read until the last job ends.
+                    let _ = sender.send((job.level, job.x, made));
                 });
-            }
-            drop(sender);
-            let mut early = std::collections::BTreeMap::new();
-            for (x, made) in receiver {
-                early.insert(x, made);
-                while let Some(made) = early.remove(&(carries.len() as u32)) {
-                    let written = made.and_then(|made| {
+            };
+            let mut ready = std::collections::VecDeque::new();
+            let mut next_at_level_zero = 0;
+            let mut in_flight = 0;
+            let mut written = vec![0u32; top + 1];
+            let mut early: Vec<std::collections::BTreeMap<u32, _>> =
+                (0..=top).map(|_| std::collections::BTreeMap::new()).collect();
+            loop {
+                while failure.is_none() && in_flight < window {
+                    let job = ready.pop_front().or_else(|| {
+                        (next_at_level_zero < levels[0].grid.columns).then(|| {
+                            next_at_level_zero += 1;
+                            Job {
+                                level: 0,
+                                x: next_at_level_zero - 1,
+                                parent: None,
+                            }
+                        })
+                    });
+                    let Some(job) = job else { break };
+                    spawn(job);
+                    in_flight += 1;
+                }
+                if in_flight == 0 {
+                    break;
+                }
+                let Ok((k, x, made)) = receiver.recv() else {
+                    break;
+                };
+                in_flight -= 1;
+                if failure.is_some() {
+                    continue;
+                }
+                early[k].insert(x, made);
+                while let Some(made) = early[k].remove(&written[k]) {
+                    let level = &levels[k];
+                    let written_tile = made.and_then(|made| {
                         *heights_bytes += made.heights_bytes;
                         let (record, carry, bytes) = write(level.level, made, writer)?;
                         *texture_bytes += bytes;
-                        records.push(record);
+                        records[k].push(record);
                         Ok(carry)
                     });
-                    match written {
-                        Ok(carry) => carries.push(carry),
+                    let carry = match written_tile {
+                        Ok(carry) => carry,
                         Err(error) => {
                             stop.store(true, Ordering::Relaxed);
                             failure = Some(error);
                             break;
                         }
+                    };
+                    let x = written[k];
+                    written[k] += 1;
+                    if k + 1 == levels.len() {
+                        continue;
                     }
-                }
-                if failure.is_some() {
-                    break;
+                    let j = level.next_tile_row;
+                    let parent = &mut pending[k + 1][x as usize / 2];
+                    parent.children[x as usize % 2 + 2 * (j as usize % 2)] = Some(carry);
+                    let last_child = x % 2 == 1 || x + 1 == level.grid.columns;
+                    if k < top && last_child {
+                        ready.push_back(Job {
+                            level: k + 1,
+                            x: x / 2,
+                            parent: Some(std::mem::take(parent)),
+                        });
+                    }
                 }
             }
         });
-        if let Some(error) = failure {
-            return Err(error);
+        match failure {
+            Some(error) => Err(error),
+            None => Ok(()),
         }
-        let level = &mut self.levels[k];
-        level.next_tile_row += 1;
-        level.parents.clear();
-        if k + 1 < self.levels.len() {
-            self.hand_up(k, j, carries);
-        }
-        let step = self.tiles.context.tile_size - 1;
-        let halo = if k == 0 {
-            texture::GENERATED_HALO_ROWS
-        } else {
-            0
-        };
-        self.levels[k]
-            .band
-            .drop_before(((j + 1) * step).saturating_sub(halo));
-        Ok(j)
     }
+}
 
-    /// Hands level `k`'s tile row `j` up to level `k + 1`: the tiles' carries, padding for
-    /// the children the coarser grid's edge lacks, and every other row of the band.
-    fn hand_up(&mut self, k: usize, j: u32, carries: Vec<Carry>) {
-        let (finer, coarser) = self.levels.split_at_mut(k + 1);
-        let (fine, coarse) = (&finer[k], &mut coarser[0]);
-        if coarse.parents.is_empty() {
-            coarse
-                .parents
-                .resize_with(coarse.grid.columns as usize, Parent::default);
+/// Whether a level's next tile row completes its parents' children: an odd row, or its last.
+fn completes_parents(level: &LevelState) -> bool {
+    let j = level.next_tile_row;
+    j % 2 == 1 || j + 1 == level.grid.rows
+}
+
+/// Row `y` of `level` (the last row for `y` past it): stored in its band, or seen through
+/// the levels below it (`finer`, finest first), every other sample of the finer level's row
+/// `2y`, as [`tiles::decimate`] makes it.
+fn level_row<'a>(finer: &'a [LevelState], level: &'a LevelState, y: u32) -> tiles::Row<'a> {
+    let y = y.min(level.raster.height - 1);
+    match finer.split_last() {
+        Some((fine, below)) if !level.band.holds(y) => {
+            let fine_y = (2 * y).min(fine.raster.height - 1);
+            level_row(below, fine, fine_y).halved(level.raster.width)
         }
-        for (x, carry) in carries.into_iter().enumerate() {
-            let slot = x % 2 + 2 * (j as usize % 2);
-            coarse.parents[x / 2].children[slot] = Some(carry);
-        }
-        let context = &self.tiles.context;
-        let (q, o) = (context.quantum_m, context.offset_m);
-        let padding: Vec<(usize, f32)> = padding_children(fine.level, fine.grid, j)
-            .into_par_iter()
-            .map(|id| {
-                let tile = fine.band.cut(fine.grid, id, q, o);
-                (id.x as usize / 2, tiles::half_resolution_error(&tile))
-            })
-            .collect();
-        for (x, error) in padding {
-            let parent = &mut coarse.parents[x];
-            parent.padding_error_m = parent.padding_error_m.max(error);
-        }
-        let step = context.tile_size - 1;
-        let last_fine_row = (j * step + step).min(fine.raster.height - 1);
-        loop {
-            let y = coarse.band.next_row();
-            if y >= coarse.raster.height || (2 * y).min(fine.raster.height - 1) > last_fine_row {
-                break;
-            }
-            let row = fine.band.decimated_row(y, coarse.raster.width);
-            coarse.band.push_row(&row);
-        }
+        _ => level.band.row(y),
     }
+}
+
+/// Tile `id` of `level`, its rows seen through the levels below it where need be.
+fn cut_tile(
+    finer: &[LevelState],
+    level: &LevelState,
+    id: TileId,
+    metres: (f64, f64),
+) -> tiles::TileSamples {
+    let (width, height) = (level.raster.width, level.raster.height);
+    let row = |y| level_row(finer, level, y);
+    tiles::cut_with(row, width, height, level.grid, id, metres)
 }
 
 /// A written tile's record, its hash as bytes: the manifest's [`TileRecord`] holds it as a
@@ -449,35 +554,49 @@ fn write(
 }
 
 impl TileMaker<'_> {
-    /// Cuts, measures, textures and encodes tile `id` of `level`'s next tile row.
-    fn make(&self, level: &LevelState, id: TileId) -> Result<MadeTile, BuildError> {
+    /// Cuts, measures, textures and encodes tile `id` of the last of `levels` (finest first),
+    /// the others those it sees rows through.
+    fn make(
+        &self,
+        levels: &[LevelState],
+        id: TileId,
+        parent: Option<Parent>,
+    ) -> Result<MadeTile, BuildError> {
         if self.cancel.load(Ordering::Relaxed) {
             return Err(BuildError::Cancelled);
         }
         let c = &self.context;
-        let cut = level.band.cut(level.grid, id, c.quantum_m, c.offset_m);
+        let Some((level, finer)) = levels.split_last() else {
+            return Err(BuildError::Unfinished {
+                level: id.level,
+                made: id.y,
+                rows: 0,
+            });
+        };
+        let metres = (c.quantum_m, c.offset_m);
+        let cut = cut_tile(finer, level, id, metres);
         let encoded = cut
             .heights
             .encode_with_level(c.zstd_level)
             .map_err(|source| BuildError::Encode { tile: id, source })?;
         let mut stats = tiles::stats(&cut);
-        let (finest, deviation_m) = if level.level == 0 {
-            (self.level_zero_texture(level, id), 0.0)
-        } else {
-            // Every tile above level 0 has a parent record: hand_up makes the row's.
-            debug_assert!(
-                level.parents.len() > id.x as usize,
-                "no parent record for {id}"
-            );
-            let none = Parent::default();
-            let parent = level.parents.get(id.x as usize).unwrap_or(&none);
-            let finest = texture::from_children(&parent.textures(), c.texture_size)
-                .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
-            (finest, parent.fold_into(&mut stats))
+        let (finest, deviation_m) = match parent {
+            Some(parent) if level.level > 0 => {
+                let finest = texture::from_children(&parent.textures(), c.texture_size)
+                    .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
+                (finest, parent.fold_into(&mut stats))
+            }
+            _ => (self.level_zero_texture(level, id), 0.0),
         };
+        // The siblings this tile lacks: their padding is cut from the rows it stands on, which
+        // are held now and may not be when the parent is made.
+        let missing = level.grid.missing_siblings(id.x, id.y);
+        let padding_error_m = missing
+            .ids(id)
+            .map(|sibling| tiles::half_resolution_error(&cut_tile(finer, level, sibling, metres)))
+            .fold(0.0, f32::max);
         tiles::add_deviation(&mut stats.mask_errors_m, deviation_m);
-        let g = level.grid;
-        let edges = Edges::for_tile(id.x, id.y, g.columns, g.rows, c.texture_size);
+        let edges = Edges::for_missing(missing, c.texture_size);
         let carried_texture = ChildTexture::of(&finest, edges)
             .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
         let texture_levels = texture::mip_chain(finest)
@@ -500,6 +619,7 @@ impl TileMaker<'_> {
                 max_m: stats.max_m,
                 deviation_m,
                 half_resolution_error_m: stats.half_resolution_error_m,
+                padding_error_m,
                 texture: carried_texture,
             },
             roughness_m: stats.roughness_m,
@@ -548,7 +668,7 @@ impl Parent {
     /// Widens `stats`' bounds to the children's (the full-resolution surface under the
     /// tile) and returns the tile's distance from full resolution: its children's largest,
     /// plus its own decimation error (the largest of its children's half-resolution errors,
-    /// padding's included; see the module docs).
+    /// and of the padding's; see the module docs).
     fn fold_into(&self, stats: &mut TileStats) -> f32 {
         let children = || self.children.iter().flatten();
         for child in children() {
@@ -557,25 +677,10 @@ impl Parent {
         }
         let below = children().map(|c| c.deviation_m).fold(0.0, f32::max);
         let decimation = children()
-            .map(|c| c.half_resolution_error_m)
-            .fold(self.padding_error_m, f32::max);
+            .map(|c| c.half_resolution_error_m.max(c.padding_error_m))
+            .fold(0.0, f32::max);
         below + decimation
     }
-}
-
-/// The children a coarser grid's edge tiles lack at tile row `j` of `grid` (level `level`): the column past
-/// its last when it has an odd number of columns, and, after its last row when it has an
-/// odd number of rows, the row past it. Cutting them gives padding (the edge repeated).
-fn padding_children(level: u32, grid: Grid, j: u32) -> Vec<TileId> {
-    let mut ids = Vec::new();
-    if grid.columns % 2 == 1 {
-        ids.push(TileId::at(level, grid.columns, j));
-    }
-    if j + 1 == grid.rows && grid.rows % 2 == 1 {
-        let columns = grid.columns + grid.columns % 2;
-        ids.extend((0..columns).map(|x| TileId::at(level, x, j + 1)));
-    }
-    ids
 }
 
 #[cfg(test)]

@@ -17,7 +17,7 @@ use image::{Rgb, RgbImage};
 use terrain_shared::TileId;
 use terrain_shared::manifest::ImageFormat;
 
-use super::tiles::{Band, Grid};
+use super::tiles::{Band, Grid, Siblings};
 
 /// Coarsest level's side, or the finest's if smaller: 8 texels still show a tile's main colour.
 pub const COARSEST_SIZE: u32 = 8;
@@ -122,7 +122,7 @@ pub struct ChildTexture {
 }
 
 /// Which edges of its texture a tile keeps for its parent: those a missing sibling repeats
-/// (see [`from_children`]).
+/// (see [`from_children`] and [`Grid::missing_siblings`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Edges {
     pub last_column: bool,
@@ -130,14 +130,14 @@ pub struct Edges {
 }
 
 impl Edges {
-    /// The edges tile `(x, y)` of a `columns x rows` grid keeps: its last column when it is
-    /// the last of an odd number of columns (its east sibling is missing), its last row
-    /// likewise. A texture of one texel has no half, so it keeps both.
-    pub fn for_tile(x: u32, y: u32, columns: u32, rows: u32, size: u32) -> Edges {
+    /// The edges a tile keeps when it lacks the `missing` siblings: its last column for a
+    /// missing east one, its last row for a missing south one. A texture of one texel has
+    /// no half, so it keeps both.
+    pub fn for_missing(missing: Siblings, size: u32) -> Edges {
         let one_texel = size < 2;
         Edges {
-            last_column: one_texel || (x + 1 == columns && columns % 2 == 1),
-            last_row: one_texel || (y + 1 == rows && rows % 2 == 1),
+            last_column: one_texel || missing.east,
+            last_row: one_texel || missing.south,
         }
     }
 }
@@ -447,9 +447,14 @@ mod tests {
             .collect();
         // A 2x2 grid, or one whose east column or south row the pattern leaves out.
         let (columns, rows) = (1 + u32::from(present[1]), 1 + u32::from(present[2]));
+        let grid = Grid {
+            tile_size: 3,
+            columns,
+            rows,
+        };
         let carried: Vec<Option<ChildTexture>> = (0..4)
             .map(|i| {
-                let edges = Edges::for_tile(i % 2, i / 2, columns, rows, size);
+                let edges = Edges::for_missing(grid.missing_siblings(i % 2, i / 2), size);
                 full[i as usize].map(|t| ChildTexture::of(t, edges).expect("encodes"))
             })
             .collect();

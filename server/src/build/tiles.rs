@@ -39,6 +39,37 @@ impl Grid {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+
+    /// Which siblings of tile `(x, y)` (the tiles sharing its parent on the next coarser
+    /// level) lie past the grid: east when it is the last of an odd number of columns,
+    /// south likewise for rows.
+    pub fn missing_siblings(&self, x: u32, y: u32) -> Siblings {
+        Siblings {
+            east: x + 1 == self.columns && self.columns % 2 == 1,
+            south: y + 1 == self.rows && self.rows % 2 == 1,
+        }
+    }
+}
+
+/// Siblings a tile lacks ([`Grid::missing_siblings`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Siblings {
+    pub east: bool,
+    pub south: bool,
+}
+
+impl Siblings {
+    /// The missing siblings of tile `id`: east, south, and south-east when both are.
+    pub fn ids(self, id: TileId) -> impl Iterator<Item = TileId> {
+        let at = move |dx, dy| TileId::at(id.level, id.x + dx, id.y + dy);
+        [
+            self.east.then(|| at(1, 0)),
+            self.south.then(|| at(0, 1)),
+            (self.east && self.south).then(|| at(1, 1)),
+        ]
+        .into_iter()
+        .flatten()
+    }
 }
 
 /// One tile cut from the raster, with padding replicated from the last real sample.
@@ -60,14 +91,14 @@ pub fn cut(
     quantum_m: f64,
     offset_m: f64,
 ) -> TileSamples {
-    let row = |y: u32| Row::Wide(&codes[y as usize * width as usize..][..width as usize]);
-    cut_rows(row, width, height, grid, id, (quantum_m, offset_m))
+    let row = |y: u32| Row::wide(&codes[y as usize * width as usize..][..width as usize]);
+    cut_with(row, width, height, grid, id, (quantum_m, offset_m))
 }
 
-/// Cuts tile `id` from rows given by `row` (raster row `y`, `y < height`). Samples past the
-/// last row or column repeat it, also for a tile that lies wholly past the raster (the
-/// padding children of [`crate::build::levels`]).
-fn cut_rows<'a>(
+/// Cuts tile `id` of a `width x height` raster whose row `y` (`y < height`) is `row(y)`.
+/// Samples past the last row or column repeat it, also for a tile that lies wholly past the
+/// raster (the padding children of [`crate::build::levels`]).
+pub fn cut_with<'a>(
     row: impl Fn(u32) -> Row<'a>,
     width: u32,
     height: u32,
@@ -97,47 +128,75 @@ fn cut_rows<'a>(
     }
 }
 
-/// One row of codes as a [`Band`] holds it.
+/// One row of codes: a row a [`Band`] holds, or every `stride`-th sample of one (a row of
+/// a coarser level, seen through the finer level's band).
 #[derive(Debug, Clone, Copy)]
-pub enum Row<'a> {
+pub struct Row<'a> {
+    codes: RowCodes<'a>,
+    stride: usize,
+    /// Samples in the row.
+    width: usize,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum RowCodes<'a> {
     /// Offsets from a base code.
     Narrow(&'a [u16], i32),
     Wide(&'a [i32]),
 }
 
-impl Row<'_> {
-    pub fn len(&self) -> usize {
-        match self {
-            Row::Narrow(values, _) => values.len(),
-            Row::Wide(codes) => codes.len(),
+impl<'a> Row<'a> {
+    /// A row of codes as they are.
+    pub fn wide(codes: &'a [i32]) -> Row<'a> {
+        Row {
+            codes: RowCodes::Wide(codes),
+            stride: 1,
+            width: codes.len(),
         }
     }
 
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
+    /// Every other sample of this row, `width` of them, the last repeated past the end: the
+    /// row of the next coarser level ([`decimate`]). A sample past the end of this row is
+    /// past the end of the one it was taken from, so one clamp at the bottom is enough.
+    pub fn halved(self, width: u32) -> Row<'a> {
+        Row {
+            stride: 2 * self.stride,
+            width: width as usize,
+            ..self
+        }
     }
 
-    /// Code `x`, or the last one for `x` past it.
+    pub fn len(&self) -> usize {
+        self.width
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.width == 0
+    }
+
+    /// Code `x` (`x < len`).
     pub fn get(&self, x: usize) -> i32 {
-        let x = x.min(self.len().saturating_sub(1));
-        match self {
-            Row::Narrow(values, base) => base + i32::from(values[x]),
-            Row::Wide(codes) => codes[x],
+        match self.codes {
+            RowCodes::Narrow(values, base) => {
+                base + i32::from(values[(self.stride * x).min(values.len() - 1)])
+            }
+            RowCodes::Wide(codes) => codes[(self.stride * x).min(codes.len() - 1)],
         }
     }
 
     /// Appends codes `x0..x0 + count`, those past the last repeating it.
     fn extend_clamped(&self, out: &mut Vec<i32>, x0: u32, count: u32) {
-        let last = self.len().saturating_sub(1);
+        let last = self.width.saturating_sub(1);
         let xs = (x0..x0 + count).map(|x| (x as usize).min(last));
-        match self {
-            Row::Narrow(values, base) => out.extend(xs.map(|x| base + i32::from(values[x]))),
-            Row::Wide(codes) => out.extend(xs.map(|x| codes[x])),
+        match self.codes {
+            RowCodes::Narrow(..) => out.extend(xs.map(|x| self.get(x))),
+            RowCodes::Wide(codes) if self.stride == 1 => out.extend(xs.map(|x| codes[x])),
+            RowCodes::Wide(..) => out.extend(xs.map(|x| self.get(x))),
         }
     }
 }
 
-/// Consecutive rows of one level's raster, at most a fixed number: what the builder holds
+/// Consecutive rows of one level's raster, at most a fixed number: what the builder stores
 /// of a level at a time. Rows live in a ring of slots allocated once. Codes are held as
 /// 16-bit offsets from the raster's lowest code when its range allows (every 8- or 16-bit
 /// input, and any level made from one), else as they are: a band costs 2 bytes a sample
@@ -215,6 +274,11 @@ impl Band {
         self.next
     }
 
+    /// Whether raster row `y` (the last row for `y` past it) is held.
+    pub fn holds(&self, y: u32) -> bool {
+        (self.first..self.next).contains(&y.min(self.height - 1))
+    }
+
     /// Adds the next row (`width` codes within the band's code range).
     ///
     /// Panics if the band is full (a caller's bug, never data-dependent).
@@ -244,12 +308,18 @@ impl Band {
         self.first = y.clamp(self.first, self.next);
     }
 
+    /// Starts the band afresh at raster row `y`, forgetting every row held.
+    pub fn restart_at(&mut self, y: u32) {
+        self.first = y;
+        self.next = y;
+    }
+
     /// Raster row `y`, or the last row for `y` past it. The row must be held (a caller's
     /// bug otherwise, which debug builds catch; release builds read the nearest row held).
     pub fn row(&self, y: u32) -> Row<'_> {
         let y = y.min(self.height - 1);
         debug_assert!(
-            y >= self.first && y < self.next,
+            self.holds(y),
             "row {y} is not in the band {}..{}",
             self.first,
             self.next
@@ -257,16 +327,21 @@ impl Band {
         let y = y.clamp(self.first, self.next.saturating_sub(1).max(self.first));
         let width = self.width as usize;
         let at = (y % self.capacity.max(1)) as usize * width;
-        match &self.codes {
-            Codes::Narrow { base, values } => Row::Narrow(&values[at..at + width], *base),
-            Codes::Wide(codes) => Row::Wide(&codes[at..at + width]),
+        let codes = match &self.codes {
+            Codes::Narrow { base, values } => RowCodes::Narrow(&values[at..at + width], *base),
+            Codes::Wide(codes) => RowCodes::Wide(&codes[at..at + width]),
+        };
+        Row {
+            codes,
+            stride: 1,
+            width,
         }
     }
 
     /// Tile `id` of `grid`, cut as [`cut`] cuts it from the whole raster. Its rows (clamped
     /// to the raster) must be held; the tile may lie past the raster's edge, wholly padding.
     pub fn cut(&self, grid: Grid, id: TileId, quantum_m: f64, offset_m: f64) -> TileSamples {
-        cut_rows(
+        cut_with(
             |y| self.row(y),
             self.width,
             self.height,
@@ -274,13 +349,6 @@ impl Band {
             id,
             (quantum_m, offset_m),
         )
-    }
-
-    /// Row `y` of the next coarser level (`width` samples): every other sample of this
-    /// level's row `2y`, a sample one past the last repeating it, as [`decimate`] does.
-    pub fn decimated_row(&self, y: u32, width: u32) -> Vec<i32> {
-        let row = self.row(2 * y);
-        (0..width as usize).map(|x| row.get(2 * x)).collect()
     }
 }
 
