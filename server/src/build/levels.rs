@@ -1,29 +1,41 @@
 //! The pyramid of levels, built a band of tile rows at a time while level 0 streams in, so
 //! that a build's memory does not grow with the raster's height, and grows with its width
-//! only by a band.
+//! only by about two bands of level 0 (`benches/build_memory.rs`).
 //!
 //! Level 0 is the raster; level `k + 1` keeps every other sample of level `k`
 //! ([`tiles::decimate`]) and is cut into the same `(2^n + 1)^2` tiles, until a level fits
-//! in one tile ([`terrain_shared::manifest::level_rasters`]). Rows of level 0 arrive one at
-//! a time ([`Pyramid::push_row`]). Each level holds only what its next tile row needs:
+//! in one tile ([`terrain_shared::manifest::level_rasters`]). Keeping samples rather than
+//! filtering them keeps a coarse tile's vertices on the full-resolution surface, makes a
+//! level seam a T-junction like a mask seam, and makes bounds and errors compose exactly
+//! (ARCHITECTURE.md, "Levels").
 //!
-//! - its band: that tile row's `tile_size` rows (consecutive tile rows share one), and at
-//!   level 0 [`texture::GENERATED_HALO_ROWS`] more on either side for computed textures;
-//! - per tile of that row, what its children handed up ([`Parent`]): their bounds, their
-//!   distance from full resolution, their half-resolution errors and their textures
+//! Rows of level 0 arrive one at a time ([`Pyramid::push_row`]). When level 0 holds its
+//! next tile row's rows it makes that row, and with it every coarser row it completes
+//! (level `k + 1`'s next row, when level `k`'s is odd or its last): a *climb*. Each level
+//! holds only what its next tile row needs:
+//!
+//! - rows: level 0 stores its band (`tile_size` rows, consecutive tile rows sharing one)
+//!   and [`texture::GENERATED_HALO_ROWS`] more on either side for computed textures. A
+//!   coarser level's row `y` is every other sample of the finer level's row `2y`, so while
+//!   the finer level holds that row the coarser one sees it through it (a strided
+//!   [`tiles::Row`]); it stores only its band's top half, which it still needs when the
+//!   finer band has moved on (`store_for`, top down after each climb);
+//! - per tile of its next row, what its children handed up ([`Parent`]): their bounds,
+//!   their distance from full resolution, their half-resolution errors and their textures
 //!   halved and compressed ([`texture::ChildTexture`]).
 //!
-//! When a level's band is complete it cuts the row's tiles in parallel (rayon), writes them
-//! in row-major order ([`DbWriter::add_level_heights`]: each level to files of its own,
-//! put in manifest order at the end), hands their carries and every other row of its band
-//! to the next level, and when that completes the next level's band (after every second
-//! tile row, or the last) makes that level's row at once.
+//! A climb's tiles are made on rayon's threads, a few at a time, and written on the
+//! calling thread in row-major order per level ([`DbWriter::add_level_heights`]: each level
+//! to files of its own, put in manifest order at the end). A parent is queued, with its
+//! children's carries, as soon as its last child is written, ahead of the finer row's
+//! remaining tiles: only the north children's carries wait, for the south row.
 //!
 //! A tile's decimation error needs the finer level's samples under it
 //! ([`tiles::decimation_error`]), but no coarse cell straddles two children, so it is the
-//! largest of the children's half-resolution errors, which each child computes with its
-//! own mask errors. Only where a parent on the grid's edge lacks children is a padding
-//! child cut from the finer band to stand in. No level keeps the finer level's rows.
+//! largest of the children's half-resolution errors, which each child has from its own mask
+//! errors. Where a parent on the grid's edge lacks children, the padding that stands in
+//! for them (the edge repeated) is measured by the tile beside it, from its own rows:
+//! usually equal to that tile's edge cells, it can exceed them by an f32 step (tested).
 
 use super::texture::{self, ChildTexture, Edges, HeightField, Registration};
 use super::tiles::{self, Band, Grid, TileStats};
@@ -383,7 +395,8 @@ impl<'a> Pyramid<'a> {
                     let made = if stop.load(Ordering::Relaxed) {
                         Err(BuildError::Cancelled)
                     } else {
-                        tiles.make(&levels[..=job.level], id, job.parent)
+                        let (finer, level) = (&levels[..job.level], &levels[job.level]);
+                        tiles.make(finer, level, id, job.parent)
                     };
                     // The receiver outlives every sender: it is read until the last job ends.
                     let _ = sender.send((job.level, job.x, made));
@@ -393,8 +406,9 @@ impl<'a> Pyramid<'a> {
             let mut next_at_level_zero = 0;
             let mut in_flight = 0;
             let mut written = vec![0u32; top + 1];
-            let mut early: Vec<std::collections::BTreeMap<u32, _>> =
-                (0..=top).map(|_| std::collections::BTreeMap::new()).collect();
+            let mut early: Vec<std::collections::BTreeMap<u32, _>> = (0..=top)
+                .map(|_| std::collections::BTreeMap::new())
+                .collect();
             loop {
                 while failure.is_none() && in_flight < window {
                     let job = ready.pop_front().or_else(|| {
@@ -554,11 +568,12 @@ fn write(
 }
 
 impl TileMaker<'_> {
-    /// Cuts, measures, textures and encodes tile `id` of the last of `levels` (finest first),
-    /// the others those it sees rows through.
+    /// Cuts, measures, textures and encodes tile `id` of `level`, whose rows it sees through
+    /// the `finer` levels (finest first) where it does not store them.
     fn make(
         &self,
-        levels: &[LevelState],
+        finer: &[LevelState],
+        level: &LevelState,
         id: TileId,
         parent: Option<Parent>,
     ) -> Result<MadeTile, BuildError> {
@@ -566,13 +581,6 @@ impl TileMaker<'_> {
             return Err(BuildError::Cancelled);
         }
         let c = &self.context;
-        let Some((level, finer)) = levels.split_last() else {
-            return Err(BuildError::Unfinished {
-                level: id.level,
-                made: id.y,
-                rows: 0,
-            });
-        };
         let metres = (c.quantum_m, c.offset_m);
         let cut = cut_tile(finer, level, id, metres);
         let encoded = cut
@@ -844,6 +852,12 @@ mod tests {
         options.texture_format = ImageFormat::Png;
         options.zstd_level = 1;
         let report = build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("builds");
+        let mut files: Vec<String> = std::fs::read_dir(&report.out)
+            .expect("the database")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        files.sort();
+        assert_eq!(files, ["heights.pack", "manifest.json", "textures.pack"]);
         let db = TileDb::open(&report.out, Verify::Hashes).expect("opens");
         let levels = whole_levels(codes, RasterSize { width, height }, n);
         assert_eq!(db.manifest().level_count() as usize, levels.len());
@@ -885,6 +899,41 @@ mod tests {
             }
             made.push(tiles);
         }
+    }
+
+    #[test]
+    fn a_build_cancelled_midway_leaves_nothing_behind() {
+        let dir = tempfile::tempdir().expect("temporary directory");
+        let input = dir.path().join("terrain.png");
+        let (width, height) = (70, 60);
+        let raw: Vec<u16> = terrain(width, height).iter().map(|&c| c as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, raw)
+            .expect("size")
+            .save(&input)
+            .expect("write the input");
+        let out = dir.path().join("db");
+        let mut options = BuildOptions::new(&input, &out);
+        options.tile_size = 9;
+        options.zstd_level = 1;
+        // Cancelled from the progress callback once a few tiles are made, as Ctrl-C would.
+        let cancel = AtomicBool::new(false);
+        let (most, total) = (AtomicUsize::new(0), AtomicUsize::new(0));
+        let progress = |done: usize, all: usize| {
+            most.fetch_max(done, Ordering::Relaxed);
+            total.store(all, Ordering::Relaxed);
+            if done == 5 {
+                cancel.store(true, Ordering::Relaxed);
+            }
+        };
+        let result = build(&options, &progress, &cancel);
+        assert!(matches!(result, Err(BuildError::Cancelled)), "{result:?}");
+        let (most, total) = (most.into_inner(), total.into_inner());
+        assert!(most < total / 2, "stopped after {most} of {total} tiles");
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .expect("the directory")
+            .map(|e| e.expect("entry").file_name())
+            .collect();
+        assert_eq!(left, ["terrain.png"], "only the input is left");
     }
 
     #[test]

@@ -6,6 +6,14 @@
 //! 8-neighbours. The result is a smooth membrane that meets the surrounding terrain on
 //! every side, which is the usual behaviour of GIS fill tools for small voids; large voids
 //! become plausible but invented terrain, which is why they are reported.
+//!
+//! **Filling is global.** A void sample's value depends on the whole void it belongs to
+//! (the waves reach it from every rim), and a void may span any number of bands of tile
+//! rows (a river channel, a swath of radar shadow), so no window of bands fills it as the
+//! whole raster does, and the output must not depend on how the heights were read. A
+//! raster with voids is therefore read whole and filled here before the builder takes its
+//! rows from memory ([`crate::build`]); a void-free raster, which the scan of a streamed
+//! file tells apart, is never held whole.
 
 /// What filling did, for the build's warnings.
 #[derive(Debug, Clone, PartialEq, Eq)]
