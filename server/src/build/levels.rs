@@ -374,18 +374,18 @@ impl<'a> Pyramid<'a> {
     /// are never all held, and of the carries only those of the north children wait, for
     /// the south row.
     fn make_rows(&mut self, top: usize, writer: &mut DbWriter) -> Result<(), BuildError> {
-        let Pyramid {
-            tiles,
-            levels,
-            pending,
-            records,
-            heights_bytes,
-            texture_bytes,
-        } = self;
-        let (levels, tiles) = (&levels[..], &*tiles);
+        let (levels, tiles) = (&self.levels[..], &self.tiles);
+        let mut output = Output {
+            top,
+            writer,
+            pending: &mut self.pending,
+            records: &mut self.records,
+            heights_bytes: &mut self.heights_bytes,
+            texture_bytes: &mut self.texture_bytes,
+            failure: None,
+        };
         let window = 2 * rayon::current_num_threads();
         let stop = AtomicBool::new(false);
-        let mut failure = None;
         rayon::in_place_scope(|scope| {
             let (sender, receiver) = std::sync::mpsc::channel();
             let spawn = |job: Job| {
@@ -402,80 +402,150 @@ impl<'a> Pyramid<'a> {
                     let _ = sender.send((job.level, job.x, made));
                 });
             };
-            let mut ready = std::collections::VecDeque::new();
-            let mut next_at_level_zero = 0;
+            let mut queue = Queue::new(levels[0].grid.columns);
+            let mut in_order = InOrder::new(top);
             let mut in_flight = 0;
-            let mut written = vec![0u32; top + 1];
-            let mut early: Vec<std::collections::BTreeMap<u32, _>> = (0..=top)
-                .map(|_| std::collections::BTreeMap::new())
-                .collect();
             loop {
-                while failure.is_none() && in_flight < window {
-                    let job = ready.pop_front().or_else(|| {
-                        (next_at_level_zero < levels[0].grid.columns).then(|| {
-                            next_at_level_zero += 1;
-                            Job {
-                                level: 0,
-                                x: next_at_level_zero - 1,
-                                parent: None,
-                            }
-                        })
-                    });
-                    let Some(job) = job else { break };
+                while output.failure.is_none() && in_flight < window {
+                    let Some(job) = queue.next() else { break };
                     spawn(job);
                     in_flight += 1;
                 }
-                if in_flight == 0 {
-                    break;
-                }
-                let Ok((k, x, made)) = receiver.recv() else {
+                let Some((k, x, made)) = (in_flight > 0).then(|| receiver.recv().ok()).flatten()
+                else {
                     break;
                 };
                 in_flight -= 1;
-                if failure.is_some() {
-                    continue;
+                for (x, made) in in_order.accept(k, x, made) {
+                    queue.ready.extend(output.write(&levels[k], x, made));
                 }
-                early[k].insert(x, made);
-                while let Some(made) = early[k].remove(&written[k]) {
-                    let level = &levels[k];
-                    let written_tile = made.and_then(|made| {
-                        *heights_bytes += made.heights_bytes;
-                        let (record, carry, bytes) = write(level.level, made, writer)?;
-                        *texture_bytes += bytes;
-                        records[k].push(record);
-                        Ok(carry)
-                    });
-                    let carry = match written_tile {
-                        Ok(carry) => carry,
-                        Err(error) => {
-                            stop.store(true, Ordering::Relaxed);
-                            failure = Some(error);
-                            break;
-                        }
-                    };
-                    let x = written[k];
-                    written[k] += 1;
-                    if k + 1 == levels.len() {
-                        continue;
-                    }
-                    let j = level.next_tile_row;
-                    let parent = &mut pending[k + 1][x as usize / 2];
-                    parent.children[x as usize % 2 + 2 * (j as usize % 2)] = Some(carry);
-                    let last_child = x % 2 == 1 || x + 1 == level.grid.columns;
-                    if k < top && last_child {
-                        ready.push_back(Job {
-                            level: k + 1,
-                            x: x / 2,
-                            parent: Some(std::mem::take(parent)),
-                        });
-                    }
+                if output.failure.is_some() {
+                    stop.store(true, Ordering::Relaxed);
                 }
             }
         });
-        match failure {
-            Some(error) => Err(error),
-            None => Ok(()),
+        output.failure.map_or(Ok(()), Err)
+    }
+}
+
+/// The jobs of a climb not yet started: parents ready to make, then level 0's tiles.
+#[derive(Debug)]
+struct Queue {
+    ready: std::collections::VecDeque<Job>,
+    next_at_level_zero: u32,
+    columns_at_level_zero: u32,
+}
+
+impl Queue {
+    fn new(columns_at_level_zero: u32) -> Queue {
+        Queue {
+            ready: std::collections::VecDeque::new(),
+            next_at_level_zero: 0,
+            columns_at_level_zero,
         }
+    }
+
+    /// A ready parent first: making it frees its children's carries.
+    fn next(&mut self) -> Option<Job> {
+        self.ready.pop_front().or_else(|| {
+            let x = self.next_at_level_zero;
+            (x < self.columns_at_level_zero).then(|| {
+                self.next_at_level_zero += 1;
+                Job {
+                    level: 0,
+                    x,
+                    parent: None,
+                }
+            })
+        })
+    }
+}
+
+/// Made tiles, put back in row order per level.
+#[derive(Debug)]
+struct InOrder {
+    /// Per level, the next column to hand out, and the tiles made ahead of it.
+    next: Vec<u32>,
+    early: Vec<std::collections::BTreeMap<u32, Result<MadeTile, BuildError>>>,
+}
+
+impl InOrder {
+    fn new(top: usize) -> InOrder {
+        InOrder {
+            next: vec![0; top + 1],
+            early: (0..=top)
+                .map(|_| std::collections::BTreeMap::new())
+                .collect(),
+        }
+    }
+
+    /// Takes tile `x` of level `k`; returns the tiles of that level now in order.
+    fn accept(
+        &mut self,
+        k: usize,
+        x: u32,
+        made: Result<MadeTile, BuildError>,
+    ) -> Vec<(u32, Result<MadeTile, BuildError>)> {
+        self.early[k].insert(x, made);
+        let mut run = Vec::new();
+        while let Some(made) = self.early[k].remove(&self.next[k]) {
+            run.push((self.next[k], made));
+            self.next[k] += 1;
+        }
+        run
+    }
+}
+
+/// The writing side of a climb: the database, the records, and the parents' carries.
+#[derive(Debug)]
+struct Output<'a> {
+    /// The highest level the climb makes a row of.
+    top: usize,
+    writer: &'a mut DbWriter,
+    pending: &'a mut [Vec<Parent>],
+    records: &'a mut [Vec<Written>],
+    heights_bytes: &'a mut u64,
+    texture_bytes: &'a mut u64,
+    /// The first error, after which nothing more is written.
+    failure: Option<BuildError>,
+}
+
+impl Output<'_> {
+    /// Writes tile `x` of `level`'s row and hands its carry to its parent; returns the
+    /// parent's job when this was its last child and the climb makes the parent's row.
+    fn write(
+        &mut self,
+        level: &LevelState,
+        x: u32,
+        made: Result<MadeTile, BuildError>,
+    ) -> Option<Job> {
+        if self.failure.is_some() {
+            return None;
+        }
+        let k = level.level as usize;
+        let written = made.and_then(|made| {
+            *self.heights_bytes += made.heights_bytes;
+            let (record, carry, bytes) = write(level.level, made, self.writer)?;
+            *self.texture_bytes += bytes;
+            self.records[k].push(record);
+            Ok(carry)
+        });
+        let carry = match written {
+            Ok(carry) => carry,
+            Err(error) => {
+                self.failure = Some(error);
+                return None;
+            }
+        };
+        let parent = self.pending.get_mut(k + 1)?.get_mut(x as usize / 2)?;
+        let j = level.next_tile_row;
+        parent.children[x as usize % 2 + 2 * (j as usize % 2)] = Some(carry);
+        let last_child = x % 2 == 1 || x + 1 == level.grid.columns;
+        (k < self.top && last_child).then(|| Job {
+            level: k + 1,
+            x: x / 2,
+            parent: Some(std::mem::take(parent)),
+        })
     }
 }
 
@@ -696,6 +766,7 @@ mod tests {
     use super::*;
     use crate::build::{BuildOptions, TextureChoice, build};
     use crate::db::{TileDb, Verify};
+    use std::path::{Path, PathBuf};
     use terrain_shared::Heights;
 
     const OFFSET_M: f64 = -20.0;
@@ -714,6 +785,35 @@ mod tests {
                 (1000.0 + hills + ridge + roughness) as i32
             })
             .collect()
+    }
+
+    /// The quantum of float samples the builder is left with: its default.
+    const FLOAT_QUANTUM_M: f64 = crate::build::DEFAULT_FLOAT_QUANTUM_M;
+
+    /// Writes `codes` as the input of a build: a 16-bit PNG, or (codes at
+    /// [`FLOAT_QUANTUM_M`]) a float32 GeoTIFF, whose codes may span more than 16 bits and
+    /// then are held 32 bits a sample.
+    fn write_input(dir: &Path, codes: &[i32], width: u32, height: u32, quantum_m: f64) -> PathBuf {
+        if quantum_m == FLOAT_QUANTUM_M {
+            let path = dir.join("terrain.tif");
+            let metres: Vec<f32> = codes
+                .iter()
+                .map(|&c| (f64::from(c) * quantum_m) as f32)
+                .collect();
+            let file = std::fs::File::create(&path).expect("create the input");
+            let mut encoder = tiff::encoder::TiffEncoder::new(file).expect("encoder");
+            encoder
+                .write_image::<tiff::encoder::colortype::Gray32Float>(width, height, &metres)
+                .expect("write the input");
+            return path;
+        }
+        let path = dir.join("terrain.png");
+        let raw: Vec<u16> = codes.iter().map(|&c| c as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, raw)
+            .expect("size")
+            .save(&path)
+            .expect("write the input");
+        path
     }
 
     /// Every level of the raster, each the whole raster, as the definitions make them.
@@ -837,15 +937,12 @@ mod tests {
         quantum_m: f64,
     ) {
         let dir = tempfile::tempdir().expect("temporary directory");
-        let input = dir.path().join("terrain.png");
-        let raw: Vec<u16> = codes.iter().map(|&c| c as u16).collect();
-        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width, height, raw)
-            .expect("size")
-            .save(&input)
-            .expect("write the input");
+        let input = write_input(dir.path(), &codes, width, height, quantum_m);
         let mut options = BuildOptions::new(&input, dir.path().join("db"));
         options.tile_size = n;
-        options.height_scale = Some(quantum_m);
+        // A PNG's codes are metres once scaled; a float raster's samples are metres already.
+        let float = input.extension().is_some_and(|e| e == "tif");
+        options.height_scale = Some(if float { 1.0 } else { quantum_m });
         options.height_offset = Some(OFFSET_M);
         options.texture = TextureChoice::Generated;
         options.texture_size = Some(TEXTURE_SIZE);
@@ -943,6 +1040,13 @@ mod tests {
         for (width, height, n) in [(45, 38, 9), (41, 50, 9), (70, 17, 5), (9, 9, 9)] {
             check_levels_against_whole_rasters(terrain(width, height), width, height, n, 0.5);
         }
+        // Float heights in centimetres: codes spanning 17 bits, held as they are.
+        let (width, height) = (45, 38);
+        let centimetres = terrain(width, height)
+            .iter()
+            .map(|c| 100 * c + c % 7)
+            .collect();
+        check_levels_against_whole_rasters(centimetres, width, height, 9, FLOAT_QUANTUM_M);
     }
 
     /// Heights `low < high` (codes at `quantum_m`) for which the two triangles of a cell

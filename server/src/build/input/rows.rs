@@ -749,8 +749,8 @@ mod tests {
     /// Codes of a `width x height` raster that rise, fall and repeat without a pattern a
     /// reader could get right by accident.
     fn samples(width: u32, height: u32) -> Vec<i32> {
-        (0..width * height)
-            .map(|i| ((i * 7919) % 4001) as i32 - 1000 + (i / width) as i32)
+        (0..u64::from(width) * u64::from(height))
+            .map(|i| ((i * 7919) % 4001) as i32 - 1000 + (i / u64::from(width)) as i32)
             .collect()
     }
 
