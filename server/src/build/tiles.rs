@@ -337,19 +337,6 @@ impl Band {
             width,
         }
     }
-
-    /// Tile `id` of `grid`, cut as [`cut`] cuts it from the whole raster. Its rows (clamped
-    /// to the raster) must be held; the tile may lie past the raster's edge, wholly padding.
-    pub fn cut(&self, grid: Grid, id: TileId, quantum_m: f64, offset_m: f64) -> TileSamples {
-        cut_with(
-            |y| self.row(y),
-            self.width,
-            self.height,
-            grid,
-            id,
-            (quantum_m, offset_m),
-        )
-    }
 }
 
 /// The next coarser level of a raster: every other sample of `source` (`from` samples),
