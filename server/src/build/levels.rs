@@ -85,6 +85,8 @@ pub(super) struct Built {
     pub levels: Vec<Level>,
     pub heights_bytes: u64,
     pub texture_bytes: u64,
+    /// Encoded bytes of each texture level (coarsest first), over every tile.
+    pub texture_level_bytes: Vec<u64>,
     /// Samples stored in tiles, padding included.
     pub tile_samples: u64,
 }
@@ -100,7 +102,8 @@ pub(super) struct Pyramid<'a> {
     /// Per level, the records of the tiles written so far.
     records: Vec<Vec<Written>>,
     heights_bytes: u64,
-    texture_bytes: u64,
+    /// Per texture level, coarsest first, the bytes written so far.
+    texture_bytes: Vec<u64>,
 }
 
 /// Makes tiles, from any thread.
@@ -238,7 +241,7 @@ impl<'a> Pyramid<'a> {
                 .collect(),
             levels,
             heights_bytes: 0,
-            texture_bytes: 0,
+            texture_bytes: Vec::new(),
         }
     }
 
@@ -281,7 +284,8 @@ impl<'a> Pyramid<'a> {
         Ok(Built {
             levels,
             heights_bytes: self.heights_bytes,
-            texture_bytes: self.texture_bytes,
+            texture_bytes: self.texture_bytes.iter().sum(),
+            texture_level_bytes: self.texture_bytes,
             tile_samples,
         })
     }
@@ -505,7 +509,8 @@ struct Output<'a> {
     pending: &'a mut [Vec<Parent>],
     records: &'a mut [Vec<Written>],
     heights_bytes: &'a mut u64,
-    texture_bytes: &'a mut u64,
+    /// Per texture level, coarsest first.
+    texture_bytes: &'a mut Vec<u64>,
     /// The first error, after which nothing more is written.
     failure: Option<BuildError>,
 }
@@ -525,8 +530,7 @@ impl Output<'_> {
         let k = level.level as usize;
         let written = made.and_then(|made| {
             *self.heights_bytes += made.heights_bytes;
-            let (record, carry, bytes) = write(level.level, made, self.writer)?;
-            *self.texture_bytes += bytes;
+            let (record, carry) = write(level.level, made, self.writer, self.texture_bytes)?;
             self.records[k].push(record);
             Ok(carry)
         });
@@ -587,6 +591,7 @@ fn cut_tile(
 struct Written {
     hash: [u8; 16],
     bytes: u64,
+    coarsest_texture_bytes: u64,
     min_m: f32,
     max_m: f32,
     roughness_m: f32,
@@ -597,6 +602,7 @@ impl Written {
         TileRecord {
             hash: self.hash.iter().map(|b| format!("{b:02x}")).collect(),
             bytes: self.bytes,
+            coarsest_texture_bytes: self.coarsest_texture_bytes,
             min_m: self.min_m,
             max_m: self.max_m,
             roughness_m: self.roughness_m,
@@ -613,28 +619,32 @@ fn hash_bytes(hex: &str) -> [u8; 16] {
     })
 }
 
-/// Writes a made tile to level `level`'s files; returns its record, its carry and the
-/// bytes of its textures.
+/// Writes a made tile to level `level`'s files, adding its textures' bytes to
+/// `texture_bytes` (per texture level); returns its record and its carry.
 fn write(
     level: u32,
     made: MadeTile,
     writer: &mut DbWriter,
-) -> Result<(Written, Carry, u64), BuildError> {
+    texture_bytes: &mut Vec<u64>,
+) -> Result<(Written, Carry), BuildError> {
     let stored = writer.add_level_heights(level, &made.blob)?;
-    let mut texture_bytes = 0;
-    for encoded in &made.texture_levels {
-        texture_bytes += writer.add_level_texture(level, encoded)?.bytes;
+    if texture_bytes.len() < made.texture_levels.len() {
+        texture_bytes.resize(made.texture_levels.len(), 0);
+    }
+    for (total, encoded) in texture_bytes.iter_mut().zip(&made.texture_levels) {
+        *total += writer.add_level_texture(level, encoded)?.bytes;
     }
     let record = Written {
         hash: hash_bytes(&stored.hash),
         bytes: stored.bytes,
+        coarsest_texture_bytes: made.texture_levels.first().map_or(0, |t| t.len() as u64),
         min_m: made.carry.min_m,
         max_m: made.carry.max_m,
         roughness_m: made.roughness_m,
     };
     // The carry lives until the parent is made, rows later: copied here, on the writing
     // thread, it leaves the worker's arena to the buffers of one tile at a time.
-    Ok((record, made.carry.rehomed(), texture_bytes))
+    Ok((record, made.carry.rehomed()))
 }
 
 impl TileMaker<'_> {

@@ -513,6 +513,7 @@ pub fn build(
             },
             size: texture_size,
             levels: texture_levels,
+            level_bytes: built.texture_level_bytes,
         },
         georeference,
         mask_levels: mask::level_count(n),
