@@ -278,9 +278,7 @@ fn run() -> anyhow::Result<()> {
     let mut total_bytes = 0u64;
     for (id, _) in manifest.tiles() {
         let path = routes::heights(version, id);
-        let blob = db
-            .heights(id)
-            .context("a manifest tile without heights")?;
+        let blob = db.heights(id).context("a manifest tile without heights")?;
         let file = root.join(path.trim_start_matches('/'));
         if let Some(parent) = file.parent() {
             std::fs::create_dir_all(parent)

@@ -365,6 +365,14 @@ fn check_matrix(report: &stability::StabilityReport) {
             r.scenario,
             r.method
         );
+        // The altitude scenarios: coverage, mean error and holes against the whole database.
+        assert_eq!(
+            r.altitude_shortfall(),
+            None,
+            "{} {}: short of what levels promise",
+            r.scenario,
+            r.method
+        );
     }
     for file in &report.files {
         assert!(
@@ -412,6 +420,8 @@ fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
         ),
         ("srtm_geotiff", "srtm_geotiff/mt_rainier_90m.tif"),
         ("himalaya_4097", "himalaya_4097/g10g_himalaya_4097.png"),
+        // A database of one's own: the altitude scenarios run on it too.
+        ("puget", "puget_sound_1k/ps_height_1k.png"),
     ];
     let mut inputs = Vec::new();
     for (name, file) in kit {
@@ -445,6 +455,18 @@ fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
     let report = runtime().block_on(stability::run(&args)).expect("matrix");
     check_matrix(&report);
     assert!(report.skipped.is_empty(), "{:?}", report.skipped);
+    let altitude: Vec<&str> = stability::SCENARIOS
+        .iter()
+        .filter(|s| matches!(s.kind, stability::Kind::Altitude { .. }))
+        .map(|s| s.name)
+        .collect();
+    for name in &altitude {
+        for label in [name.to_string(), format!("{name}@puget")] {
+            let runs = report.runs.iter().filter(|r| r.scenario == label);
+            assert_eq!(runs.clone().count(), 3, "{label}: one run per variant");
+            assert!(runs.clone().all(|r| r.whole_reference), "{label}");
+        }
+    }
     for r in report.runs.iter().filter(|r| r.scenario == "flat-sea") {
         assert!(r.flat_tiles.0 > 0, "{}: flat tiles in view", r.method);
         assert_eq!(

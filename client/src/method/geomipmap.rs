@@ -251,10 +251,7 @@ mod tests {
         let sets: Vec<SetKey> = sets_of(stitch, [false, true, false, false]).collect();
         assert_eq!(
             sets,
-            [
-                SetKey::Stitch(stitch),
-                SetKey::Skirt { side: 1, level: 1 }
-            ]
+            [SetKey::Stitch(stitch), SetKey::Skirt { side: 1, level: 1 }]
         );
         let (plain, _) = sets[0].indices(n);
         assert_eq!(plain, levels::strip(n, stitch));
