@@ -195,6 +195,24 @@ impl ChildTexture {
     }
 }
 
+/// Where texel `(px, py)` of the 2x2 mosaic of `child(cx, cy)` textures of side `size`
+/// comes from: that child's texel, or, for a missing child (past the terrain's east or
+/// south edge), the nearest texel of the child west of it, north of it, or north-west.
+fn mosaic_source<C>(
+    child: impl Fn(u32, u32) -> Option<C>,
+    px: u32,
+    py: u32,
+    size: u32,
+) -> Option<(C, u32, u32)> {
+    let (cx, cy) = (px / size, py / size);
+    let (ix, iy) = (px % size, py % size);
+    child(cx, cy)
+        .map(|c| (c, ix, iy))
+        .or_else(|| child(0, cy).map(|c| (c, size - 1, iy)))
+        .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
+        .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)))
+}
+
 /// A parent tile's finest texture, `size` texels, filtered from its children's (north-west,
 /// north-east, south-west, south-east; `None` past the grid's edge, where the nearest
 /// existing texels are repeated): the 2x2 mosaic, each output texel the mean of four.
@@ -212,14 +230,7 @@ pub fn from_children(
         .collect::<Result<Vec<_>, _>>()?;
     // Texel (px, py) of the mosaic, where it is a child's edge texel or repeats one.
     let texel = |px: u32, py: u32| -> [u32; 3] {
-        let (cx, cy) = (px / size, py / size);
-        let (ix, iy) = (px % size, py % size);
-        let found = child(cx, cy)
-            .map(|c| (c, ix, iy))
-            .or_else(|| child(0, cy).map(|c| (c, size - 1, iy)))
-            .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
-            .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)));
-        found
+        mosaic_source(child, px, py, size)
             .and_then(|(c, x, y)| c.edge_texel(x, y))
             .map_or([0, 0, 0], |t| t.map(u32::from))
     };
@@ -395,14 +406,8 @@ pub fn encode(
 pub(crate) fn filter_mosaic(children: &[Option<&RgbImage>], size: u32) -> RgbImage {
     let child = |cx: u32, cy: u32| children.get((cy * 2 + cx) as usize).copied().flatten();
     let texel = |px: u32, py: u32| -> [u32; 3] {
-        let (cx, cy) = (px / size, py / size);
-        let (ix, iy) = (px % size, py % size);
-        let found = child(cx, cy)
-            .map(|c| (c, ix, iy))
-            .or_else(|| child(0, cy).map(|c| (c, size - 1, iy)))
-            .or_else(|| child(cx, 0).map(|c| (c, ix, size - 1)))
-            .or_else(|| child(0, 0).map(|c| (c, size - 1, size - 1)));
-        found.map_or([0, 0, 0], |(c, x, y)| c.get_pixel(x, y).0.map(u32::from))
+        mosaic_source(child, px, py, size)
+            .map_or([0, 0, 0], |(c, x, y)| c.get_pixel(x, y).0.map(u32::from))
     };
     RgbImage::from_fn(size, size, |x, y| {
         let (a, b, c, d) = (
