@@ -35,9 +35,10 @@ enum Command {
 
 #[derive(Debug, Subcommand)]
 enum BenchCommand {
-    /// Error (screen-space pixels, cracks, PSNR) against triangles and frame time, for a
-    /// list of fixed budgets, methods and crack fillers, over cameras along a flight; writes
-    /// accuracy.csv, summary.md and charts.
+    /// Error (screen-space pixels, cracks, PSNR) against triangles, frame time and bytes,
+    /// each method swept over its own knob (strip masks: fixed budgets; GeoMipMaps: the
+    /// error threshold), over cameras along a flight, with popping on a slow flight; on
+    /// --server and every --data database; writes accuracy.csv, summary.md and charts.
     Accuracy(terrain_client::eval::accuracy::AccuracyArgs),
     /// Named scenarios (grazing views, above the horizon, under the surface, far outside,
     /// memory below one belt, 100 triangles, jumps, special datasets) with every method and
@@ -76,9 +77,15 @@ fn main() -> ExitCode {
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Accuracy(args)) => in_runtime(async move {
-            terrain_client::eval::accuracy::run(&args)
+            terrain_client::eval::accuracy::run_each(&args)
                 .await
-                .map(|report| report.to_string())
+                .map(|reports| {
+                    reports
+                        .iter()
+                        .map(ToString::to_string)
+                        .collect::<Vec<_>>()
+                        .join("\n")
+                })
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Stability(args)) if args.list => {

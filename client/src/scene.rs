@@ -541,6 +541,14 @@ impl Scene {
         tiles + method
     }
 
+    /// The decoded heights of resident tile `id`; `None` when it is not resident.
+    pub fn tile_heights(&self, id: TileId) -> Option<&terrain_shared::Heights> {
+        self.tiles
+            .get(self.index(id))?
+            .as_ref()
+            .map(|t| t.heights.as_ref())
+    }
+
     /// The manifest of the terrain.
     pub fn manifest(&self) -> &Arc<Manifest> {
         &self.manifest

@@ -13,6 +13,7 @@
 //! against frame time, crack pixels against budget, triangles used against needed.
 
 use super::Variants;
+use super::popping::{Changes, Popping};
 use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
 use crate::flight::{ErrorCapArgs, FlightError, heading, parse_size};
@@ -31,18 +32,27 @@ use std::time::Duration;
 #[derive(Debug, Clone, clap::Args)]
 pub struct AccuracyArgs {
     /// Base URL of the tile server.
-    #[arg(long, env = "TERRAIN_SERVER")]
-    pub server: String,
+    #[arg(long, env = "TERRAIN_SERVER", required_unless_present = "data")]
+    pub server: Option<String>,
+    /// More databases to sweep, NAME=URL (repeatable): each is swept in turn, into
+    /// OUT/NAME, titled NAME.
+    #[arg(long = "data", value_parser = super::stability::parse_named)]
+    pub data: Vec<(String, String)>,
     /// Directory for the CSVs, the summary and the charts; created if missing.
     #[arg(long, default_value = "out/accuracy")]
     pub out: PathBuf,
-    /// Fixed global triangle budgets, comma-separated.
+    /// The knob of methods with a global triangle budget (strip masks): fixed budgets,
+    /// comma-separated.
     #[arg(
         long,
         value_delimiter = ',',
         default_value = "1000,3000,10000,30000,100000,300000,1000000"
     )]
     pub budgets: Vec<u32>,
+    /// The knob of methods without a budget (GeoMipMaps): the screen-space error each
+    /// tile's level is chosen within, pixels, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4,8,16")]
+    pub max_errors_px: Vec<f64>,
     #[command(flatten)]
     pub variants: Variants,
     /// Cameras taken evenly along the flight.
@@ -66,15 +76,24 @@ pub struct AccuracyArgs {
     /// Name of the dataset in titles (default: the manifest's).
     #[arg(long)]
     pub label: Option<String>,
+    /// Frames of the slow flight popping is measured on (from the first camera, straight
+    /// ahead); 0 leaves popping out.
+    #[arg(long, default_value_t = 8)]
+    pub popping_frames: u32,
+    /// Metres the camera moves between two frames of that flight.
+    #[arg(long, default_value_t = 4.0)]
+    pub popping_step_m: f64,
 }
 
 impl AccuracyArgs {
     /// The defaults of the command line against `server`, writing to `out`.
     pub fn new(server: impl Into<String>, out: impl Into<PathBuf>) -> AccuracyArgs {
         AccuracyArgs {
-            server: server.into(),
+            server: Some(server.into()),
+            data: Vec::new(),
             out: out.into(),
             budgets: vec![1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
+            max_errors_px: vec![0.5, 1.0, 2.0, 4.0, 8.0, 16.0],
             variants: Variants::default(),
             cameras: 8,
             flight: None,
@@ -83,22 +102,104 @@ impl AccuracyArgs {
             error: ErrorCapArgs::default(),
             repeats: 3,
             label: None,
+            popping_frames: 8,
+            popping_step_m: 4.0,
         }
     }
 }
 
-/// One configuration: a method, its filler, its budget.
+/// What a method turns to trade error for triangles: each method sweeps its own.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Knob {
+    /// A fixed global triangle budget (strip masks).
+    Budget(u32),
+    /// The screen-space error allowed, pixels (GeoMipMaps, which take no budget).
+    MaxErrorPx(f64),
+}
+
+impl Knob {
+    /// The knob's setting as a number, for CSV columns and chart axes.
+    pub fn value(self) -> f64 {
+        match self {
+            Knob::Budget(b) => f64::from(b),
+            Knob::MaxErrorPx(e) => e,
+        }
+    }
+
+    /// Its name, as the CSV's `knob` column gives it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Knob::Budget(_) => "budget",
+            Knob::MaxErrorPx(_) => "max_error_px",
+        }
+    }
+}
+
+impl std::fmt::Display for Knob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Knob::Budget(b) => write!(f, "budget {b}"),
+            Knob::MaxErrorPx(e) => write!(f, "{e} px"),
+        }
+    }
+}
+
+/// The knobs `method` is swept over with `args`.
+pub fn knobs(method: MethodKind, args: &AccuracyArgs) -> Vec<Knob> {
+    match method {
+        MethodKind::Geomipmap => args
+            .max_errors_px
+            .iter()
+            .map(|&e| Knob::MaxErrorPx(e))
+            .collect(),
+        MethodKind::StripMasks | MethodKind::Reference => {
+            args.budgets.iter().map(|&b| Knob::Budget(b)).collect()
+        }
+    }
+}
+
+/// One configuration: a method, its filler, its knob's setting.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Config {
     pub method: MethodKind,
     pub filler: CrackFiller,
-    pub budget: u32,
+    pub knob: Knob,
 }
 
 impl Config {
     /// `method/filler` (or `method` for methods without filler).
     pub fn series(&self) -> String {
         Variants::name(self.method, self.filler)
+    }
+
+    /// The screen-space error it is drawn within: its own knob's, or the sweep's
+    /// `threshold_px` (the strip masks' error cap).
+    pub fn threshold_px(&self, threshold_px: f64) -> f64 {
+        match self.knob {
+            Knob::Budget(_) => threshold_px,
+            Knob::MaxErrorPx(e) => e,
+        }
+    }
+
+    /// How to draw it: `base` with the knob's budget or error threshold.
+    pub fn render(&self, base: RenderConfig) -> RenderConfig {
+        let (budget, lod) = match self.knob {
+            Knob::Budget(b) => (b, base.lod),
+            Knob::MaxErrorPx(e) => (
+                u32::MAX,
+                LodSettings {
+                    max_error_px: e,
+                    ..base.lod
+                },
+            ),
+        };
+        RenderConfig {
+            method: self.method,
+            filler: self.filler,
+            budget: BudgetMode::Fixed(budget),
+            lod,
+            ..base
+        }
     }
 }
 
@@ -116,11 +217,18 @@ pub struct Summary {
     pub config: Config,
     pub triangles: f64,
     pub triangles_needed: f64,
+    /// The oracle's triangles at this configuration's threshold, mean over the cameras,
+    /// and the triangles used over all cameras over the oracle's over all cameras.
+    pub oracle_triangles: f64,
+    pub used_over_oracle: f64,
     /// Mean of the per-frame ratios triangles used / triangles needed.
     pub used_over_needed: f64,
     pub filler_triangles: f64,
     pub draw_calls: f64,
     pub mean_error_px: f64,
+    /// Means over the cameras of each frame's 95th and 99th percentile error.
+    pub p95_error_px: f64,
+    pub p99_error_px: f64,
     pub max_error_px: f64,
     /// Share of terrain pixels above the threshold, percent.
     pub above_threshold_pct: f64,
@@ -133,6 +241,11 @@ pub struct Summary {
     pub frame_ms: f64,
     pub cpu_ms: f64,
     pub gpu_ms: Option<f64>,
+    /// Mean over the cameras of what the scene held after the frame (CPU and GPU bytes).
+    pub held_bytes: f64,
+    /// Frame-to-frame change on the slow flight beyond the reference's own
+    /// ([`super::popping`]); `None` when popping was not measured.
+    pub popping: Option<Popping>,
 }
 
 /// What the sweep measured.
@@ -149,6 +262,9 @@ pub struct AccuracyReport {
     /// Per camera, the reference frame's own error against the true surface: the floor of
     /// the measure (see [`Session::own_error`]).
     pub reference_errors: Vec<super::metrics::ErrorStats>,
+    /// Per camera, the oracle's triangle count ([`oracle_triangles`]) at each threshold the
+    /// configurations ask for, as (threshold px, triangles).
+    pub oracle: Vec<Vec<(f64, u64)>>,
     /// Triangles and median time of the reference frames.
     pub reference_triangles: f64,
     pub reference_ms: f64,
@@ -170,7 +286,11 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         lod,
         ..RenderConfig::default()
     };
-    let mut session = Session::open(&args.server, None, base, args.size).await?;
+    let server = args
+        .server
+        .as_deref()
+        .ok_or_else(|| FlightError::BadOption("--server (or --data NAME=URL) is needed".into()))?;
+    let mut session = Session::open(server, None, base, args.size).await?;
     let manifest = std::sync::Arc::clone(&session.manifest);
     let path = match &args.flight {
         Some(file) => CameraPath::load(file, &manifest)?,
@@ -196,19 +316,28 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     let mut rows = Vec::new();
     let mut geometry: Vec<(String, crate::scene::GeometryMemory)> = Vec::new();
     let mut reference_errors = Vec::new();
+    let mut oracle = Vec::new();
+    let mut thresholds: Vec<f64> = configs(args)
+        .iter()
+        .map(|c| c.threshold_px(lod.max_error_px))
+        .collect();
+    thresholds.sort_by(f64::total_cmp);
+    thresholds.dedup();
     let (mut reference_triangles, mut reference_ms) = (Vec::new(), Vec::new());
     for (i, camera) in cameras.iter().enumerate() {
         let (reference, report) = session.reference(camera)?;
         reference_errors.push(session.own_error(&reference, camera, lod.max_error_px));
+        let viewport = [args.size.0, args.size.1];
+        oracle.push(
+            thresholds
+                .iter()
+                .map(|&t| (t, oracle_triangles(&session.scene, camera, viewport, t)))
+                .collect(),
+        );
         reference_triangles.push(report.stats.triangles as f64);
         reference_ms.push(report.draw_ms);
         for config in configs(args) {
-            let render = RenderConfig {
-                method: config.method,
-                filler: config.filler,
-                budget: BudgetMode::Fixed(config.budget),
-                ..base
-            };
+            let render = config.render(base);
             let measured =
                 session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
             if i + 1 == cameras.len() {
@@ -225,6 +354,18 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
                 measured,
             });
             bar.inc(1);
+        }
+    }
+    // Popping, on a slow flight from the first camera.
+    let slow = slow_flight(&cameras[0], args.popping_frames, args.popping_step_m);
+    let mut popping = Vec::new();
+    if slow.len() >= 2 {
+        bar.set_message("popping");
+        let reference = changes_along(&slow, |camera| Ok(session.reference(camera)?.0))?;
+        for config in configs(args) {
+            let render = config.render(base);
+            let changes = changes_along(&slow, |camera| Ok(session.capture(camera, render)?.0))?;
+            popping.push((config, changes.summary().beyond(reference.summary())));
         }
     }
     bar.finish_and_clear();
@@ -244,7 +385,8 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         reference_triangles: reference_triangles.iter().sum::<f64>()
             / reference_triangles.len().max(1) as f64,
         reference_ms: median(&mut reference_ms),
-        summaries: summarise(&rows, &configs(args)),
+        summaries: summarise(&rows, &configs(args), &popping, &oracle, lod.max_error_px),
+        oracle,
         reference_errors,
         geometry,
         rows,
@@ -255,10 +397,38 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     Ok(report)
 }
 
+/// The sweep on `--server` (into `--out`) and on every `--data` database (into
+/// `OUT/NAME`, titled NAME), one after another.
+pub async fn run_each(args: &AccuracyArgs) -> Result<Vec<AccuracyReport>, FlightError> {
+    let mut reports = Vec::new();
+    if args.server.is_some() {
+        reports.push(run(args).await?);
+    }
+    for (name, url) in &args.data {
+        let one = AccuracyArgs {
+            server: Some(url.clone()),
+            data: Vec::new(),
+            out: args.out.join(name),
+            label: Some(name.clone()),
+            ..args.clone()
+        };
+        reports.push(run(&one).await?);
+    }
+    Ok(reports)
+}
+
 fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
     let bad = |m: String| Err(FlightError::BadOption(m));
     if args.budgets.is_empty() || args.budgets.contains(&0) {
         return bad("--budgets must list positive triangle counts".into());
+    }
+    if args.max_errors_px.is_empty()
+        || args
+            .max_errors_px
+            .iter()
+            .any(|e| !(e.is_finite() && *e > 0.0))
+    {
+        return bad("--max-errors-px must list positive pixel errors".into());
     }
     if args.variants.methods.is_empty() || args.variants.fillers.is_empty() {
         return bad("--methods and --fillers must not be empty".into());
@@ -269,19 +439,53 @@ fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
     Ok(())
 }
 
-/// Every configuration of `args`: per method, per filler when it uses one, per budget.
+/// Every configuration of `args`: per method, per filler when it uses one, per setting of
+/// the method's knob.
 pub fn configs(args: &AccuracyArgs) -> Vec<Config> {
     let mut out = Vec::new();
     for (method, filler) in args.variants.list() {
-        for &budget in &args.budgets {
+        for knob in knobs(method, args) {
             out.push(Config {
                 method,
                 filler,
-                budget,
+                knob,
             });
         }
     }
     out
+}
+
+/// `frames` cameras from `start`, each `step_m` metres further along its heading, at its
+/// height and pitch.
+pub fn slow_flight(start: &Camera, frames: u32, step_m: f64) -> Vec<Camera> {
+    let (dx, dy) = (start.yaw.cos(), start.yaw.sin());
+    (0..frames)
+        .map(|i| {
+            let d = f64::from(i) * step_m;
+            let [x, y, z] = start.position;
+            Camera {
+                position: [x + d * dx, y + d * dy, z],
+                ..*start
+            }
+        })
+        .collect()
+}
+
+/// The changes between consecutive frames of `cameras`, each drawn by `draw`.
+fn changes_along(
+    cameras: &[Camera],
+    mut draw: impl FnMut(&Camera) -> Result<super::frame::Capture, FlightError>,
+) -> Result<Changes, FlightError> {
+    let mut changes = Changes::default();
+    let mut previous: Option<(super::frame::Capture, [f64; 3])> = None;
+    for camera in cameras {
+        let capture = draw(camera)?;
+        if let Some((before, eye)) = &previous {
+            changes.add(before, *eye, &capture, camera.position);
+        }
+        previous = Some((capture, camera.position));
+    }
+    Ok(changes)
 }
 
 /// `count` cameras at even times along `path` (its final hold left out), heading along it.
@@ -302,8 +506,62 @@ pub fn cameras_along(path: &CameraPath, count: u32, pitch_deg: f64) -> Vec<Camer
         .collect()
 }
 
-/// Means over the cameras, per configuration.
-pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
+/// The fewest triangles any mesh of the full-resolution data needs for `camera`'s frame to
+/// keep every sample within `threshold_px` on screen: per level-0 tile in view (by its
+/// bounding box, as the methods cull), the smallest right-triangulated irregular network
+/// within the threshold ([`super::oracle`]), each sample's vertical error projected by the
+/// bound the methods use ([`crate::lod::needed::ErrorProjection`]) at that sample. Tiles
+/// not resident count nothing.
+pub fn oracle_triangles(
+    scene: &crate::scene::Scene,
+    camera: &Camera,
+    viewport: [u32; 2],
+    threshold_px: f64,
+) -> u64 {
+    let manifest = scene.manifest();
+    let layout = crate::render::layout::Layout::of(manifest);
+    let projection = crate::lod::plan::error_projection(camera, viewport);
+    let frustum = camera.frustum(f64::from(viewport[0]) / f64::from(viewport[1].max(1)));
+    let eye = glam::DVec3::from(camera.position);
+    let extent = layout.tile_extent_m_at(0);
+    let spacing = layout.spacing_at(0);
+    let mut total = 0;
+    for (id, record) in manifest.tiles().filter(|(id, _)| id.level == 0) {
+        let [x0, y0] = layout.tile_origin_m(id);
+        let lo = Camera::to_render(glam::DVec3::new(x0, y0, f64::from(record.min_m)) - eye);
+        let hi = Camera::to_render(
+            glam::DVec3::new(x0 + extent[0], y0 + extent[1], f64::from(record.max_m)) - eye,
+        );
+        if !frustum.intersects_box(lo.min(hi), lo.max(hi)) {
+            continue;
+        }
+        let Some(heights) = scene.tile_heights(id) else {
+            continue;
+        };
+        let n = u32::from(heights.width);
+        let samples = heights.to_metres_f32();
+        let ppm = |c: u32, r: u32| {
+            let p = [
+                x0 + f64::from(c) * spacing[0],
+                y0 + f64::from(r) * spacing[1],
+                f64::from(samples[(r * n + c) as usize]),
+            ];
+            projection.pixels_per_metre(p, p, threshold_px)
+        };
+        total += super::oracle::rtin_triangles(&samples, n, ppm, threshold_px);
+    }
+    total
+}
+
+/// Means over the cameras, per configuration, with its popping where measured and the
+/// oracle's count at its threshold (`threshold_px` for the budgeted methods).
+pub fn summarise(
+    rows: &[Row],
+    configs: &[Config],
+    popping: &[(Config, Popping)],
+    oracle: &[Vec<(f64, u64)>],
+    threshold_px: f64,
+) -> Vec<Summary> {
     configs
         .iter()
         .filter_map(|config| {
@@ -317,6 +575,27 @@ pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
             }
             let n = of.len() as f64;
             let mean = |f: &dyn Fn(&Measured) -> f64| of.iter().map(|m| f(m)).sum::<f64>() / n;
+            let threshold = config.threshold_px(threshold_px);
+            let oracle_of = |camera: u32| {
+                oracle
+                    .get(camera as usize)
+                    .and_then(|o| o.iter().find(|(t, _)| *t == threshold))
+                    .map(|(_, n)| *n as f64)
+            };
+            let with_oracle: Vec<(f64, f64)> = rows
+                .iter()
+                .filter(|r| r.config == *config)
+                .filter_map(|r| {
+                    oracle_of(r.camera).map(|o| (o, r.measured.report.stats.triangles as f64))
+                })
+                .collect();
+            let k = with_oracle.len().max(1) as f64;
+            let oracle_sum = with_oracle.iter().map(|(o, _)| o).sum::<f64>();
+            let oracle_triangles = oracle_sum / k;
+            // A ratio of sums: a camera over flat sea needs almost nothing, and its ratio
+            // alone would swamp a mean of ratios.
+            let used_over_oracle =
+                with_oracle.iter().map(|(_, used)| used).sum::<f64>() / oracle_sum.max(1.0);
             let mut frame: Vec<f64> = of.iter().map(|m| m.frame_ms).collect();
             let mut gpu: Vec<f64> = of.iter().filter_map(|m| m.gpu_ms).collect();
             let finite_psnr: Vec<f64> = of
@@ -328,12 +607,16 @@ pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
                 config: *config,
                 triangles: mean(&|m| m.report.stats.triangles as f64),
                 triangles_needed: mean(&|m| m.report.triangles_needed as f64),
+                oracle_triangles,
+                used_over_oracle,
                 used_over_needed: mean(&|m| {
                     m.report.stats.triangles as f64 / (m.report.triangles_needed as f64).max(1.0)
                 }),
                 filler_triangles: mean(&|m| m.report.stats.filler_triangles as f64),
                 draw_calls: mean(&|m| f64::from(m.report.stats.draw_calls)),
                 mean_error_px: mean(&|m| m.measures.error.mean_px),
+                p95_error_px: mean(&|m| m.measures.error.p95_px),
+                p99_error_px: mean(&|m| m.measures.error.p99_px),
                 max_error_px: of
                     .iter()
                     .map(|m| m.measures.error.max_px)
@@ -355,23 +638,26 @@ pub fn summarise(rows: &[Row], configs: &[Config]) -> Vec<Summary> {
                 frame_ms: median(&mut frame),
                 cpu_ms: mean(&|m| m.report.lod_ms + m.report.stats.encode_ms),
                 gpu_ms: (!gpu.is_empty()).then(|| median(&mut gpu)),
+                held_bytes: mean(&|m| m.held_bytes as f64),
+                popping: popping.iter().find(|(c, _)| c == config).map(|(_, p)| *p),
             })
         })
         .collect()
 }
 
 /// Columns of `accuracy.csv`.
-pub const CSV_HEADER: &str = "camera,method,filler,budget,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms";
+pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms";
 
 fn csv_row(r: &Row) -> String {
     let m = &r.measured;
     let e = &m.measures.error;
     format!(
-        "{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3}",
+        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3}",
         r.camera,
         r.config.method.name(),
         r.config.filler.name(),
-        r.config.budget,
+        r.config.knob.name(),
+        r.config.knob.value(),
         m.report.stats.triangles,
         m.report.triangles_needed,
         m.report.stats.triangles as f64 / (m.report.triangles_needed as f64).max(1.0),
@@ -418,23 +704,27 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | budget | triangles | needed | used/needed | mean error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) |",
+        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) |",
         report.threshold_px
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for m in &report.summaries {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.3} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} |",
+            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.0} | {:.2} | {:.3} / {:.2} / {:.2} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} | {:.1} | {} |",
             m.config.series(),
-            m.config.budget,
+            m.config.knob,
             m.triangles,
+            m.oracle_triangles,
+            m.used_over_oracle,
             m.triangles_needed,
             m.used_over_needed,
             m.mean_error_px,
+            m.p95_error_px,
+            m.p99_error_px,
             m.max_error_px,
             m.above_threshold_pct,
             m.crack_pixels,
@@ -443,7 +733,12 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.crack_pct,
             m.psnr_db,
             m.frame_ms,
-            m.cpu_ms
+            m.cpu_ms,
+            m.held_bytes / crate::memory::MIB,
+            m.popping.map_or("-".to_string(), |p| format!(
+                "{:.2} / {:.2}",
+                p.colour_mean, p.depth_p99_pct
+            )),
         );
     }
     if !report.geometry.is_empty() {
@@ -530,7 +825,9 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
             series_names.push(s.config.series());
         }
     }
-    let series = |f: &dyn Fn(&Summary) -> (f64, f64)| -> Vec<XySeries> {
+    // One line per method and filler, through its knob's settings; `f` leaves out the
+    // settings a chart has no place for.
+    let series_of = |f: &dyn Fn(&Summary) -> Option<(f64, f64)>| -> Vec<XySeries> {
         series_names
             .iter()
             .enumerate()
@@ -541,11 +838,17 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
                     .summaries
                     .iter()
                     .filter(|s| &s.config.series() == name)
-                    .map(f)
+                    .filter_map(f)
                     .collect(),
                 dashed: false,
             })
+            .filter(|s| !s.points.is_empty())
             .collect()
+    };
+    let series = |f: &dyn Fn(&Summary) -> (f64, f64)| series_of(&|s| Some(f(s)));
+    let budget = |s: &Summary| match s.config.knob {
+        Knob::Budget(b) => Some(f64::from(b)),
+        Knob::MaxErrorPx(_) => None,
     };
     let title = &report.dataset;
     let threshold = report.threshold_px;
@@ -558,7 +861,7 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
                 x_desc: "triangles per frame (log)".into(),
                 y_desc: "mean error (px)".into(),
                 log_x: true,
-                series: series(&|s| (s.triangles, s.mean_error_px)),
+                series: with_front(series(&|s| (s.triangles, s.mean_error_px))),
             },
             XyPanel {
                 title: format!("terrain pixels off by more than {threshold} px"),
@@ -581,18 +884,63 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
             x_desc: "frame time, median (ms)".into(),
             y_desc: "mean error (px)".into(),
             log_x: false,
-            series: series(&|s| (s.frame_ms, s.mean_error_px)),
+            series: with_front(series(&|s| (s.frame_ms, s.mean_error_px))),
         }],
         &path,
     )?;
     files.push(path);
+    let path = out.join("error-vs-bytes.png");
+    charts::xy_chart(
+        &[XyPanel {
+            title: format!(
+                "{title}: mean screen-space error against bytes held (CPU and GPU, whole database resident)"
+            ),
+            x_desc: "bytes held after the frame (MiB)".into(),
+            y_desc: "mean error (px)".into(),
+            log_x: false,
+            series: with_front(series(&|s| {
+                (s.held_bytes / crate::memory::MIB, s.mean_error_px)
+            })),
+        }],
+        &path,
+    )?;
+    files.push(path);
+    if report.summaries.iter().any(|s| s.popping.is_some()) {
+        let path = out.join("popping.png");
+        let popping = |f: &dyn Fn(&Popping) -> f64| {
+            series_of(&|s| s.popping.as_ref().map(|p| (s.triangles, f(p))))
+        };
+        charts::xy_chart(
+            &[
+                XyPanel {
+                    title: format!(
+                        "{title}: popping, colour change between frames beyond the reference's"
+                    ),
+                    x_desc: "triangles per frame (log)".into(),
+                    y_desc: "mean colour change (0-255)".into(),
+                    log_x: true,
+                    series: popping(&|p| p.colour_mean),
+                },
+                XyPanel {
+                    title: "depth change between frames beyond the reference's, 99th percentile"
+                        .into(),
+                    x_desc: "triangles per frame (log)".into(),
+                    y_desc: "depth change (% of distance)".into(),
+                    log_x: true,
+                    series: popping(&|p| p.depth_p99_pct),
+                },
+            ],
+            &path,
+        )?;
+        files.push(path);
+    }
     let path = out.join("cracks-vs-budget.png");
-    let mut holes = series(&|s| (f64::from(s.config.budget), s.hole_pixels));
+    let mut holes = series_of(&|s| budget(s).map(|b| (b, s.hole_pixels)));
     for h in &mut holes {
         h.name = format!("{} (left as holes)", h.name);
         h.dashed = true;
     }
-    let mut cracks = series(&|s| (f64::from(s.config.budget), s.crack_pixels));
+    let mut cracks = series_of(&|s| budget(s).map(|b| (b, s.crack_pixels)));
     cracks.extend(holes);
     charts::xy_chart(
         &[XyPanel {
@@ -606,12 +954,12 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
     )?;
     files.push(path);
     let path = out.join("used-vs-needed.png");
-    let mut used = series(&|s| (f64::from(s.config.budget), s.triangles));
+    let mut used = series_of(&|s| budget(s).map(|b| (b, s.triangles)));
     used.truncate(1);
     if let Some(u) = used.first_mut() {
         u.name = format!("used ({})", u.name);
     }
-    let mut needed = series(&|s| (f64::from(s.config.budget), s.triangles_needed));
+    let mut needed = series_of(&|s| budget(s).map(|b| (b, s.triangles_needed)));
     needed.truncate(1);
     if let Some(n) = needed.first_mut() {
         n.name = format!("needed for {threshold} px");
@@ -633,13 +981,43 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
                 x_desc: "global triangle budget (log)".into(),
                 y_desc: "ratio".into(),
                 log_x: true,
-                series: series(&|s| (f64::from(s.config.budget), s.used_over_needed)),
+                series: series_of(&|s| budget(s).map(|b| (b, s.used_over_needed))),
             },
         ],
         &path,
     )?;
     files.push(path);
     Ok(files)
+}
+
+/// The points of `points` no other point beats on both axes (smaller x and smaller y),
+/// by increasing x: the Pareto front of error against a cost.
+pub fn pareto_front(points: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    let mut sorted: Vec<(f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .collect();
+    sorted.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut front: Vec<(f64, f64)> = Vec::new();
+    for p in sorted {
+        if front.last().is_none_or(|last| p.1 < last.1) {
+            front.push(p);
+        }
+    }
+    front
+}
+
+/// `series` and, dashed in black, the Pareto front over all their points.
+fn with_front(mut series: Vec<XySeries>) -> Vec<XySeries> {
+    let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.clone()).collect();
+    series.push(XySeries {
+        name: "Pareto front (all methods)".into(),
+        colour: plotters::style::RGBColor(0, 0, 0),
+        points: pareto_front(&all),
+        dashed: true,
+    });
+    series
 }
 
 /// A progress bar of `len` steps (hidden when stderr is not a terminal).

@@ -28,6 +28,9 @@ pub struct ErrorStats {
     /// Pixels showing terrain whose true height is known.
     pub terrain_pixels: u64,
     pub mean_px: f64,
+    /// 95th and 99th percentiles of the per-pixel error (nearest rank).
+    pub p95_px: f64,
+    pub p99_px: f64,
     pub max_px: f64,
     pub threshold_px: f64,
     /// Terrain pixels whose error exceeds `threshold_px`.
@@ -78,11 +81,14 @@ pub fn screen_space_error(
     let mut stats = ErrorStats {
         terrain_pixels: 0,
         mean_px: 0.0,
+        p95_px: 0.0,
+        p99_px: 0.0,
         max_px: 0.0,
         threshold_px,
         above_threshold: 0,
     };
     let mut sum = 0.0;
+    let mut errors = Vec::new();
     for point in frame.iter().flatten() {
         let Some(h) = true_height(point[0], point[1]) else {
             continue;
@@ -96,6 +102,7 @@ pub fn screen_space_error(
         let error = (drawn[0] - truth[0]).hypot(drawn[1] - truth[1]);
         stats.terrain_pixels += 1;
         sum += error;
+        errors.push(error);
         stats.max_px = stats.max_px.max(error);
         if error > threshold_px {
             stats.above_threshold += 1;
@@ -104,7 +111,19 @@ pub fn screen_space_error(
     if stats.terrain_pixels > 0 {
         stats.mean_px = sum / stats.terrain_pixels as f64;
     }
+    stats.p95_px = percentile(&mut errors, 95.0);
+    stats.p99_px = percentile(&mut errors, 99.0);
     stats
+}
+
+/// The `p`-th percentile of `values` by nearest rank (the smallest value at or above `p`% of
+/// them); 0 when empty. Reorders `values`.
+pub fn percentile(values: &mut [f64], p: f64) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    let rank = ((p / 100.0 * values.len() as f64).ceil() as usize).clamp(1, values.len());
+    *values.select_nth_unstable_by(rank - 1, f64::total_cmp).1
 }
 
 /// Pixels where `frame` shows the background and `reference` shows terrain.
@@ -200,6 +219,25 @@ mod tests {
         assert_eq!(crack_pixels(&frame, &frame), 0);
         let image = image::RgbaImage::from_pixel(W, H, image::Rgba([10, 200, 30, 255]));
         assert!(psnr(&image, &image).is_infinite());
+    }
+
+    #[test]
+    fn percentiles_are_nearest_ranks() {
+        let mut values: Vec<f64> = (1..=200).rev().map(f64::from).collect();
+        assert_eq!(percentile(&mut values, 95.0), 190.0);
+        assert_eq!(percentile(&mut values, 99.0), 198.0);
+        assert_eq!(percentile(&mut values, 100.0), 200.0);
+        assert_eq!(percentile(&mut [7.0], 99.0), 7.0);
+        assert_eq!(percentile(&mut [], 99.0), 0.0);
+        // One pixel in a hundred far off moves the maximum, not the 99th percentile.
+        let camera = Camera::new([0.0, 0.0, 0.0], 0.0, 0.0);
+        let mut frame = vec![None; (W * H) as usize];
+        for (i, p) in frame.iter_mut().take(100).enumerate() {
+            *p = Some([500.0, 0.0, if i == 0 { 30.0 } else { 0.0 }]);
+        }
+        let stats = screen_space_error(&frame, W, H, &camera, |_, _| Some(0.0), 1.0);
+        assert_eq!((stats.p95_px, stats.p99_px), (0.0, 0.0));
+        assert!(stats.max_px > 1.0);
     }
 
     #[test]

@@ -6,6 +6,8 @@ pub mod accuracy;
 pub mod frame;
 pub mod levels;
 pub mod metrics;
+pub mod oracle;
+pub mod popping;
 pub mod session;
 pub mod stability;
 

@@ -36,6 +36,9 @@ pub struct Measured {
     /// Median GPU time of the render pass, where the adapter has timestamps.
     pub gpu_ms: Option<f64>,
     pub capture: Capture,
+    /// What the scene held right after the frame: CPU bytes plus the GPU allocations made
+    /// for the terrain ([`Scene::cpu_bytes`] + [`Scene::gpu_bytes`]).
+    pub held_bytes: u64,
 }
 
 /// Bytes the whole database holds with every texture level, as the scene counts them for a
@@ -217,6 +220,7 @@ impl Session {
             frame_ms: median(&mut times),
             gpu_ms: (!gpu_times.is_empty()).then(|| median(&mut gpu_times)),
             capture,
+            held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
         })
     }
 
@@ -265,6 +269,7 @@ impl Session {
             gpu_ms: report.stats.gpu_ms,
             report,
             capture,
+            held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
         })
     }
 

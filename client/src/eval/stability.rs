@@ -75,7 +75,8 @@ impl StabilityArgs {
     }
 }
 
-fn parse_named(text: &str) -> Result<(String, String), String> {
+/// Parses `NAME=URL` (`--data`).
+pub fn parse_named(text: &str) -> Result<(String, String), String> {
     text.split_once('=')
         .filter(|(n, u)| !n.is_empty() && !u.is_empty())
         .map(|(n, u)| (n.to_string(), u.to_string()))
