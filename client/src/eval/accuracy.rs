@@ -646,13 +646,13 @@ pub fn summarise(
 }
 
 /// Columns of `accuracy.csv`.
-pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms";
+pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms,oracle_triangles";
 
-fn csv_row(r: &Row) -> String {
+fn csv_row(r: &Row, oracle: Option<u64>) -> String {
     let m = &r.measured;
     let e = &m.measures.error;
     format!(
-        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3}",
+        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3},{}",
         r.camera,
         r.config.method.name(),
         r.config.filler.name(),
@@ -677,6 +677,7 @@ fn csv_row(r: &Row) -> String {
         m.report.lod_ms + m.report.stats.encode_ms,
         m.gpu_ms.map_or(String::new(), |g| format!("{g:.3}")),
         m.frame_ms,
+        oracle.map_or(String::new(), |o| o.to_string()),
     )
 }
 
@@ -741,6 +742,24 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             )),
         );
     }
+    if let Some(first) = report.oracle.first() {
+        let _ = writeln!(
+            s,
+            "\nThe oracle per camera: the fewest triangles of a right-triangulated irregular network over the full-resolution tiles in view that keeps every sample within the threshold on screen.\n"
+        );
+        let _ = write!(s, "| threshold (px) |");
+        for k in 0..report.oracle.len() {
+            let _ = write!(s, " camera {k} |");
+        }
+        let _ = writeln!(s, "\n|---:|{}", "---:|".repeat(report.oracle.len()));
+        for (j, (threshold, _)) in first.iter().enumerate() {
+            let _ = write!(s, "| {threshold} |");
+            for camera in &report.oracle {
+                let _ = write!(s, " {} |", camera.get(j).map_or(0, |(_, n)| *n));
+            }
+            let _ = writeln!(s);
+        }
+    }
     if !report.geometry.is_empty() {
         let _ = writeln!(
             s,
@@ -794,7 +813,13 @@ fn write(args: &AccuracyArgs, report: &mut AccuracyReport) -> Result<(), FlightE
     let mut csv = String::from(CSV_HEADER);
     csv.push('\n');
     for r in &report.rows {
-        csv.push_str(&csv_row(r));
+        let threshold = r.config.threshold_px(report.threshold_px);
+        let oracle = report
+            .oracle
+            .get(r.camera as usize)
+            .and_then(|o| o.iter().find(|(t, _)| *t == threshold))
+            .map(|(_, n)| *n);
+        csv.push_str(&csv_row(r, oracle));
         csv.push('\n');
     }
     let csv_path = out.join("accuracy.csv");
