@@ -302,11 +302,15 @@ pub struct XyPanel {
     pub series: Vec<XySeries>,
 }
 
-/// `1500` as `1.5k`, `2000000` as `2M`, others with one decimal (two below 1), trailing
-/// zeros left out.
+/// `1500` as `1.5k`, `2000000` as `2M`, others with one decimal (two below 1, three
+/// below 0.1, four below 0.01), trailing zeros left out.
 fn short_number(x: f64) -> String {
     let trim = |v: f64| {
-        let s = if v.abs() < 1.0 {
+        let s = if v.abs() < 0.01 {
+            format!("{v:.4}")
+        } else if v.abs() < 0.1 {
+            format!("{v:.3}")
+        } else if v.abs() < 1.0 {
             format!("{v:.2}")
         } else {
             format!("{v:.1}")

@@ -45,4 +45,6 @@ pub mod record;
 pub mod render;
 pub mod report;
 pub mod scene;
+#[cfg(test)]
+mod testing;
 pub mod viewer;

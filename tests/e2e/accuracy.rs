@@ -551,6 +551,20 @@ fn the_bench_commands_refuse_bad_options_and_unreachable_servers_with_a_reason()
     assert!(!ok && err.contains("127.0.0.1:9"), "{err}");
     let (ok, _, err) = run(&[
         "bench",
+        "accuracy",
+        "--server",
+        "http://127.0.0.1:9",
+        "--max-errors-px",
+        "1,-2",
+    ]);
+    assert!(!ok && err.contains("--max-errors-px"), "{err}");
+    // A database of one's own instead of --server; without either, clap says what is missing.
+    let (ok, _, err) = run(&["bench", "accuracy", "--data", "mine=http://127.0.0.1:9"]);
+    assert!(!ok && err.contains("127.0.0.1:9"), "{err}");
+    let (ok, _, err) = run(&["bench", "accuracy"]);
+    assert!(!ok && err.contains("--server"), "{err}");
+    let (ok, _, err) = run(&[
+        "bench",
         "stability",
         "--server",
         "http://127.0.0.1:9",

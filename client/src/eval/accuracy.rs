@@ -13,7 +13,7 @@
 //! against frame time, crack pixels against budget, triangles used against needed.
 
 use super::Variants;
-use super::popping::{Changes, Popping};
+use super::popping::{Changes, Pair, Popping};
 use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
 use crate::flight::{ErrorCapArgs, FlightError, heading, parse_size};
@@ -243,7 +243,7 @@ pub struct Summary {
     pub gpu_ms: Option<f64>,
     /// Mean over the cameras of what the scene held after the frame (CPU and GPU bytes).
     pub held_bytes: f64,
-    /// Frame-to-frame change on the slow flight beyond the reference's own
+    /// Frame-to-frame change on the slow flight beyond the reference's own, per pixel
     /// ([`super::popping`]); `None` when popping was not measured.
     pub popping: Option<Popping>,
 }
@@ -361,11 +361,26 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     let mut popping = Vec::new();
     if slow.len() >= 2 {
         bar.set_message("popping");
-        let reference = changes_along(&slow, |camera| Ok(session.reference(camera)?.0))?;
+        let references = slow
+            .iter()
+            .map(|camera| Ok(session.reference(camera)?.0))
+            .collect::<Result<Vec<_>, FlightError>>()?;
         for config in configs(args) {
             let render = config.render(base);
-            let changes = changes_along(&slow, |camera| Ok(session.capture(camera, render)?.0))?;
-            popping.push((config, changes.summary().beyond(reference.summary())));
+            let frames = slow
+                .iter()
+                .map(|camera| Ok(session.capture(camera, render)?.0))
+                .collect::<Result<Vec<_>, FlightError>>()?;
+            let mut changes = Changes::default();
+            for k in 1..slow.len() {
+                let at = |j: usize| Pair {
+                    method: &frames[j],
+                    reference: &references[j],
+                    eye: slow[j].position,
+                };
+                changes.add(at(k - 1), at(k));
+            }
+            popping.push((config, changes.summary()));
         }
     }
     bar.finish_and_clear();
@@ -469,23 +484,6 @@ pub fn slow_flight(start: &Camera, frames: u32, step_m: f64) -> Vec<Camera> {
             }
         })
         .collect()
-}
-
-/// The changes between consecutive frames of `cameras`, each drawn by `draw`.
-fn changes_along(
-    cameras: &[Camera],
-    mut draw: impl FnMut(&Camera) -> Result<super::frame::Capture, FlightError>,
-) -> Result<Changes, FlightError> {
-    let mut changes = Changes::default();
-    let mut previous: Option<(super::frame::Capture, [f64; 3])> = None;
-    for camera in cameras {
-        let capture = draw(camera)?;
-        if let Some((before, eye)) = &previous {
-            changes.add(before, *eye, &capture, camera.position);
-        }
-        previous = Some((capture, camera.position));
-    }
-    Ok(changes)
 }
 
 /// `count` cameras at even times along `path` (its final hold left out), heading along it.

@@ -234,22 +234,7 @@ mod tests {
     use std::collections::{BTreeSet, HashMap, HashSet};
     use std::time::Instant;
 
-    /// A small deterministic PRNG (xorshift64*), so the tests need no dependency.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-        }
-
-        /// Uniform in `[lo, hi)`.
-        fn range(&mut self, lo: f64, hi: f64) -> f64 {
-            lo + (hi - lo) * ((self.next() >> 11) as f64 / (1u64 << 53) as f64)
-        }
-    }
+    use crate::testing::Rng;
 
     type Point = (i64, i64);
 

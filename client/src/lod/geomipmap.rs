@@ -410,22 +410,7 @@ mod tests {
         crossings.into_iter().fold(grid.sample_error(t), f64::max)
     }
 
-    /// A small deterministic PRNG (xorshift64*), so the tests need no dependency.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-        }
-
-        /// Uniform in `[lo, hi)`.
-        fn range(&mut self, lo: f32, hi: f32) -> f32 {
-            lo + (hi - lo) * ((self.next() >> 40) as f32 / (1u64 << 24) as f32)
-        }
-    }
+    use crate::testing::Rng;
 
     /// Heights of a few kinds: smooth hills plus noise, rough noise, or small integers
     /// (ties and flat patches).
@@ -433,16 +418,16 @@ mod tests {
         let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
         let kind = seed % 3;
         let (fx, fy, phase) = (
-            rng.range(0.1, 1.5),
-            rng.range(0.1, 1.5),
-            rng.range(0.0, 6.0),
+            rng.range_f32(0.1, 1.5),
+            rng.range_f32(0.1, 1.5),
+            rng.range_f32(0.0, 6.0),
         );
         (0..n * n)
             .map(|i| {
                 let (x, y) = ((i % n) as f32, (i / n) as f32);
                 match kind {
-                    0 => 20.0 * (fx * x + phase).sin() * (fy * y).cos() + rng.range(-3.0, 3.0),
-                    1 => rng.range(-50.0, 50.0),
+                    0 => 20.0 * (fx * x + phase).sin() * (fy * y).cos() + rng.range_f32(-3.0, 3.0),
+                    1 => rng.range_f32(-50.0, 50.0),
                     _ => (rng.next() % 5) as f32 - 2.0,
                 }
             })
