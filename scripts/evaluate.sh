@@ -12,7 +12,21 @@
 # Builds each database into a temporary directory, serves it on a free local port, runs
 # `terrain-client bench accuracy` and `bench stability`, and assembles the document.
 set -euo pipefail
+# DEMs of one's own, NAME=DEM: checked, and their paths made absolute before the cd below.
+owns=()
+for own in "$@"; do
+  name=${own%%=*}
+  dem=${own#*=}
+  if [ "$name" = "$own" ] || ! [[ "$name" =~ ^[A-Za-z0-9_-]+$ ]]; then
+    echo "error: $own: expected NAME=DEM, NAME of letters, digits, - and _ (a DEM of your own to evaluate too)" >&2
+    exit 2
+  fi
+  [ -f "$dem" ] || { echo "error: $dem: no such file" >&2; exit 2; }
+  owns+=("$name=$(realpath "$dem")")
+done
+set -- "${owns[@]}"
 cd "$(dirname "$0")/.."
+
 source scripts/gpu-env.sh
 cargo build --release --locked -p terrain-server -p terrain-client
 bin=target/release
@@ -38,14 +52,6 @@ serve() {
   cat "$work/$1.log" >&2
   exit 1
 }
-
-for own in "$@"; do
-  case "$own" in
-    *=*) ;;
-    *) echo "error: $own: expected NAME=DEM (a DEM of your own to evaluate too)" >&2; exit 2 ;;
-  esac
-  [ -f "${own#*=}" ] || { echo "error: ${own#*=}: no such file" >&2; exit 2; }
-done
 
 serve jacksboro tests/fixtures/jacksboro/jacksboro_fault_dem.png
 jacksboro=$url
