@@ -214,6 +214,59 @@ mod tests {
         ));
     }
 
+    /// `bytes` with the header's reserved bytes zeroed: what encoding a decoded blob gives.
+    fn canonical(bytes: &[u8]) -> Vec<u8> {
+        let mut out = bytes.to_vec();
+        for i in [5, 10, 11] {
+            if let Some(b) = out.get_mut(i) {
+                *b = 0;
+            }
+        }
+        out
+    }
+
+    proptest::proptest! {
+        /// Any bytes: an error or a blob that encodes back to them, never a panic.
+        #[test]
+        fn any_bytes_decode_to_an_error_or_to_a_blob_that_encodes_back_to_them(
+            bytes in proptest::collection::vec(proptest::num::u8::ANY, 0..160),
+            magic in proptest::bool::ANY,
+        ) {
+            let mut bytes = bytes;
+            if magic && bytes.len() >= HEADER {
+                // Past the magic and version, with small counts and sizes, so that the
+                // tables and lengths are what is tried.
+                bytes[..4].copy_from_slice(&MAGIC);
+                bytes[4] = VERSION;
+                bytes[6] %= 4;
+                bytes[7] = 0;
+                bytes[8] %= 3;
+                bytes[9] = 0;
+                bytes[12] %= 64;
+                bytes[13..16].fill(0);
+            }
+            if let Ok(blob) = TileBlob::decode(&bytes) {
+                proptest::prop_assert_eq!(blob.encode(), canonical(&bytes));
+                let head = TileBlob::head(&bytes).expect("decoded");
+                proptest::prop_assert_eq!(&bytes[head.heights_at..], &blob.heights[..]);
+            }
+        }
+
+        /// A valid blob with one byte changed: still an error or a blob, never a panic.
+        #[test]
+        fn a_blob_with_any_byte_changed_decodes_to_an_error_or_to_itself(
+            at in 0usize..1000,
+            value in proptest::num::u8::ANY,
+        ) {
+            let mut bytes = sample().encode();
+            let at = at % bytes.len();
+            bytes[at] = value;
+            if let Ok(blob) = TileBlob::decode(&bytes) {
+                proptest::prop_assert_eq!(blob.encode(), canonical(&bytes));
+            }
+        }
+    }
+
     #[test]
     fn a_negative_or_nan_error_is_refused() {
         let mut blob = sample();
