@@ -621,7 +621,7 @@ mod tests {
                 assert_eq!(coarse.columns, fine.columns.div_ceil(2), "{raster:?}");
                 assert_eq!(coarse.rows, fine.rows.div_ceil(2), "{raster:?}");
             }
-            let last = grid_covering(*rasters.last().unwrap(), 65);
+            let last = grid_covering(*rasters.last().expect("one level at least"), 65);
             assert_eq!((last.columns, last.rows), (1, 1), "{raster:?}");
         }
     }

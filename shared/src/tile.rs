@@ -75,7 +75,7 @@ mod tests {
     #[test]
     fn parents_and_children_are_inverse() {
         let tile = TileId::at(2, 5, 3);
-        for child in tile.children().unwrap() {
+        for child in tile.children().expect("level 2 has children") {
             assert_eq!(child.parent(), tile);
         }
         assert_eq!(TileId::new(4, 4).children(), None);

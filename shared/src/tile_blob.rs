@@ -197,7 +197,7 @@ mod tests {
     #[test]
     fn blobs_round_trip() {
         let blob = sample();
-        assert_eq!(TileBlob::decode(&blob.encode()).unwrap(), blob);
+        assert_eq!(TileBlob::decode(&blob.encode()).expect("decodes"), blob);
     }
 
     #[test]
