@@ -4,9 +4,7 @@
 
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-use terrain_client::fetcher::FetcherConfig;
 use terrain_client::page;
-use terrain_client::scene::Scene;
 use terrain_server::build::{BuildOptions, build};
 use terrain_tests::data::{jacksboro, kit_file};
 use terrain_tests::server::TestServer;
@@ -73,13 +71,7 @@ fn every_level_pages_a_square_of_complete_belts_around_its_tile_and_the_sum_stay
     // Tiles of 33 samples: 13 x 11 at level 0, then 7 x 6, 4 x 3, 2 x 2 and one tile.
     let server = serve(&jacksboro(), tmp.path(), 33);
     let runtime = runtime();
-    let connection = runtime
-        .block_on(Scene::connect(
-            server.base_url(),
-            FetcherConfig::default(),
-            runtime.handle().clone(),
-        ))
-        .expect("connects");
+    let connection = terrain_tests::connect(&runtime, server.base_url());
     let manifest = std::sync::Arc::clone(&connection.manifest);
     assert_eq!(manifest.level_count(), 5);
     // Room for the coarsest tile and about ten tiles on each other level: every level is

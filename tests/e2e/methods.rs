@@ -734,13 +734,7 @@ fn geomipmaps_with_map_blocks_never_hold_more_than_the_limit_on_the_gpu_as_the_a
         texture_block_limit: Some(2 * 256),
         ..RenderConfig::default()
     };
-    let connection = runtime
-        .block_on(Scene::connect(
-            server.base_url(),
-            FetcherConfig::default(),
-            runtime.handle().clone(),
-        ))
-        .expect("connects");
+    let connection = terrain_tests::connect(&runtime, server.base_url());
     // A third of what the whole database would take: tiles are evicted and textures
     // coarsened and refined as the camera crosses the terrain.
     let whole = whole_database_bytes(&connection.manifest);
@@ -849,13 +843,7 @@ fn by_default_every_resident_tile_is_drawn_and_with_square_only_the_square_alone
         FaultPlan::pass_through().with_bandwidth(300_000),
     );
     let _guard = runtime.enter();
-    let connection = runtime
-        .block_on(Scene::connect(
-            proxy.base_url(),
-            FetcherConfig::default(),
-            runtime.handle().clone(),
-        ))
-        .expect("connects");
+    let connection = terrain_tests::connect(&runtime, proxy.base_url());
     let manifest = Arc::clone(&connection.manifest);
     let limit = 256 << 20;
     let mut scene = connection.scene(

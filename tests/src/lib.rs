@@ -5,3 +5,18 @@ pub mod golden;
 pub mod proxy;
 pub mod server;
 pub mod synthetic;
+
+/// A scene's connection to the server at `base_url` with the default fetcher, made on
+/// `runtime`; panics with the reason when the server cannot be reached.
+pub fn connect(
+    runtime: &tokio::runtime::Runtime,
+    base_url: &str,
+) -> terrain_client::scene::Connection {
+    runtime
+        .block_on(terrain_client::scene::Scene::connect(
+            base_url,
+            terrain_client::fetcher::FetcherConfig::default(),
+            runtime.handle().clone(),
+        ))
+        .unwrap_or_else(|e| panic!("cannot connect to {base_url}: {e}"))
+}
