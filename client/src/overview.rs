@@ -183,14 +183,7 @@ mod tests {
                 levels: 1,
                 level_bytes: Vec::new(),
             },
-            |_| TileRecord {
-                hash: "0".repeat(32),
-                bytes: 0,
-                coarsest_texture_bytes: 0,
-                min_m: 0.0,
-                max_m: 0.0,
-                roughness_m: 0.0,
-            },
+            |_| TileRecord::empty(),
         )
     }
 

@@ -202,6 +202,19 @@ impl From<TileRecord> for RecordRow {
 }
 
 impl TileRecord {
+    /// A record of nothing yet (zero hash and sizes, flat at 0 m): what a manifest is
+    /// shaped with ([`Manifest::with_geometry`]) before its tiles are written.
+    pub fn empty() -> TileRecord {
+        TileRecord {
+            hash: "0".repeat(32),
+            bytes: 0,
+            coarsest_texture_bytes: 0,
+            min_m: 0.0,
+            max_m: 0.0,
+            roughness_m: 0.0,
+        }
+    }
+
     /// The blob this record verifies.
     pub fn blob(&self) -> Blob {
         Blob {

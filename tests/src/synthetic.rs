@@ -135,14 +135,7 @@ impl SyntheticDb {
             levels: TEXTURE_LEVELS,
             level_bytes: Vec::new(),
         };
-        let placeholder = |_| TileRecord {
-            hash: "0".repeat(32),
-            bytes: 0,
-            coarsest_texture_bytes: 0,
-            min_m: 0.0,
-            max_m: 0.0,
-            roughness_m: 0.0,
-        };
+        let placeholder = |_| TileRecord::empty();
         let mut manifest = Manifest::with_geometry(
             "synthetic",
             raster,

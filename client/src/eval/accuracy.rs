@@ -331,7 +331,13 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         oracle.push(
             thresholds
                 .iter()
-                .map(|&t| (t, oracle_triangles(&session.scene, camera, viewport, t)))
+                .copied()
+                .zip(oracle_triangles(
+                    &session.scene,
+                    camera,
+                    viewport,
+                    &thresholds,
+                ))
                 .collect(),
         );
         reference_triangles.push(report.stats.triangles as f64);
@@ -504,8 +510,9 @@ pub fn cameras_along(path: &CameraPath, count: u32, pitch_deg: f64) -> Vec<Camer
         .collect()
 }
 
-/// The fewest triangles any mesh of the full-resolution data needs for `camera`'s frame to
-/// keep every sample within `threshold_px` on screen: per level-0 tile in view (by its
+/// Per threshold of `thresholds_px`, the fewest triangles a right-triangulated irregular
+/// network of the full-resolution data needs for `camera`'s frame to keep every sample
+/// within it on screen (the least of that family, not of every mesh): per level-0 tile in view (by its
 /// bounding box, as the methods cull), the smallest right-triangulated irregular network
 /// within the threshold ([`super::oracle`]), each sample's vertical error projected by the
 /// bound the methods use ([`crate::lod::needed::ErrorProjection`]) at that sample. Tiles
@@ -514,8 +521,8 @@ pub fn oracle_triangles(
     scene: &crate::scene::Scene,
     camera: &Camera,
     viewport: [u32; 2],
-    threshold_px: f64,
-) -> u64 {
+    thresholds_px: &[f64],
+) -> Vec<u64> {
     let manifest = scene.manifest();
     let layout = crate::render::layout::Layout::of(manifest);
     let projection = crate::lod::plan::error_projection(camera, viewport);
@@ -523,7 +530,7 @@ pub fn oracle_triangles(
     let eye = glam::DVec3::from(camera.position);
     let extent = layout.tile_extent_m_at(0);
     let spacing = layout.spacing_at(0);
-    let mut total = 0;
+    let mut totals = vec![0; thresholds_px.len()];
     for (id, record) in manifest.tiles().filter(|(id, _)| id.level == 0) {
         let [x0, y0] = layout.tile_origin_m(id);
         let lo = Camera::to_render(glam::DVec3::new(x0, y0, f64::from(record.min_m)) - eye);
@@ -537,18 +544,21 @@ pub fn oracle_triangles(
             continue;
         };
         let n = u32::from(heights.width);
+        // Decoded once a tile, counted at every threshold.
         let samples = heights.to_metres_f32();
-        let ppm = |c: u32, r: u32| {
-            let p = [
-                x0 + f64::from(c) * spacing[0],
-                y0 + f64::from(r) * spacing[1],
-                f64::from(samples[(r * n + c) as usize]),
-            ];
-            projection.pixels_per_metre(p, p, threshold_px)
-        };
-        total += super::oracle::rtin_triangles(&samples, n, ppm, threshold_px);
+        for (total, &threshold_px) in totals.iter_mut().zip(thresholds_px) {
+            let ppm = |c: u32, r: u32| {
+                let p = [
+                    x0 + f64::from(c) * spacing[0],
+                    y0 + f64::from(r) * spacing[1],
+                    f64::from(samples[(r * n + c) as usize]),
+                ];
+                projection.pixels_per_metre(p, p, threshold_px)
+            };
+            *total += super::oracle::rtin_triangles(&samples, n, ppm, threshold_px);
+        }
     }
-    total
+    totals
 }
 
 /// Means over the cameras, per configuration, with its popping where measured and the
@@ -1054,4 +1064,26 @@ pub fn progress(message: &str, len: u64) -> indicatif::ProgressBar {
     );
     bar.set_message(message.to_string());
     bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_pareto_front_keeps_the_points_nothing_beats_on_both_axes() {
+        let points = [
+            (10.0, 5.0),
+            (20.0, 2.0),
+            (15.0, 6.0), // beaten by (10, 5)
+            (30.0, 2.0), // as good as (20, 2) on error, dearer
+            (40.0, 0.5),
+            (5.0, f64::NAN),
+        ];
+        assert_eq!(
+            pareto_front(&points),
+            [(10.0, 5.0), (20.0, 2.0), (40.0, 0.5)]
+        );
+        assert!(pareto_front(&[]).is_empty());
+    }
 }

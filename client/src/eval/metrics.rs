@@ -227,6 +227,9 @@ mod tests {
         assert_eq!(percentile(&mut values, 95.0), 190.0);
         assert_eq!(percentile(&mut values, 99.0), 198.0);
         assert_eq!(percentile(&mut values, 100.0), 200.0);
+        // Nine and a half of ten values: the rank rounds up.
+        let mut ten: Vec<f64> = (1..=10).map(f64::from).collect();
+        assert_eq!(percentile(&mut ten, 95.0), 10.0);
         assert_eq!(percentile(&mut [7.0], 99.0), 7.0);
         assert_eq!(percentile(&mut [], 99.0), 0.0);
         // One pixel in a hundred far off moves the maximum, not the 99th percentile.

@@ -195,6 +195,20 @@ impl ChildTexture {
     }
 }
 
+/// Output texel `(x, y)` of a 2:1 reduction: the rounded mean of the four mosaic texels
+/// `texel` gives under it.
+fn box_2x2(texel: &impl Fn(u32, u32) -> [u32; 3], x: u32, y: u32) -> Rgb<u8> {
+    let (a, b, c, d) = (
+        texel(2 * x, 2 * y),
+        texel(2 * x + 1, 2 * y),
+        texel(2 * x, 2 * y + 1),
+        texel(2 * x + 1, 2 * y + 1),
+    );
+    Rgb(std::array::from_fn(|k| {
+        ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
+    }))
+}
+
 /// Where texel `(px, py)` of the 2x2 mosaic of `child(cx, cy)` textures of side `size`
 /// comes from: that child's texel, or, for a missing child (past the terrain's east or
 /// south edge), the nearest texel of the child west of it, north of it, or north-west.
@@ -241,15 +255,7 @@ pub fn from_children(
         if let Some(texel) = own.and_then(|h| h.get_pixel_checked(x - cx * half, y - cy * half)) {
             return *texel;
         }
-        let (a, b, c, d) = (
-            texel(2 * x, 2 * y),
-            texel(2 * x + 1, 2 * y),
-            texel(2 * x, 2 * y + 1),
-            texel(2 * x + 1, 2 * y + 1),
-        );
-        Rgb(std::array::from_fn(|k| {
-            ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
-        }))
+        box_2x2(&texel, x, y)
     }))
 }
 
@@ -409,17 +415,7 @@ pub(crate) fn filter_mosaic(children: &[Option<&RgbImage>], size: u32) -> RgbIma
         mosaic_source(child, px, py, size)
             .map_or([0, 0, 0], |(c, x, y)| c.get_pixel(x, y).0.map(u32::from))
     };
-    RgbImage::from_fn(size, size, |x, y| {
-        let (a, b, c, d) = (
-            texel(2 * x, 2 * y),
-            texel(2 * x + 1, 2 * y),
-            texel(2 * x, 2 * y + 1),
-            texel(2 * x + 1, 2 * y + 1),
-        );
-        Rgb(std::array::from_fn(|k| {
-            ((a[k] + b[k] + c[k] + d[k] + 2) / 4) as u8
-        }))
-    })
+    RgbImage::from_fn(size, size, |x, y| box_2x2(&texel, x, y))
 }
 
 #[cfg(test)]
