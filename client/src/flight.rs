@@ -184,6 +184,56 @@ pub struct RenderArgs {
     pub draw_square_only: bool,
     #[command(flatten)]
     pub error: ErrorCapArgs,
+    #[command(flatten)]
+    pub grid: GridArgs,
+}
+
+/// The projected grids' options (`--method pgm`, `--method projective-grid`): shared by
+/// `fly`, `view` and `bench stability`.
+#[derive(Debug, Clone, Copy, PartialEq, clap::Args)]
+pub struct GridArgs {
+    /// The projected grids' size, COLUMNSxROWS vertices: 2 (COLUMNS - 1) (ROWS - 1)
+    /// triangles every frame.
+    #[arg(long, default_value = "256x144", value_parser = parse_size)]
+    pub grid: (u32, u32),
+    /// Keep the projective grid uniform instead of warping it to square cells on the ground
+    /// (Löffler et al.'s comparison with persistent grid mapping).
+    #[arg(long)]
+    pub uniform_grid: bool,
+    /// Draw the projective grid without casting rays where it passes the error threshold.
+    #[arg(long)]
+    pub no_ray_casting: bool,
+}
+
+impl Default for GridArgs {
+    fn default() -> GridArgs {
+        let d = crate::method::GridSettings::default();
+        GridArgs {
+            grid: (d.size[0], d.size[1]),
+            uniform_grid: !d.warp,
+            no_ray_casting: !d.ray_casting,
+        }
+    }
+}
+
+/// Most vertices a side of a projected grid takes.
+pub const MAX_GRID_SIDE: u32 = 4096;
+
+impl GridArgs {
+    /// The grid settings, once checked.
+    pub fn settings(&self) -> Result<crate::method::GridSettings, FlightError> {
+        let (columns, rows) = self.grid;
+        if !(2..=MAX_GRID_SIDE).contains(&columns) || !(2..=MAX_GRID_SIDE).contains(&rows) {
+            return Err(FlightError::BadOption(format!(
+                "--grid {columns}x{rows}: each side must be 2 to {MAX_GRID_SIDE} vertices"
+            )));
+        }
+        Ok(crate::method::GridSettings {
+            size: [columns, rows],
+            warp: !self.uniform_grid,
+            ray_casting: !self.no_ray_casting,
+        })
+    }
 }
 
 /// The screen-space error threshold and the error cap: shared by `fly`, `view` and
@@ -241,6 +291,7 @@ impl Default for RenderArgs {
             pitch_deg: crate::render::camera::DEFAULT_PITCH_DEG,
             draw_square_only: false,
             error: ErrorCapArgs::default(),
+            grid: GridArgs::default(),
         }
     }
 }
@@ -283,6 +334,7 @@ impl RenderArgs {
             filler: self.crack_filler,
             budget,
             square_only: self.draw_square_only,
+            grid: self.grid.settings()?,
             ..RenderConfig::default()
         })
     }

@@ -77,6 +77,8 @@ pub struct RenderConfig {
     /// paper's rendering); `false` (the default) gives it every resident tile: cached ones
     /// outside the square and those of a belt still arriving.
     pub square_only: bool,
+    /// The projected grids' size and options.
+    pub grid: crate::method::GridSettings,
 }
 
 impl RenderConfig {
@@ -87,6 +89,7 @@ impl RenderConfig {
             lod: self.lod,
             filler: self.filler,
             texture_blocks: self.texture_blocks,
+            grid: self.grid,
         }
     }
 }
@@ -102,6 +105,7 @@ impl Default for RenderConfig {
             texture_block_limit: None,
             texture_blocks: true,
             square_only: false,
+            grid: crate::method::GridSettings::default(),
         }
     }
 }
@@ -514,6 +518,15 @@ impl Scene {
                 .rendering
                 .as_ref()
                 .map_or(0, |r| r.method.shared_bytes().total())
+    }
+
+    /// Measures of the last frame only the method knows ([`LodMethod::frame_measures`]);
+    /// waits for the GPU. Empty without rendering.
+    pub fn method_measures(&mut self) -> Vec<(&'static str, f64)> {
+        self.rendering.as_mut().map_or_else(Vec::new, |r| {
+            let gpu = r.renderer.gpu().clone();
+            r.method.frame_measures(&gpu)
+        })
     }
 
     /// Bytes of every GPU allocation held for the terrain now (labelled
@@ -1211,9 +1224,29 @@ impl Scene {
                 })
             })
             .collect();
+        let resident: Vec<(TileId, f32)> = if r.method.needs_every_resident_tile() {
+            (0..levels_drawn)
+                .flat_map(|level| {
+                    let offset = self.manifest.level_offset(level);
+                    let columns = self.manifest.grid(level).columns.max(1);
+                    let count = self.manifest.levels[level as usize].tiles.len();
+                    (0..count).filter_map(move |k| {
+                        let id = TileId::at(level, k as u32 % columns, k as u32 / columns);
+                        Some((offset + k, id))
+                    })
+                })
+                .filter_map(|(i, id)| {
+                    let tile = self.tiles[i].as_ref()?;
+                    Some((id, tile.error_minima.first().copied().unwrap_or(0.0)))
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         let input = MethodInput {
             layout: &self.layout,
             tiles: &candidates,
+            resident: &resident,
             budget: r.controller.budget(),
         };
         let mut frame = r.renderer.begin_frame(target, camera);

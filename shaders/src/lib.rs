@@ -13,6 +13,84 @@ use bytemuck::{Pod, Zeroable};
 /// The terrain shader's WGSL source.
 pub const TERRAIN: &str = include_str!("terrain.wgsl");
 
+/// The projected grids' WGSL source: persistent grid mapping and the error-bounded
+/// projective grid, with its ray-casting pass.
+pub const GRID: &str = include_str!("grid.wgsl");
+
+/// Entry points of [`GRID`].
+pub mod grid_entry {
+    /// The grid's vertex shader: a vertex of the persistent grid cast onto the terrain.
+    pub const GRID: &str = "vs_grid";
+    /// Colour only (persistent grid mapping).
+    pub const FRAGMENT: &str = "fs_grid";
+    /// Colour and the error buffer (the error-bounded projective grid).
+    pub const FRAGMENT_ERROR: &str = "fs_grid_error";
+    /// A triangle covering the target, for the ray-casting pass.
+    pub const FULLSCREEN: &str = "vs_fullscreen";
+    /// Ray casting in the pixels the error buffer marks.
+    pub const RAY: &str = "fs_ray";
+}
+
+/// Flags of [`GridUniform::size`]`[3]`.
+pub mod grid_flag {
+    /// The grid is warped by the tables of [`super::GridUniform`] (Löffler et al.).
+    pub const WARP: u32 = 1;
+    /// The grid computes its error and writes the error buffer.
+    pub const ERROR_BOUNDED: u32 = 2;
+}
+
+/// Grid lines of each warp table of [`GridUniform`].
+pub const WARP_LINES: usize = 33;
+/// Pyramid levels and slot mips the grid's uniform has room for.
+pub const GRID_MAX_LEVELS: usize = 24;
+pub const GRID_MAX_MIPS: usize = 16;
+/// The mip of a slot whose min/max blocks the ray cast skips through.
+pub const RAY_BLOCK_MIP: u32 = 3;
+/// What the error buffer holds where no grid triangle was drawn.
+pub const ERROR_UNCOVERED: f32 = 2.0;
+
+/// `Grid`, group 1 binding 0 of [`GRID`]: see the shader for each field.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
+pub struct GridUniform {
+    pub forward: [f32; 4],
+    pub right: [f32; 4],
+    pub up: [f32; 4],
+    pub size: [f32; 4],
+    pub spacing: [f32; 4],
+    pub anchor: [i32; 4],
+    pub heights: [f32; 4],
+    pub colour: [f32; 4],
+    pub screen: [f32; 4],
+    pub sky: [f32; 4],
+    pub inverse_view_proj: [[f32; 4]; 4],
+    pub levels: [[u32; 4]; GRID_MAX_LEVELS],
+    pub mips: [[u32; 4]; GRID_MAX_MIPS],
+    pub warp_u: [[f32; 4]; 9],
+    pub warp_v: [[f32; 4]; 9],
+}
+
+/// `SlotInfo` of [`GRID`]: one per slot of the height atlas.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
+pub struct SlotInfo {
+    /// The tile's distance from full resolution, its surface's lowest and highest points.
+    pub bounds: [f32; 4],
+    /// Column and row in the colour atlas, finest and coarsest colour mips held.
+    pub colour: [u32; 4],
+}
+
+/// `Counters` of [`GRID`]: pixels ray cast, of them those with an error past the threshold,
+/// those whose ray hit the terrain.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable, Default)]
+pub struct GridCounters {
+    pub rays: u32,
+    pub errors: u32,
+    pub hits: u32,
+    pub unused: u32,
+}
+
 /// Entry points of [`TERRAIN`].
 pub mod entry {
     pub const SURFACE: &str = "vs_surface";
@@ -90,8 +168,61 @@ mod tests {
     use super::*;
 
     fn module() -> naga::Module {
-        naga::front::wgsl::parse_str(TERRAIN)
-            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(TERRAIN)))
+        parse(TERRAIN)
+    }
+
+    fn parse(source: &str) -> naga::Module {
+        naga::front::wgsl::parse_str(source)
+            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(source)))
+    }
+
+    fn size_in(module: &naga::Module, name: &str) -> usize {
+        let (_, ty) = module
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(name))
+            .unwrap_or_else(|| panic!("struct {name} is missing"));
+        ty.inner.size(module.to_ctx()) as usize
+    }
+
+    #[test]
+    fn the_grid_shader_parses_validates_and_matches_the_rust_layouts() {
+        let module = parse(GRID);
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::empty(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("the grid shader validates: {}", e.emit_to_string(GRID)));
+        for name in [
+            grid_entry::GRID,
+            grid_entry::FRAGMENT,
+            grid_entry::FRAGMENT_ERROR,
+            grid_entry::FULLSCREEN,
+            grid_entry::RAY,
+        ] {
+            assert!(
+                module.entry_points.iter().any(|e| e.name == name),
+                "entry point {name} is missing"
+            );
+        }
+        assert_eq!(size_in(&module, "Frame"), size_of_val(&FrameUniform::zeroed()));
+        assert_eq!(size_in(&module, "Grid"), size_of_val(&GridUniform::zeroed()));
+        assert_eq!(size_in(&module, "SlotInfo"), size_of_val(&SlotInfo::zeroed()));
+        assert_eq!(size_in(&module, "Counters"), size_of_val(&GridCounters::zeroed()));
+        // The constants both sides name.
+        for (name, value) in [
+            ("FLAG_WARP", grid_flag::WARP.to_string()),
+            ("FLAG_ERROR_BOUNDED", grid_flag::ERROR_BOUNDED.to_string()),
+            ("WARP_LINES", WARP_LINES.to_string()),
+            ("BLOCK_MIP", RAY_BLOCK_MIP.to_string()),
+        ] {
+            assert!(
+                GRID.contains(&format!("const {name}: u32 = {value}u;")),
+                "{name} is {value} on both sides"
+            );
+        }
+        assert!(GRID.contains(&format!("const UNCOVERED: f32 = {ERROR_UNCOVERED:.1};")));
     }
 
     #[test]

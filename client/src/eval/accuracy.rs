@@ -53,6 +53,14 @@ pub struct AccuracyArgs {
     /// tile's level is chosen within, pixels, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4,8,16")]
     pub max_errors_px: Vec<f64>,
+    /// The knob of the projected grids: grid sizes, COLUMNSxROWS vertices, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_parser = parse_size,
+        default_value = "64x36,128x72,256x144,512x288"
+    )]
+    pub grids: Vec<(u32, u32)>,
     #[command(flatten)]
     pub variants: Variants,
     /// Cameras taken evenly along the flight.
@@ -94,6 +102,7 @@ impl AccuracyArgs {
             out: out.into(),
             budgets: vec![1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
             max_errors_px: vec![0.5, 1.0, 2.0, 4.0, 8.0, 16.0],
+            grids: vec![(64, 36), (128, 72), (256, 144), (512, 288)],
             variants: Variants::default(),
             cameras: 8,
             flight: None,
@@ -115,6 +124,8 @@ pub enum Knob {
     Budget(u32),
     /// The screen-space error allowed, pixels (GeoMipMaps, which take no budget).
     MaxErrorPx(f64),
+    /// The projected grids' size: vertices per row and per column.
+    Grid([u32; 2]),
 }
 
 impl Knob {
@@ -123,6 +134,7 @@ impl Knob {
         match self {
             Knob::Budget(b) => f64::from(b),
             Knob::MaxErrorPx(e) => e,
+            Knob::Grid([c, r]) => f64::from(c) * f64::from(r),
         }
     }
 
@@ -131,6 +143,7 @@ impl Knob {
         match self {
             Knob::Budget(_) => "budget",
             Knob::MaxErrorPx(_) => "max_error_px",
+            Knob::Grid(_) => "grid_vertices",
         }
     }
 }
@@ -140,6 +153,7 @@ impl std::fmt::Display for Knob {
         match self {
             Knob::Budget(b) => write!(f, "budget {b}"),
             Knob::MaxErrorPx(e) => write!(f, "{e} px"),
+            Knob::Grid([c, r]) => write!(f, "grid {c}x{r}"),
         }
     }
 }
@@ -155,6 +169,11 @@ pub fn knobs(method: MethodKind, args: &AccuracyArgs) -> Vec<Knob> {
         MethodKind::StripMasks | MethodKind::Reference => {
             args.budgets.iter().map(|&b| Knob::Budget(b)).collect()
         }
+        MethodKind::Pgm | MethodKind::ProjectiveGrid => args
+            .grids
+            .iter()
+            .map(|&(c, r)| Knob::Grid([c, r]))
+            .collect(),
     }
 }
 
@@ -176,15 +195,20 @@ impl Config {
     /// `threshold_px` (the strip masks' error cap).
     pub fn threshold_px(&self, threshold_px: f64) -> f64 {
         match self.knob {
-            Knob::Budget(_) => threshold_px,
+            Knob::Budget(_) | Knob::Grid(_) => threshold_px,
             Knob::MaxErrorPx(e) => e,
         }
     }
 
     /// How to draw it: `base` with the knob's budget or error threshold.
     pub fn render(&self, base: RenderConfig) -> RenderConfig {
+        let mut grid = base.grid;
         let (budget, lod) = match self.knob {
             Knob::Budget(b) => (b, base.lod),
+            Knob::Grid(size) => {
+                grid.size = size;
+                (u32::MAX, base.lod)
+            }
             Knob::MaxErrorPx(e) => (
                 u32::MAX,
                 LodSettings {
@@ -198,6 +222,7 @@ impl Config {
             filler: self.filler,
             budget: BudgetMode::Fixed(budget),
             lod,
+            grid,
             ..base
         }
     }
@@ -881,7 +906,7 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
     let series = |f: &dyn Fn(&Summary) -> (f64, f64)| series_of(&|s| Some(f(s)));
     let budget = |s: &Summary| match s.config.knob {
         Knob::Budget(b) => Some(f64::from(b)),
-        Knob::MaxErrorPx(_) => None,
+        Knob::MaxErrorPx(_) | Knob::Grid(_) => None,
     };
     let title = &report.dataset;
     let threshold = report.threshold_px;

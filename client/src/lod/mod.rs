@@ -14,7 +14,8 @@
 //! Beside them, [`needed`] measures a frame against what it needs: per tile, the coarsest
 //! mask whose projected error stays within a pixel threshold; [`levels`] chooses which
 //! level of the pyramid draws each part of the terrain; [`geomipmap`] makes the
-//! GeoMipMaps' stitched index sets and their level errors; [`plan`] culls a frame's tiles,
+//! GeoMipMaps' stitched index sets and their level errors; [`grid`] the projected grids'
+//! auxiliary camera and warp; [`plan`] culls a frame's tiles,
 //! ranks them and makes the strip-mask plan (steps 1 to 3 together).
 //!
 //! The module owns these decisions and nothing else. The methods ([`crate::method`]) call
@@ -23,6 +24,7 @@
 
 pub mod budget;
 pub mod geomipmap;
+pub mod grid;
 pub mod importance;
 pub mod levels;
 pub mod needed;

@@ -12,17 +12,22 @@
 //!   one precomputed strip per mask level, [`fillers`] for the cracks), and the
 //!   full-resolution reference of the accuracy measures ([`crate::eval`]).
 //! - [`geomipmap`]: GeoMipMaps, each side stitched to its neighbour's level.
+//! - [`projected_grid`]: persistent grid mapping and the error-bounded projective grid, a
+//!   screen grid cast onto their own copy of the terrain ([`atlas`]).
 //!
 //! **Memory.** Every byte a method holds, CPU or GPU, is counted: per resident tile
 //! ([`LodMethod::tile_bytes`], expected before it arrives: [`LodMethod::expected_tile_bytes`])
 //! and for no tile in particular ([`LodMethod::shared_bytes`]). The scene adds them to what
 //! the pager and the texture budget see, so they stay inside the memory limit.
 
+pub mod atlas;
 pub mod fillers;
 pub mod geomipmap;
+pub mod projected_grid;
 pub mod strip_masks;
 
 pub use fillers::CrackFiller;
+pub use projected_grid::GridSettings;
 
 use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::render::{Frame, Gpu};
@@ -33,8 +38,12 @@ use terrain_shared::{Heights, Manifest, TileId, TileRecord};
 #[derive(Debug, Clone, Copy)]
 pub struct MethodInput<'a> {
     pub layout: &'a Layout,
-    /// The resident tiles.
+    /// The resident tiles the frame draws: a cut of the pyramid (the reference: level 0).
     pub tiles: &'a [Candidate<'a>],
+    /// Every resident tile of every level, with its distance from the full-resolution
+    /// surface (metres), for a method that keeps its own copy of the terrain
+    /// ([`LodMethod::needs_every_resident_tile`]); empty for the others.
+    pub resident: &'a [(TileId, f32)],
     /// The frame's triangle budget: the frame-rate controller's, or a fixed one.
     pub budget: u32,
 }
@@ -105,6 +114,8 @@ pub struct MethodConfig {
     /// Whether methods that draw with MapBlock textures use them (`false`: every tile with
     /// its own texture, for comparison).
     pub texture_blocks: bool,
+    /// The projected grids' size and options.
+    pub grid: GridSettings,
 }
 
 impl MethodConfig {
@@ -146,6 +157,17 @@ pub trait LodMethod: std::fmt::Debug + Send {
     /// full-resolution reference); the others are given tiles of every level used.
     fn full_resolution_only(&self) -> bool {
         false
+    }
+
+    /// Whether it wants [`MethodInput::resident`]: every resident tile, not only the cut.
+    fn needs_every_resident_tile(&self) -> bool {
+        false
+    }
+
+    /// Measures of the last frame only the method knows, read back from the GPU (waiting
+    /// for it: for the evaluation, not the render loop), as (name, value).
+    fn frame_measures(&mut self, _gpu: &Gpu) -> Vec<(&'static str, f64)> {
+        Vec::new()
     }
 
     /// Decides and draws one frame into `frame` (its first pass clears the target).
@@ -206,6 +228,14 @@ pub enum MethodKind {
     /// whose projected error is within `--max-error-px`, borders stitched by adding the
     /// finer neighbour's vertices: crack-free, no budget, no filler.
     Geomipmap,
+    /// Persistent grid mapping (Livny et al.): a uniform screen grid cast onto the terrain
+    /// each frame from an auxiliary camera, heights from averaged pyramids blended across
+    /// levels. Knob: `--grid`.
+    Pgm,
+    /// The error-bounded projective grid (Löffler et al.): the screen grid warped to square
+    /// cells on the ground, its error from min/max pyramids, rays cast where it passes
+    /// `--max-error-px`. Knobs: `--grid`, `--max-error-px`.
+    ProjectiveGrid,
 }
 
 impl MethodKind {
@@ -214,6 +244,8 @@ impl MethodKind {
             MethodKind::StripMasks => "strip-masks",
             MethodKind::Reference => "reference",
             MethodKind::Geomipmap => "geomipmap",
+            MethodKind::Pgm => "pgm",
+            MethodKind::ProjectiveGrid => "projective-grid",
         }
     }
 
@@ -227,10 +259,16 @@ impl MethodKind {
     pub fn coarsest_level(self, tile_size: u32) -> u32 {
         match self {
             MethodKind::Geomipmap => crate::lod::geomipmap::level_count(tile_size) - 1,
-            MethodKind::StripMasks | MethodKind::Reference => {
-                terrain_shared::mask::level_count(tile_size) - 1
-            }
+            MethodKind::StripMasks
+            | MethodKind::Reference
+            | MethodKind::Pgm
+            | MethodKind::ProjectiveGrid => terrain_shared::mask::level_count(tile_size) - 1,
         }
+    }
+
+    /// Whether it draws a screen grid (the projected grids), whose knob is the grid's size.
+    pub fn is_projected_grid(self) -> bool {
+        matches!(self, MethodKind::Pgm | MethodKind::ProjectiveGrid)
     }
 
     /// Its name with `filler` where it has one, e.g. `strip-masks/skirts`: the name the
@@ -252,5 +290,8 @@ pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
             with.manifest.tile_size,
         )),
         MethodKind::Geomipmap => Box::new(geomipmap::GeoMipMaps::new(config, with)),
+        MethodKind::Pgm | MethodKind::ProjectiveGrid => {
+            Box::new(projected_grid::ProjectedGrid::new(config, with))
+        }
     }
 }

@@ -28,6 +28,9 @@ use terrain_shared::TileId;
 pub const SKY: [f64; 3] = [0.55, 0.71, 0.88];
 /// Depth format of the renderer's depth buffer (reversed: cleared to 0, nearer is greater).
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// Render passes of a frame whose GPU time is measured (a pair of timestamps each): the
+/// frame's time runs from the first's start to the last timed one's end.
+const TIMED_PASSES: u32 = 4;
 /// Share of the light that is ambient.
 pub const AMBIENT: f32 = 0.45;
 
@@ -232,17 +235,17 @@ impl Renderer {
             set: device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("frame time"),
                 ty: wgpu::QueryType::Timestamp,
-                count: 2,
+                count: 2 * TIMED_PASSES,
             }),
             resolve: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("timestamps"),
-                size: 16,
+                size: 16 * u64::from(TIMED_PASSES),
                 usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
             }),
             readback: device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("timestamps readback"),
-                size: 16,
+                size: 16 * u64::from(TIMED_PASSES),
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             }),
@@ -481,6 +484,18 @@ impl<'f> Frame<'f> {
         &self.renderer.tiles
     }
 
+    /// The frame's command encoder and the resident tiles together, for a method copying
+    /// from the tiles before its passes.
+    pub fn encoder_and_tiles(&mut self) -> (&mut wgpu::CommandEncoder, &TileStore) {
+        (&mut self.encoder, &self.renderer.tiles)
+    }
+
+    /// The camera's anchor: the level-0 sample nearest it, whose indices positions are
+    /// counted from (the frame uniform's `camera` is the camera relative to it).
+    pub fn anchor(&self) -> [f64; 2] {
+        self.anchor
+    }
+
     /// The stats so far; a method adds what it alone knows (triangles, fillers).
     pub fn stats_mut(&mut self) -> &mut RenderStats {
         &mut self.stats
@@ -584,8 +599,42 @@ impl<'f> Frame<'f> {
         self.open_pass(false)
     }
 
+    /// [`Frame::pass`] with a second colour attachment, `extra` (cleared to `clear` when
+    /// `clear` is given), for a method's pipeline that writes one more target.
+    pub fn pass_with(
+        &mut self,
+        extra: &wgpu::TextureView,
+        clear: Option<wgpu::Color>,
+    ) -> FramePass<'_> {
+        let attachment = wgpu::RenderPassColorAttachment {
+            view: extra,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: clear.map_or(wgpu::LoadOp::Load, wgpu::LoadOp::Clear),
+                store: wgpu::StoreOp::Store,
+            },
+        };
+        self.open_pass_with(true, Some(attachment))
+    }
+
+    /// The frame's command encoder, for copies a method records between its passes.
+    pub fn encoder(&mut self) -> &mut wgpu::CommandEncoder {
+        &mut self.encoder
+    }
+
     fn open_pass(&mut self, keep_depth: bool) -> FramePass<'_> {
-        let first = self.passes == 0;
+        self.open_pass_with(keep_depth, None)
+    }
+
+    fn open_pass_with(
+        &mut self,
+        keep_depth: bool,
+        extra: Option<wgpu::RenderPassColorAttachment<'_>>,
+    ) -> FramePass<'_> {
+        let pass = self.passes;
+        let attachments = if extra.is_some() { 2 } else { 1 };
+        let first = pass == 0;
         self.passes += 1;
         let r = &*self.renderer;
         let depth = &r.depth.as_ref().expect("made in begin_frame").1;
@@ -593,7 +642,8 @@ impl<'f> Frame<'f> {
             .encoder
             .begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("terrain"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                color_attachments: &[
+                    Some(wgpu::RenderPassColorAttachment {
                     view: self.target,
                     depth_slice: None,
                     resolve_target: None,
@@ -610,7 +660,9 @@ impl<'f> Frame<'f> {
                         },
                         store: wgpu::StoreOp::Store,
                     },
-                })],
+                }),
+                    extra,
+                ][..attachments],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: depth,
                     depth_ops: Some(wgpu::Operations {
@@ -627,13 +679,15 @@ impl<'f> Frame<'f> {
                     }),
                     stencil_ops: None,
                 }),
-                timestamp_writes: r.timestamps.as_ref().filter(|_| first).map(|t| {
-                    wgpu::RenderPassTimestampWrites {
+                timestamp_writes: r
+                    .timestamps
+                    .as_ref()
+                    .filter(|_| pass < TIMED_PASSES)
+                    .map(|t| wgpu::RenderPassTimestampWrites {
                         query_set: &t.set,
-                        beginning_of_pass_write_index: Some(0),
-                        end_of_pass_write_index: Some(1),
-                    }
-                }),
+                        beginning_of_pass_write_index: Some(2 * pass),
+                        end_of_pass_write_index: Some(2 * pass + 1),
+                    }),
                 occlusion_query_set: None,
                 multiview_mask: None,
             })
@@ -660,21 +714,24 @@ impl<'f> Frame<'f> {
             passes,
             ..
         } = self;
-        let timed = passes > 0;
-        if let (Some(t), true) = (&r.timestamps, timed) {
-            encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
-            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, 16);
+        let timed = passes.min(TIMED_PASSES);
+        if let (Some(t), true) = (&r.timestamps, timed > 0) {
+            let bytes = 16 * u64::from(timed);
+            encoder.resolve_query_set(&t.set, 0..2 * timed, &t.resolve, 0);
+            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, bytes);
         }
         r.gpu.queue.submit([encoder.finish()]);
         stats.encode_ms = started.elapsed().as_secs_f64() * 1e3;
-        match (&r.timestamps, timed) {
+        match (&r.timestamps, timed > 0) {
             (Some(t), true) => {
-                let slice = t.readback.slice(..);
+                let slice = t.readback.slice(..16 * u64::from(timed));
                 slice.map_async(wgpu::MapMode::Read, |_| {});
                 let _ = r.gpu.device.poll(wgpu::PollType::wait_indefinitely());
                 if let Ok(data) = slice.get_mapped_range() {
                     let stamps: &[u64] = bytemuck::cast_slice(&data);
-                    let ticks = stamps[1].saturating_sub(stamps[0]);
+                    // From the first pass's start to the last timed pass's end.
+                    let last = stamps[2 * timed as usize - 1];
+                    let ticks = last.saturating_sub(stamps[0]);
                     stats.gpu_ms = Some(ticks as f64 * f64::from(t.period_ns) / 1.0e6);
                 }
                 t.readback.unmap();

@@ -171,6 +171,12 @@ impl TileStore {
         self.tiles.get(&id).map(|t| &t.heights)
     }
 
+    /// `id`'s texture (the finest level it holds as mip 0, coarser ones below) and its
+    /// version, which changes whenever the texture does: for a method keeping a copy.
+    pub fn texture_of(&self, id: TileId) -> Option<(&wgpu::Texture, u64)> {
+        self.tiles.get(&id).map(|t| (&t.texture, t.texture_version))
+    }
+
     /// Finest texture level `id` holds on the GPU.
     pub fn texture_level(&self, id: TileId) -> Option<u32> {
         self.tiles.get(&id).and_then(|t| t.texture_level)
