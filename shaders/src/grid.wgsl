@@ -186,17 +186,31 @@ fn surface(w: u32, q: Place) -> vec2<f32> {
 
 // Lowest and highest heights of the full-resolution surface in the block of level-0 side
 // 2^b holding `q` (min/max pyramids, widened by the distance of the data from full
-// resolution; a tile's own bounds past its blocks).
+// resolution; a cell's own corners at level 0; a tile's own bounds past its blocks).
 fn block_bounds(b: u32, q: Place) -> vec2<f32> {
     let levels = u32(grid.anchor.z);
     let n = countTrailingZeros(u32(grid.anchor.w));
-    for (var l = i32(min(b - 1u, levels - 1u)); l >= 0; l -= 1) {
+    // The finest tile first: its blocks are the full-resolution surface's own; a coarser
+    // one's are widened by its distance from it.
+    for (var l = 0; l <= i32(min(b, levels - 1u)); l += 1) {
         let hit = find(u32(l), q);
         if hit.slot >= 0 {
             let info = slots[hit.slot].bounds;
             let m = b - u32(l);
             if m > n {
                 return info.yz;
+            }
+            if m == 0u {
+                // A cell of the tile's own samples: its four corners.
+                let side = grid.mips[0].z;
+                let c = min(vec2<u32>(max(floor(hit.local), vec2<f32>(0.0))), vec2<u32>(side - 2u));
+                let h00 = sample_of(hit.slot, side, c);
+                let h10 = sample_of(hit.slot, side, c + vec2<u32>(1u, 0u));
+                let h01 = sample_of(hit.slot, side, c + vec2<u32>(0u, 1u));
+                let h11 = sample_of(hit.slot, side, c + vec2<u32>(1u, 1u));
+                let lo = min(min(h00, h10), min(h01, h11));
+                let hi = max(max(h00, h10), max(h01, h11));
+                return vec2<f32>(lo - info.x, hi + info.x);
             }
             let mip = grid.mips[m];
             let per_side = mip.w;
@@ -205,7 +219,7 @@ fn block_bounds(b: u32, q: Place) -> vec2<f32> {
             return vec2<f32>(atlas[at] - info.x, atlas[at + 1u] + info.x);
         }
     }
-    for (var l = min(b, levels - 1u); l < levels; l += 1u) {
+    for (var l = min(b + 1u, levels - 1u); l < levels; l += 1u) {
         let hit = find(l, q);
         if hit.slot >= 0 {
             return slots[hit.slot].bounds.yz;
@@ -214,13 +228,14 @@ fn block_bounds(b: u32, q: Place) -> vec2<f32> {
     return grid.heights.xy;
 }
 
-// Lowest and highest heights within `half` level-0 samples of `q`: the union of the blocks
-// of side 2 * half (a power of two) holding the square's corners, which cover it.
-fn bounds_around(b: u32, q: Place) -> vec2<f32> {
-    let half = f32(1u << (b - 1u));
+// Lowest and highest heights of the full-resolution surface within `reach` level-0 samples
+// of `q`: the union of the blocks holding the corners of that square, of the smallest
+// level whose blocks are at least as wide as it, so that the four cover it.
+fn bounds_around(reach: f32, q: Place) -> vec2<f32> {
+    let b = u32(max(ceil(log2(max(2.0 * reach, 1.0))), 0.0));
     var out = vec2<f32>(1e30, -1e30);
     for (var k = 0u; k < 4u; k += 1u) {
-        let corner = vec2<f32>(f32(k & 1u) * 2.0 - 1.0, f32(k >> 1u) * 2.0 - 1.0) * half;
+        let corner = vec2<f32>(f32(k & 1u) * 2.0 - 1.0, f32(k >> 1u) * 2.0 - 1.0) * reach;
         let r = block_bounds(b, moved(q, corner));
         out = vec2<f32>(min(out.x, r.x), max(out.y, r.y));
     }
@@ -313,10 +328,13 @@ fn vs_grid(@builtin(vertex_index) index: u32) -> GridVertex {
     var error = 0.0;
     if (u32(grid.size.w) & FLAG_ERROR_BOUNDED) != 0u {
         // Object-space error (Löffler et al., equation 2) over the vertex's region of
-        // influence, turned into screen space (their equation 3) with the main camera's
-        // pixels per radian where the vertex lands (its focal length times sec^2 of the
-        // angle off the axis: equation 3's lambda, made an upper bound everywhere).
-        let bounds = bounds_around(w + 1u, q);
+        // influence: every point its triangles cover, within its farthest neighbour's
+        // distance r. A pixel of a triangle blends its vertices' heights, so its vertical
+        // distance from the true surface is at most the largest of their deltas. Turned
+        // into pixels by their equation 3 with the main camera's pixels per radian where
+        // the vertex lands (the focal length times sec^2 of the angle off the axis: lambda
+        // made an upper bound across the screen).
+        let bounds = bounds_around(r / s0, q);
         let delta = max(bounds.y - h, h - bounds.x);
         let at = vec3<f32>(p.x, h - frame.camera.y, p.z);
         let clip = frame.view_proj * vec4<f32>(at, 1.0);

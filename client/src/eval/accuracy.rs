@@ -271,6 +271,11 @@ pub struct Summary {
     /// Frame-to-frame change on the slow flight beyond the reference's own, per pixel
     /// ([`super::popping`]); `None` when popping was not measured.
     pub popping: Option<Popping>,
+    /// The projective grid's shares of the frame's pixels, percent, mean over the cameras:
+    /// those the grid drew with an error past the threshold, and those ray cast (those and
+    /// the ones no grid triangle covered). `None` for the other methods.
+    pub error_pixels_pct: Option<f64>,
+    pub ray_cast_pct: Option<f64>,
 }
 
 /// What the sweep measured.
@@ -673,19 +678,27 @@ pub fn summarise(
                 gpu_ms: (!gpu.is_empty()).then(|| median(&mut gpu)),
                 held_bytes: mean(&|m| m.held_bytes as f64),
                 popping: popping.iter().find(|(c, _)| c == config).map(|(_, p)| *p),
+                error_pixels_pct: mean_measure(&of, "error_pixels_pct"),
+                ray_cast_pct: mean_measure(&of, "ray_cast_pct"),
             })
         })
         .collect()
 }
 
+/// The mean over `of` of method measure `name`, when every frame reported it.
+fn mean_measure(of: &[&Measured], name: &str) -> Option<f64> {
+    let values: Option<Vec<f64>> = of.iter().map(|m| m.method_measure(name)).collect();
+    values.filter(|v| !v.is_empty()).map(|v| v.iter().sum::<f64>() / v.len() as f64)
+}
+
 /// Columns of `accuracy.csv`.
-pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms,oracle_triangles";
+pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms,oracle_triangles,error_pixels_pct,ray_cast_pct";
 
 fn csv_row(r: &Row, oracle: Option<u64>) -> String {
     let m = &r.measured;
     let e = &m.measures.error;
     format!(
-        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3},{}",
+        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3},{},{},{}",
         r.camera,
         r.config.method.name(),
         r.config.filler.name(),
@@ -711,6 +724,10 @@ fn csv_row(r: &Row, oracle: Option<u64>) -> String {
         m.gpu_ms.map_or(String::new(), |g| format!("{g:.3}")),
         m.frame_ms,
         oracle.map_or(String::new(), |o| o.to_string()),
+        m.method_measure("error_pixels_pct")
+            .map_or(String::new(), |v| format!("{v:.3}")),
+        m.method_measure("ray_cast_pct")
+            .map_or(String::new(), |v| format!("{v:.3}")),
     )
 }
 
@@ -738,17 +755,17 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) |",
+        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) | error px / ray cast (%) |",
         report.threshold_px
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for m in &report.summaries {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.0} | {:.2} | {:.3} / {:.2} / {:.2} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} | {:.1} | {} |",
+            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.0} | {:.2} | {:.3} / {:.2} / {:.2} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} | {:.1} | {} | {} |",
             m.config.series(),
             m.config.knob,
             m.triangles,
@@ -773,6 +790,10 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
                 "{:.2} / {:.2}",
                 p.colour_mean, p.depth_p99_pct
             )),
+            match (m.error_pixels_pct, m.ray_cast_pct) {
+                (Some(e), Some(r)) => format!("{e:.2} / {r:.2}"),
+                _ => "-".to_string(),
+            },
         );
     }
     if let Some(first) = report.oracle.first() {

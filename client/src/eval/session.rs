@@ -24,6 +24,8 @@ pub struct Session {
     pub target: Offscreen,
     pub config: RenderConfig,
     frame: u64,
+    /// The last captured frame's method measures.
+    method_measures: Vec<(&'static str, f64)>,
 }
 
 /// One frame drawn and measured against its reference.
@@ -39,10 +41,25 @@ pub struct Measured {
     /// What the scene held right after the frame: CPU bytes plus the GPU allocations made
     /// for the terrain ([`Scene::cpu_bytes`] + [`Scene::gpu_bytes`]).
     pub held_bytes: u64,
+    /// Measures only the method knows, read back after the frame
+    /// ([`crate::method::LodMethod::frame_measures`]: the projective grid's shares of
+    /// pixels past the threshold and ray cast).
+    pub method_measures: Vec<(&'static str, f64)>,
+}
+
+impl Measured {
+    /// The method's measure `name`, if it reported one.
+    pub fn method_measure(&self, name: &str) -> Option<f64> {
+        self.method_measures
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|&(_, v)| v)
+    }
 }
 
 /// Bytes the whole database holds with every texture level, as the scene counts them for a
-/// method with MapBlocks (the most any method holds).
+/// method with MapBlocks, plus an atlas slot per tile for the projected grids (the most any
+/// method holds).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
     let copies = crate::render::blocks::TEXTURE_COPIES;
     // The finer levels' encoded sizes per tile are in the tile blobs; the manifest gives
@@ -56,6 +73,8 @@ pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
         .map(|(_, t)| expected_tile_bytes(manifest, t, copies).total() + finer_rgba)
         .sum::<u64>()
         + finer_encoded
+        // The projected grids' atlas slot per tile, the most any method holds beside it.
+        + manifest.tile_count() as u64 * crate::method::atlas::slot_bytes_for(manifest)
 }
 
 impl Session {
@@ -98,6 +117,7 @@ impl Session {
             target,
             config,
             frame: 0,
+            method_measures: Vec::new(),
         })
     }
 
@@ -154,6 +174,7 @@ impl Session {
     ) -> Result<(Capture, DrawReport), FlightError> {
         self.reconfigure(config);
         let report = self.draw(camera).unwrap_or_default();
+        self.method_measures = self.scene.method_measures();
         let color = self.target.read(&self.gpu)?;
         let depth = self
             .scene
@@ -221,6 +242,7 @@ impl Session {
             gpu_ms: (!gpu_times.is_empty()).then(|| median(&mut gpu_times)),
             capture,
             held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
+            method_measures: std::mem::take(&mut self.method_measures),
         })
     }
 
@@ -270,6 +292,7 @@ impl Session {
             report,
             capture,
             held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
+            method_measures: std::mem::take(&mut self.method_measures),
         })
     }
 

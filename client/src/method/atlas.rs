@@ -163,6 +163,28 @@ fn tent(src: &[f32], side: usize, x: usize, y: usize) -> f32 {
     (u + 2.0 * c + d) / 4.0
 }
 
+/// Texels per colour slot side for `manifest`'s textures.
+pub fn colour_side(manifest: &Manifest) -> u32 {
+    manifest
+        .texture
+        .size
+        .clamp(1, MAX_COLOUR_SIDE)
+        .next_power_of_two()
+        .min(MAX_COLOUR_SIDE)
+}
+
+/// GPU bytes of one slot of an atlas for `manifest`'s tiles, known before any GPU work:
+/// what a projected grid holds per tile.
+pub fn slot_bytes_for(manifest: &Manifest) -> u64 {
+    slot_bytes(&SlotLayout::new(manifest.tile_size), colour_side(manifest))
+}
+
+fn slot_bytes(layout: &SlotLayout, colour_side: u32) -> u64 {
+    u64::from(layout.floats) * 4
+        + size_of::<SlotInfo>() as u64
+        + mip_chain_bytes(colour_side, colour_side, colour_side.trailing_zeros() + 1)
+}
+
 /// The order in which resident tiles get slots: by ring around the viewpoint at their own
 /// level (the Chebyshev distance, in tiles, from the tile of that level under the
 /// viewpoint), then coarse before fine: equal squares of tiles per level, nested, as
@@ -227,12 +249,7 @@ impl Atlas {
     /// An empty atlas for `manifest`'s tiles.
     pub fn new(gpu: &Gpu, manifest: &Manifest) -> Atlas {
         let layout = SlotLayout::new(manifest.tile_size);
-        let colour_side = manifest
-            .texture
-            .size
-            .clamp(1, MAX_COLOUR_SIDE)
-            .next_power_of_two()
-            .min(MAX_COLOUR_SIDE);
+        let colour_side = colour_side(manifest);
         let limits = gpu.device.limits();
         let slot_floats_bytes = u64::from(layout.floats) * 4;
         let by_buffer = (u64::from(limits.max_storage_buffer_binding_size) / slot_floats_bytes)
@@ -295,9 +312,7 @@ impl Atlas {
 
     /// GPU bytes of one slot: heights, its info and its colour mips.
     pub fn slot_bytes(&self) -> u64 {
-        u64::from(self.layout.floats) * 4
-            + size_of::<SlotInfo>() as u64
-            + mip_chain_bytes(self.colour_side, self.colour_side, self.colour_mips)
+        slot_bytes(&self.layout, self.colour_side)
     }
 
     /// Every GPU byte the atlas holds.
