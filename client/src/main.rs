@@ -49,6 +49,10 @@ enum BenchCommand {
     /// coverage and screen-space error against the whole database at full resolution;
     /// writes levels.md, levels.csv and levels.png.
     Levels(terrain_client::eval::levels::LevelsArgs),
+    /// The projected grids' paper tables on our data: persistent grid mapping's grid sizes
+    /// (Livny et al., Table 1) and the error-bounded projective grid uniform and warped,
+    /// with and without ray casting (Löffler et al., Tables 1 and 2); writes grids.md.
+    Grids(terrain_client::eval::grids::GridsArgs),
 }
 
 fn main() -> ExitCode {
@@ -95,6 +99,12 @@ fn main() -> ExitCode {
             terrain_client::eval::stability::run(&args)
                 .await
                 .map(|report| report.to_string())
+                .map_err(anyhow::Error::from)
+        }),
+        Command::Bench(BenchCommand::Grids(args)) => in_runtime(async move {
+            terrain_client::eval::grids::run(&args)
+                .await
+                .map(|report| report.markdown)
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Levels(args)) => in_runtime(async move {

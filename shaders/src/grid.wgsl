@@ -77,6 +77,7 @@ struct Counters {
 
 const FLAG_WARP: u32 = 1u;
 const FLAG_ERROR_BOUNDED: u32 = 2u;
+const FLAG_RAY_CASTING: u32 = 4u;
 const WARP_LINES: u32 = 33u;
 // The error buffer's clear value: no grid triangle covers the pixel.
 const UNCOVERED: f32 = 2.0;
@@ -344,9 +345,13 @@ fn vs_grid(@builtin(vertex_index) index: u32) -> GridVertex {
         let rho = lambda * delta / max(length(at), 1e-3);
         let gamma = grid.spacing.z;
         if rho > gamma {
-            // Past the threshold: keep the local maximum (their section 4).
-            h = bounds.y;
             error = 1.0 - gamma / rho;
+            // Past the threshold: keep the local maximum (their section 4), so the raised
+            // grid covers every pixel the true surface can, and the rays find it. Without
+            // rays it would only move the surface away: the averaged height stays.
+            if (u32(grid.size.w) & FLAG_RAY_CASTING) != 0u {
+                h = bounds.y;
+            }
         }
     }
     var out: GridVertex;
@@ -654,9 +659,11 @@ fn cast_ray(d: vec3<f32>) -> Hit {
             t1 = min(t1, max(ta, tb));
         }
     }
+    // A metre of slack above and below: a flat surface at the lowest height (the sea) lies
+    // on the box's floor, where the walk would stop before testing it.
     if abs(d.y) > 1e-12 {
-        let ta = (grid.heights.x - eye_h) / d.y;
-        let tb = (grid.heights.y - eye_h) / d.y;
+        let ta = (grid.heights.x - 1.0 - eye_h) / d.y;
+        let tb = (grid.heights.y + 1.0 - eye_h) / d.y;
         t0 = max(t0, min(ta, tb));
         t1 = min(t1, max(ta, tb));
     } else if eye_h < grid.heights.x || eye_h > grid.heights.y {
@@ -720,10 +727,14 @@ fn fs_ray(@builtin(position) pixel: vec4<f32>) -> RayOutput {
     if e <= 0.0 {
         discard;
     }
-    atomicAdd(&counters.rays, 1u);
     if e <= 1.0 {
         atomicAdd(&counters.errors, 1u);
     }
+    // Without ray casting the pass only counts the pixels past the threshold.
+    if (u32(grid.size.w) & FLAG_RAY_CASTING) == 0u {
+        discard;
+    }
+    atomicAdd(&counters.rays, 1u);
     let ndc = vec2<f32>(pixel.x / grid.screen.x * 2.0 - 1.0, 1.0 - pixel.y / grid.screen.y * 2.0);
     let far = grid.inverse_view_proj * vec4<f32>(ndc, 1.0, 1.0);
     let d = normalize(far.xyz / far.w);

@@ -37,6 +37,8 @@ pub mod grid_flag {
     pub const WARP: u32 = 1;
     /// The grid computes its error and writes the error buffer.
     pub const ERROR_BOUNDED: u32 = 2;
+    /// Rays are cast in the pixels the error buffer marks (else they are only counted).
+    pub const RAY_CASTING: u32 = 4;
 }
 
 /// Grid lines of each warp table of [`GridUniform`].
@@ -214,6 +216,7 @@ mod tests {
         for (name, value) in [
             ("FLAG_WARP", grid_flag::WARP.to_string()),
             ("FLAG_ERROR_BOUNDED", grid_flag::ERROR_BOUNDED.to_string()),
+            ("FLAG_RAY_CASTING", grid_flag::RAY_CASTING.to_string()),
             ("WARP_LINES", WARP_LINES.to_string()),
             ("BLOCK_MIP", RAY_BLOCK_MIP.to_string()),
         ] {

@@ -59,6 +59,7 @@ fn draw_flat(
             lod: LodSettings::default(),
             filler: CrackFiller::None,
             texture_blocks: false,
+            grid: Default::default(),
         },
         N,
     );
@@ -286,6 +287,7 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
     let at_one_px = |c: &accuracy::Config| match c.knob {
         Knob::Budget(b) => b == largest,
         Knob::MaxErrorPx(e) => e == 1.0,
+        Knob::Grid(_) => true,
     };
     let mut checked = std::collections::BTreeSet::new();
     for row in report.rows.iter().filter(|r| at_one_px(&r.config)) {

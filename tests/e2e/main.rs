@@ -6,6 +6,7 @@ mod client_cli;
 mod fetcher;
 mod flight;
 mod fuzz_corpora;
+mod grids;
 mod hostile;
 mod http;
 mod levels;

@@ -122,6 +122,7 @@ impl<'a> Painter<'a> {
                 lod: LodSettings::default(),
                 filler: CrackFiller::None,
                 texture_blocks: false,
+                grid: Default::default(),
             },
             terrain.manifest.tile_size,
         );

@@ -61,6 +61,12 @@ pub struct AccuracyArgs {
         default_value = "64x36,128x72,256x144,512x288"
     )]
     pub grids: Vec<(u32, u32)>,
+    /// Keep the projective grid uniform (as persistent grid mapping draws it).
+    #[arg(long)]
+    pub uniform_grid: bool,
+    /// Draw the projective grid without ray casting.
+    #[arg(long)]
+    pub no_ray_casting: bool,
     #[command(flatten)]
     pub variants: Variants,
     /// Cameras taken evenly along the flight.
@@ -103,6 +109,8 @@ impl AccuracyArgs {
             budgets: vec![1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
             max_errors_px: vec![0.5, 1.0, 2.0, 4.0, 8.0, 16.0],
             grids: vec![(64, 36), (128, 72), (256, 144), (512, 288)],
+            uniform_grid: false,
+            no_ray_casting: false,
             variants: Variants::default(),
             cameras: 8,
             flight: None,
@@ -314,6 +322,11 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     let lod = args.error.lod(defaults.alpha, defaults.height)?;
     let base = RenderConfig {
         lod,
+        grid: crate::method::GridSettings {
+            warp: !args.uniform_grid,
+            ray_casting: !args.no_ray_casting,
+            ..crate::method::GridSettings::default()
+        },
         ..RenderConfig::default()
     };
     let server = args
@@ -483,6 +496,17 @@ fn check(args: &AccuracyArgs) -> Result<(), FlightError> {
     }
     if args.variants.methods.is_empty() || args.variants.fillers.is_empty() {
         return bad("--methods and --fillers must not be empty".into());
+    }
+    let side = crate::flight::MAX_GRID_SIDE;
+    if args.grids.is_empty()
+        || args
+            .grids
+            .iter()
+            .any(|&(c, r)| !(2..=side).contains(&c) || !(2..=side).contains(&r))
+    {
+        return bad(format!(
+            "--grids must list sizes of 2 to {side} vertices a side, COLUMNSxROWS"
+        ));
     }
     if args.cameras == 0 {
         return bad("--cameras must be at least 1".into());

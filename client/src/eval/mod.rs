@@ -4,6 +4,7 @@
 
 pub mod accuracy;
 pub mod frame;
+pub mod grids;
 pub mod levels;
 pub mod metrics;
 pub mod oracle;

@@ -28,6 +28,9 @@ use terrain_shared::{Manifest, TileId};
 /// Largest side of a colour slot, texels: a tile's texture above it is copied from the mip
 /// that fits.
 pub const MAX_COLOUR_SIDE: u32 = 256;
+/// Slots the atlas grows and shrinks by: it holds at most this many more than its tiles
+/// need before giving them back (each resize copies every tile in again).
+pub const CAPACITY_STEP: u32 = 8;
 /// Most slots an atlas holds, whatever the adapter allows.
 pub const MAX_SLOTS: u32 = 4096;
 
@@ -375,8 +378,9 @@ impl Atlas {
             self.release(id, manifest);
             report.evicted += 1;
         }
-        if keep.len() as u32 > self.capacity {
-            self.grow(gpu, keep.len() as u32, manifest);
+        let needed = keep.len() as u32;
+        if needed > self.capacity || self.capacity >= needed + 2 * CAPACITY_STEP {
+            self.resize(gpu, needed, manifest);
         }
         for &id in &keep {
             let index = match self.slots.get(&id) {
@@ -464,14 +468,14 @@ impl Atlas {
         [index % self.colour_per_row, index / self.colour_per_row]
     }
 
-    /// Makes room for `needed` slots (doubling, up to the most): the buffers are made anew
-    /// and every tile is copied in again.
-    fn grow(&mut self, gpu: &Gpu, needed: u32, manifest: &Manifest) {
+    /// Makes room for `needed` slots, rounded up to [`CAPACITY_STEP`] (up to the most), or
+    /// gives back what is held past that: the buffers are made anew and every tile is copied
+    /// in again.
+    fn resize(&mut self, gpu: &Gpu, needed: u32, manifest: &Manifest) {
         let capacity = needed
-            .next_power_of_two()
-            .max(16)
-            .min(self.max_capacity)
-            .max(needed.min(self.max_capacity));
+            .div_ceil(CAPACITY_STEP)
+            .saturating_mul(CAPACITY_STEP)
+            .min(self.max_capacity);
         let (heights, infos, colour, per_row) =
             allocate(gpu, &self.layout, self.colour_side, capacity, self.max_capacity);
         self.heights = heights;

@@ -27,7 +27,7 @@ use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind
 use crate::lod::grid::{aux_camera, warp_tables};
 use crate::lod::plan::{self, LodSettings};
 use crate::lod::strips::MaskSet;
-use crate::render::{Frame, Gpu, IndexSet};
+use crate::render::{Frame, Gpu};
 use std::time::Instant;
 use terrain_shaders::{
     ERROR_UNCOVERED, GRID, GRID_MAX_LEVELS, GridCounters, GridUniform, WARP_LINES, grid_entry,
@@ -85,7 +85,7 @@ pub struct ProjectedGrid {
     sampler: wgpu::Sampler,
     grid_pipeline: wgpu::RenderPipeline,
     ray_pipeline: Option<wgpu::RenderPipeline>,
-    indices: Option<(IndexSet, [u32; 2])>,
+    indices: Option<(GridIndices, [u32; 2])>,
     error: Option<ErrorBuffer>,
     counters: wgpu::Buffer,
     readback: wgpu::Buffer,
@@ -93,6 +93,42 @@ pub struct ProjectedGrid {
     counted: bool,
     lowest_m: f64,
     highest_m: f64,
+}
+
+/// The grid's index buffer: 16-bit indices when the grid has at most 65536 vertices.
+#[derive(Debug)]
+struct GridIndices {
+    buffer: wgpu::Buffer,
+    format: wgpu::IndexFormat,
+    len: u32,
+    triangles: u32,
+}
+
+impl GridIndices {
+    fn new(gpu: &Gpu, size: [u32; 2], triangles: u32) -> GridIndices {
+        let indices = ProjectedGrid::grid_indices(size);
+        let (bytes, format): (Vec<u8>, _) = if size[0] * size[1] <= 1 << 16 {
+            let short: Vec<u16> = indices.iter().map(|&i| i as u16).collect();
+            (bytemuck::cast_slice(&short).to_vec(), wgpu::IndexFormat::Uint16)
+        } else {
+            (bytemuck::cast_slice(&indices).to_vec(), wgpu::IndexFormat::Uint32)
+        };
+        let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("terrain/persistent grid"),
+            size: (bytes.len() as u64).next_multiple_of(4).max(4),
+            usage: wgpu::BufferUsages::INDEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut padded = bytes;
+        padded.resize(buffer.size() as usize, 0);
+        gpu.queue.write_buffer(&buffer, 0, &padded);
+        GridIndices {
+            buffer,
+            format,
+            len: indices.len() as u32,
+            triangles,
+        }
+    }
 }
 
 #[derive(Debug)]
@@ -334,10 +370,6 @@ impl ProjectedGrid {
         self.kind == MethodKind::ProjectiveGrid
     }
 
-    fn ray_casting(&self) -> bool {
-        self.error_bounded() && self.settings.ray_casting
-    }
-
     /// The grid's triangles: two per cell, as a list of vertex indices (row-major).
     fn grid_indices(size: [u32; 2]) -> Vec<u32> {
         let [columns, rows] = size;
@@ -459,6 +491,9 @@ impl ProjectedGrid {
         let mut warp_v = [[0.0f32; 4]; 9];
         if self.error_bounded() {
             flags |= grid_flag::ERROR_BOUNDED;
+            if self.settings.ray_casting {
+                flags |= grid_flag::RAY_CASTING;
+            }
             if self.settings.warp {
                 flags |= grid_flag::WARP;
                 let (u, v) = warp_tables(&aux, plane_y, far);
@@ -601,19 +636,19 @@ impl LodMethod for ProjectedGrid {
                 .into_iter()
                 .map(|id| (id, deviation[&id]))
                 .collect();
-        let uniform = self.uniform(frame);
         {
             let (encoder, tiles) = frame.encoder_and_tiles();
             self.atlas
                 .update(&gpu, encoder, tiles, &self.manifest, &wanted);
         }
+        // After the update: a resized atlas changes the colour atlas's size.
+        let uniform = self.uniform(frame);
         gpu.queue
             .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&uniform));
         self.ensure_resources(&gpu);
         if self.indices.as_ref().map(|(_, s)| *s) != Some(self.settings.size) {
-            let indices = Self::grid_indices(self.settings.size);
             self.indices = Some((
-                IndexSet::new(&gpu, &indices, self.settings.triangles() as u32),
+                GridIndices::new(&gpu, self.settings.size, self.settings.triangles() as u32),
                 self.settings.size,
             ));
         }
@@ -641,13 +676,15 @@ impl LodMethod for ProjectedGrid {
                 let raw = pass.raw();
                 raw.set_pipeline(&self.grid_pipeline);
                 raw.set_bind_group(1, resources, &[]);
-                raw.set_index_buffer(indices.buffer.slice(..), wgpu::IndexFormat::Uint32);
+                raw.set_index_buffer(indices.buffer.slice(..), indices.format);
                 raw.draw_indexed(0..indices.len, 0, 0..1);
                 let stats = pass.stats_mut();
                 stats.draw_calls += 1;
                 stats.triangles += u64::from(indices.triangles);
             }
-            if let (Some(ray), true) = (&self.ray_pipeline, self.ray_casting()) {
+            // With ray casting off the pass still runs, to count the pixels past the
+            // threshold (its shader discards every one).
+            if let Some(ray) = &self.ray_pipeline {
                 let mut pass = frame.last_pass();
                 let raw = pass.raw();
                 raw.set_pipeline(ray);
@@ -669,7 +706,7 @@ impl LodMethod for ProjectedGrid {
             let raw = pass.raw();
             raw.set_pipeline(&self.grid_pipeline);
             raw.set_bind_group(1, resources, &[]);
-            raw.set_index_buffer(indices.buffer.slice(..), wgpu::IndexFormat::Uint32);
+            raw.set_index_buffer(indices.buffer.slice(..), indices.format);
             raw.draw_indexed(0..indices.len, 0, 0..1);
             let stats = pass.stats_mut();
             stats.draw_calls += 1;
@@ -710,12 +747,10 @@ impl LodMethod for ProjectedGrid {
         self.atlas.release(id, &self.manifest);
     }
 
-    fn tile_bytes(&self, id: TileId) -> u64 {
-        if self.atlas.holds(id) {
-            self.atlas.slot_bytes()
-        } else {
-            0
-        }
+    /// A slot per resident tile, whether or not it holds one yet: tiles get their slots at
+    /// the next frame, after the scene has counted them.
+    fn tile_bytes(&self, _id: TileId) -> u64 {
+        self.atlas.slot_bytes()
     }
 
     fn expected_tile_bytes(&self, _tile: &TileRecord) -> u64 {
@@ -728,7 +763,7 @@ impl LodMethod for ProjectedGrid {
             2 * u64::from(e.texture.width()) * u64::from(e.texture.height())
         });
         let gpu = self.atlas.bytes().saturating_sub(held)
-            + self.indices.as_ref().map_or(0, |(set, _)| set.bytes())
+            + self.indices.as_ref().map_or(0, |(set, _)| set.buffer.size())
             + self.uniform.size()
             + self.counters.size()
             + self.readback.size()
