@@ -72,23 +72,26 @@ if [ -n "${TERRAIN_DATA_DIR:-}" ]; then
   serve himalaya_4097 "$kit/himalaya_4097/g10g_himalaya_4097.png"
   data+=(--data "himalaya_4097=$url")
   "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget" \
-    --methods strip-masks,geomipmap \
+    --methods strip-masks,geomipmap,pgm,projective-grid \
     | tee "$work/accuracy-puget.txt"
+  # The projected grids' paper tables, on the papers' own flight area.
+  "$bin/terrain-client" bench grids --server "$puget" --out "$docs/grids" --cameras 3 \
+    | tee "$work/grids.txt"
 fi
 "$bin/terrain-client" bench accuracy --server "$jacksboro" --out "$docs/accuracy-jacksboro" \
-  --methods strip-masks,geomipmap \
+  --methods strip-masks,geomipmap,pgm,projective-grid \
   | tee "$work/accuracy-jacksboro.txt"
 for own in "$@"; do
   name=${own%%=*}
   serve "$name" "${own#*=}"
   data+=(--data "$name=$url")
   "$bin/terrain-client" bench accuracy --server "$url" --out "$docs/accuracy-$name" \
-    --methods strip-masks,geomipmap --label "$name" \
+    --methods strip-masks,geomipmap,pgm,projective-grid --label "$name" \
     | tee "$work/accuracy-$name.txt"
   own_sections+=("$name")
 done
 "$bin/terrain-client" bench stability --server "$primary" "${data[@]}" --out "$docs/stability" \
-  --methods strip-masks,geomipmap \
+  --methods strip-masks,geomipmap,pgm,projective-grid \
   | tee "$work/stability.txt"
 
 section() { # DATASET DIR
@@ -132,10 +135,16 @@ per-frame rows are in \`docs/evaluation/*/accuracy.csv\` and \`stability/stabili
   reference has terrain above the frame's own skyline: a coarser surface lower against the
   sky, an error of the level of detail rather than a crack.
 - **Methods, each a curve over its own knob**: strip masks over a fixed global budget
-  (shared by importance, within the 1 px error cap; the paper's crack fillers), and
+  (shared by importance, within the 1 px error cap; the paper's crack fillers),
   GeoMipMaps over their error threshold (\`--max-errors-px\`, 0.5 to 16 px: per tile the
   coarsest level, every 2^k-th sample, whose projected error is within it; borders stitched
-  by adding the finer neighbour's vertices, so no filler is needed). The charts draw one
+  by adding the finer neighbour's vertices, so no filler is needed), and the projected
+  grids over their grid size (\`--grids\`, 64x36 to 512x288 vertices): persistent grid
+  mapping (\`pgm\`, a uniform screen grid cast from an auxiliary camera onto averaged
+  height pyramids) and the error-bounded projective grid (\`projective-grid\`: warped to
+  square cells on the ground, its error bound from min/max pyramids, rays cast in every
+  pixel whose bound passes 1 px; the last column gives the share of pixels past the bound
+  and the share ray cast, those and the pixels no grid triangle covered). The charts draw one
   line per method and filler and, dashed black, the Pareto front over all of them.
 - **Oracle**: per camera and threshold, the fewest triangles of a right-triangulated
   irregular network (longest-edge bisection, as the Martini library builds for map
@@ -193,6 +202,17 @@ EOF
       echo "![$chart on the GPU](evaluation-h100/$chart.png)"
       echo
     done
+  fi
+  if [ -f "$docs/grids/grids.md" ]; then
+    echo "## The projected grids' paper tables"
+    echo
+    echo "\`terrain-client bench grids\` runs the sweep above over the grid sizes the papers print,"
+    echo "persistent grid mapping uniform, the projective grid uniform and warped, with and without"
+    echo "ray casting; frame rates are medians of three draws (of the first grid of each run, one of them"
+    echo "built the pipelines)."
+    echo
+    cat "$docs/grids/grids.md"
+    echo
   fi
   echo "## Stability matrix"
   echo
