@@ -212,9 +212,10 @@ mod tests {
     }
 
     #[test]
-    fn looking_well_down_the_auxiliary_camera_is_the_main_one() {
+    fn looking_well_down_over_flat_ground_the_auxiliary_camera_is_the_main_one() {
         let main = camera(-60.0);
-        let aux = aux_camera(&main, 16.0 / 9.0, 500.0, 400.0);
+        // The plane is the ground: nothing rises above it.
+        let aux = aux_camera(&main, 16.0 / 9.0, 500.0, 500.0);
         assert!(!aux.restricted);
         let d = Camera::to_render(main.direction());
         assert!((aux.forward - d).length() < 1e-12, "{:?} vs {d:?}", aux.forward);
@@ -252,8 +253,18 @@ mod tests {
         assert!(aux.restricted);
         let (_, bottom) = rows(&aux);
         assert!((bottom - std::f64::consts::FRAC_PI_2).abs() < 1e-9, "{bottom}");
-        // High above everything, the main camera's own rows suffice.
-        let aux = aux_camera(&camera(-45.0), 16.0 / 9.0, 5000.0, 4900.0);
+        // Above relief, the bottom row reaches the foot of the nearest point the main
+        // camera's bottom row can see at the highest height.
+        let main = camera(-45.0);
+        let aux = aux_camera(&main, 16.0 / 9.0, 5000.0, 4000.0);
+        assert!(aux.restricted);
+        let (_, bottom) = rows(&aux);
+        let main_bottom = -main.pitch + main.fov_y / 2.0;
+        let foot = 4000.0 / main_bottom.tan();
+        let want = (5000.0 / foot).atan();
+        assert!((bottom - want).abs() < 1e-9, "{bottom} vs {want}");
+        // Over flat ground, the main camera's own rows suffice.
+        let aux = aux_camera(&main, 16.0 / 9.0, 5000.0, 5000.0);
         assert!(!aux.restricted);
     }
 
