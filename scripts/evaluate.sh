@@ -8,6 +8,8 @@
 #                                                               # every dataset scenario
 #   bash scripts/evaluate.sh alps=path/to/alps.tif [NAME=DEM ...]  # and DEMs of your own:
 #       each is swept too, and the stability matrix runs its altitude scenarios on it
+#   REUSE=1 bash scripts/evaluate.sh [NAME=DEM ...]   # only assemble docs/evaluation.md from
+#       the runs already in docs/evaluation/ (after re-running one bench there by hand)
 #
 # Builds each database into a temporary directory, serves it on a free local port, runs
 # `terrain-client bench accuracy` and `bench stability`, and assembles the document.
@@ -27,13 +29,21 @@ done
 set -- "${owns[@]}"
 cd "$(dirname "$0")/.."
 
+reuse=${REUSE:-0}
+docs=docs/evaluation
+own_sections=()
+headline=jacksboro
+[ -n "${TERRAIN_DATA_DIR:-}" ] && headline=puget
+if [ "$reuse" = 1 ]; then
+  for own in "$@"; do own_sections+=("${own%%=*}"); done
+  [ -f "$docs/stability/stability.md" ] || { echo "error: REUSE=1 needs the runs in $docs" >&2; exit 2; }
+else
 source scripts/gpu-env.sh
 cargo build --release --locked -p terrain-server -p terrain-client
 bin=target/release
 work=$(mktemp -d)
 pids=()
 trap 'kill "${pids[@]}" 2>/dev/null || true; rm -rf "$work"' EXIT
-docs=docs/evaluation
 rm -rf "$docs"
 mkdir -p "$docs"
 
@@ -93,6 +103,8 @@ done
 "$bin/terrain-client" bench stability --server "$primary" "${data[@]}" --out "$docs/stability" \
   --methods strip-masks,geomipmap,pgm,projective-grid \
   | tee "$work/stability.txt"
+
+fi
 
 section() { # DATASET DIR
   echo "### $1"

@@ -593,7 +593,9 @@ fn tile_hit(ray: Ray, slot: i32, level: u32, t0: f32, t1: f32) -> Hit {
     let per_side = i32(mip.w);
     let block = f32(1u << m);
     let metres = grid.spacing.xy * f32(1u << level);
-    let nudge = 1e-5 * (t1 - t0 + 1.0);
+    // Steps past a boundary, to find the cell beyond it: a thousandth of a cell along the
+    // ray, whatever the ray's length.
+    let nudge = 1e-3 / max(max(abs(ray.b.x), abs(ray.b.y)), 1e-12);
     var blocks = walk_from(ray, block, t0, nudge);
     var t = t0;
     for (var guard = 0u; guard < 2u * u32(per_side) + 4u; guard += 1u) {
@@ -608,7 +610,7 @@ fn tile_hit(ray: Ray, slot: i32, level: u32, t0: f32, t1: f32) -> Hit {
             let zb = ray_height(ray, t_exit);
             if min(za, zb) <= atlas[k + 1u] && max(za, zb) >= atlas[k] {
                 // Every cell of the block the ray crosses, nearest first.
-                var walk = walk_from(ray, 1.0, t, 1e-5 * (t_exit - t + 1.0));
+                var walk = walk_from(ray, 1.0, t, nudge);
                 var tc = t;
                 for (var inner = 0u; inner < 2u * (1u << m) + 4u; inner += 1u) {
                     if tc >= t_exit {
@@ -676,7 +678,9 @@ fn cast_ray(d: vec3<f32>) -> Hit {
             break;
         }
         guard += 1u;
-        let s = o + b * (t + 1e-4 * (t1 - t0 + 1.0));
+        // A thousandth of a level-0 sample past the boundary: far enough to be in the next
+        // tile, too little to step over a cell.
+        let s = o + b * (t + 1e-3 / max(max(abs(b.x), abs(b.y)), 1e-12));
         let f = floor(s);
         let q = Place(grid.anchor.xy + vec2<i32>(f), s - f);
         // The finest tile holding the place.

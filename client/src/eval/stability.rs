@@ -92,6 +92,10 @@ pub enum Kind {
     Grazing(f64),
     /// Looking 15 degrees above the horizon.
     AboveHorizon,
+    /// Low over the ground a tile and a half west of the highest tile, below its top,
+    /// looking level at it: a peak rising into the view from ground the view's bottom
+    /// edge does not reach (the projected grids' auxiliary camera).
+    LowNearPeak,
     /// 50 m below the lowest point under the camera.
     BelowSurface,
     /// Two terrain widths west of the terrain, looking at it.
@@ -163,6 +167,12 @@ pub const SCENARIOS: &[Scenario] = &[
         dataset: None,
         what: "looking 15 degrees above the horizon",
         kind: Kind::AboveHorizon,
+    },
+    Scenario {
+        name: "low-near-peak",
+        dataset: None,
+        what: "30 m over the ground a tile and a half from the highest tile, looking level at it",
+        kind: Kind::LowNearPeak,
     },
     Scenario {
         name: "below-surface",
@@ -559,6 +569,19 @@ pub fn cameras(kind: Kind, manifest: &Manifest, frames: u32) -> Vec<Camera> {
                 let (x, y) = (0.3 * w + f(i) * tile_m, 0.5 * h);
                 let z = under(x, y).map_or(top, |t| f64::from(t.max_m)) + 200.0;
                 Camera::new([x, y, z], 0.0, 15f64.to_radians())
+            }
+            Kind::LowNearPeak => {
+                let peak = manifest
+                    .tiles()
+                    .filter(|(id, _)| id.level == 0)
+                    .max_by(|(_, a), (_, b)| a.max_m.total_cmp(&b.max_m))
+                    .map_or([0.5 * w, 0.5 * h], centre_of);
+                // Drifting a third of a tile towards it over the frames.
+                let x = (peak[0] - (1.5 - f(i) / 3.0) * tile_m).max(0.0);
+                let y = peak[1];
+                let z = under(x, y).map_or(top, |t| f64::from(t.max_m)) + 30.0;
+                let yaw = (peak[1] - y).atan2(peak[0] - x);
+                Camera::new([x, y, z], yaw, 0.0)
             }
             Kind::BelowSurface => {
                 let (x, y) = (0.5 * w, 0.5 * h);
