@@ -61,6 +61,7 @@ fn main() {
             lod: LodSettings::default(),
             filler: CrackFiller::None,
             texture_blocks: false,
+            grid: Default::default(),
         },
         N,
     );

@@ -1230,9 +1230,9 @@ impl Scene {
                     let offset = self.manifest.level_offset(level);
                     let columns = self.manifest.grid(level).columns.max(1);
                     let count = self.manifest.levels[level as usize].tiles.len();
-                    (0..count).filter_map(move |k| {
+                    (0..count).map(move |k| {
                         let id = TileId::at(level, k as u32 % columns, k as u32 / columns);
-                        Some((offset + k, id))
+                        (offset + k, id)
                     })
                 })
                 .filter_map(|(i, id)| {

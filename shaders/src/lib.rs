@@ -208,10 +208,22 @@ mod tests {
                 "entry point {name} is missing"
             );
         }
-        assert_eq!(size_in(&module, "Frame"), size_of_val(&FrameUniform::zeroed()));
-        assert_eq!(size_in(&module, "Grid"), size_of_val(&GridUniform::zeroed()));
-        assert_eq!(size_in(&module, "SlotInfo"), size_of_val(&SlotInfo::zeroed()));
-        assert_eq!(size_in(&module, "Counters"), size_of_val(&GridCounters::zeroed()));
+        assert_eq!(
+            size_in(&module, "Frame"),
+            size_of_val(&FrameUniform::zeroed())
+        );
+        assert_eq!(
+            size_in(&module, "Grid"),
+            size_of_val(&GridUniform::zeroed())
+        );
+        assert_eq!(
+            size_in(&module, "SlotInfo"),
+            size_of_val(&SlotInfo::zeroed())
+        );
+        assert_eq!(
+            size_in(&module, "Counters"),
+            size_of_val(&GridCounters::zeroed())
+        );
         // The constants both sides name.
         for (name, value) in [
             ("FLAG_WARP", grid_flag::WARP.to_string()),

@@ -376,7 +376,7 @@ fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() 
     assert!(geometry.gpu.sample_buffers <= geometry.gpu.tiles);
 }
 
-fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
+pub(crate) fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
     build(
         &BuildOptions::new(input, dir.join("db")),
         &|_, _| {},

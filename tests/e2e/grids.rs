@@ -2,7 +2,6 @@
 //! against a real server: golden images on jacksboro, the projective grid's guarantee on
 //! the Puget Sound flight, and their bytes inside the memory limit.
 
-use std::path::Path;
 use std::time::Duration;
 use terrain_client::eval::accuracy::{self, AccuracyArgs};
 use terrain_client::eval::session::Session;
@@ -10,7 +9,6 @@ use terrain_client::lod::budget::BudgetMode;
 use terrain_client::method::{GridSettings, MethodKind};
 use terrain_client::render::Camera;
 use terrain_client::scene::RenderConfig;
-use terrain_server::build::{BuildOptions, build};
 use terrain_tests::data::{build_jacksboro, kit_file};
 use terrain_tests::golden;
 use terrain_tests::server::TestServer;
@@ -123,16 +121,6 @@ fn projected_grids_over_jacksboro_match_their_golden_images() {
     });
 }
 
-fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
-    build(
-        &BuildOptions::new(input, dir.join("db")),
-        &|_, _| {},
-        &std::sync::atomic::AtomicBool::new(false),
-    )
-    .expect("builds")
-    .out
-}
-
 /// The guarantee of the error-bounded projective grid (Löffler et al.): with ray casting in
 /// every pixel whose bound passes 1 px, the 99th percentile of the screen-space error stays
 /// within 1 px on every camera of the Puget Sound flight. Without ray casting the same grid
@@ -140,15 +128,17 @@ fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
 /// threshold and ray cast are printed; `docs/evaluation.md` reports them per grid size.
 #[test]
 fn the_projective_grid_with_ray_casting_keeps_p99_within_a_pixel_over_puget_sound() {
-    let Some(png) = kit_file("projective grid over puget", "puget_sound_1k/ps_height_1k.png")
-    else {
+    let Some(png) = kit_file(
+        "projective grid over puget",
+        "puget_sound_1k/ps_height_1k.png",
+    ) else {
         return;
     };
     let Some(_) = golden::gpu("grids::the_projective_grid_with_ray_casting_keeps_p99") else {
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_db(&png, tmp.path());
+    let db = super::accuracy::build_db(&png, tmp.path());
     let server = TestServer::start(&db);
     let mut worst_without = 0.0f64;
     for ray_casting in [true, false] {
@@ -157,7 +147,10 @@ fn the_projective_grid_with_ray_casting_keeps_p99_within_a_pixel_over_puget_soun
             repeats: 1,
             popping_frames: 0,
             no_ray_casting: !ray_casting,
-            ..AccuracyArgs::new(server.base_url(), tmp.path().join(format!("acc-{ray_casting}")))
+            ..AccuracyArgs::new(
+                server.base_url(),
+                tmp.path().join(format!("acc-{ray_casting}")),
+            )
         };
         args.variants.methods = vec![MethodKind::ProjectiveGrid];
         let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
@@ -223,9 +216,10 @@ fn projected_grids_hold_no_more_than_the_limit() {
                 method,
                 ..RenderConfig::default()
             };
-            let mut session = Session::open(server.base_url(), Some(limit), config, (WIDTH, HEIGHT))
-                .await
-                .expect("session");
+            let mut session =
+                Session::open(server.base_url(), Some(limit), config, (WIDTH, HEIGHT))
+                    .await
+                    .expect("session");
             let extent = session.manifest.extent_m;
             let mut worst = 0u64;
             // Along the diagonal, looking ahead: tiles come and go.
@@ -246,7 +240,11 @@ fn projected_grids_hold_no_more_than_the_limit() {
                 limit as f64 / (1 << 20) as f64
             );
             assert!(worst > limit / 4, "{}: tiles arrived", method.name());
-            assert!(worst <= limit, "{}: {worst} bytes over {limit}", method.name());
+            assert!(
+                worst <= limit,
+                "{}: {worst} bytes over {limit}",
+                method.name()
+            );
             session.close();
         }
     });

@@ -712,7 +712,9 @@ pub fn summarise(
 /// The mean over `of` of method measure `name`, when every frame reported it.
 fn mean_measure(of: &[&Measured], name: &str) -> Option<f64> {
     let values: Option<Vec<f64>> = of.iter().map(|m| m.method_measure(name)).collect();
-    values.filter(|v| !v.is_empty()).map(|v| v.iter().sum::<f64>() / v.len() as f64)
+    values
+        .filter(|v| !v.is_empty())
+        .map(|v| v.iter().sum::<f64>() / v.len() as f64)
 }
 
 /// Columns of `accuracy.csv`.

@@ -141,7 +141,9 @@ fn row_of(report: &AccuracyReport, grid: (u32, u32)) -> Option<&Summary> {
 }
 
 fn fps(s: Option<&Summary>) -> String {
-    s.map_or("-".into(), |s| format!("{:.1}", 1000.0 / s.frame_ms.max(1e-9)))
+    s.map_or("-".into(), |s| {
+        format!("{:.1}", 1000.0 / s.frame_ms.max(1e-9))
+    })
 }
 
 /// Runs the sweeps and writes `grids.md`. Must run inside a multi-threaded tokio runtime.
@@ -216,7 +218,10 @@ pub async fn run(args: &GridsArgs) -> Result<GridsReport, FlightError> {
     for row in &LOEFFLER_TABLES {
         let (u, n) = (row_of(&runs[0], row.grid), row_of(&runs[1], row.grid));
         let cell = |m: Option<&Summary>, f: &dyn Fn(&Summary) -> f64, paper: f64| {
-            format!("{} ({paper})", m.map_or("-".into(), |m| format!("{:.2}", f(m))))
+            format!(
+                "{} ({paper})",
+                m.map_or("-".into(), |m| format!("{:.2}", f(m)))
+            )
         };
         let ray = row_of(&runs[3], row.grid);
         let _ = writeln!(
@@ -224,8 +229,16 @@ pub async fn run(args: &GridsArgs) -> Result<GridsReport, FlightError> {
             "| {}x{} | {} | {} | {} | {} | {} | {} | {} |",
             row.grid.0,
             row.grid.1,
-            cell(u, &|m| m.error_pixels_pct.unwrap_or(f64::NAN), row.error_pixels_pct[0]),
-            cell(n, &|m| m.error_pixels_pct.unwrap_or(f64::NAN), row.error_pixels_pct[1]),
+            cell(
+                u,
+                &|m| m.error_pixels_pct.unwrap_or(f64::NAN),
+                row.error_pixels_pct[0]
+            ),
+            cell(
+                n,
+                &|m| m.error_pixels_pct.unwrap_or(f64::NAN),
+                row.error_pixels_pct[1]
+            ),
             cell(u, &|m| m.mean_error_px, row.mean_px[0]),
             cell(n, &|m| m.mean_error_px, row.mean_px[1]),
             cell(u, &|m| m.max_error_px, row.max_px[0]),

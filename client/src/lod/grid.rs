@@ -44,7 +44,11 @@ impl AuxCamera {
     /// The camera at the main camera's place looking `pitch` radians above the horizon
     /// along `yaw`, with these half-field tangents.
     pub fn looking(yaw: f64, pitch: f64, tan_x: f64, tan_y: f64, restricted: bool) -> AuxCamera {
-        let forward = DVec3::new(pitch.cos() * yaw.cos(), pitch.sin(), pitch.cos() * yaw.sin());
+        let forward = DVec3::new(
+            pitch.cos() * yaw.cos(),
+            pitch.sin(),
+            pitch.cos() * yaw.sin(),
+        );
         let right = DVec3::new(-yaw.sin(), 0.0, yaw.cos());
         AuxCamera {
             forward,
@@ -133,6 +137,8 @@ pub fn aux_camera(main: &Camera, aspect: f64, above_plane_m: f64, clearance_m: f
 /// (Dachsbacher and Stamminger) done separably, rows and columns each by the inverse of
 /// the cumulative importance. Returns where each of the tables' lines sits across (`u`)
 /// and down (`v`) the auxiliary screen, in `[0, 1]`, first 0 and last 1.
+// Cells are indexed by row and column at once (both sums grow in the same loop).
+#[allow(clippy::needless_range_loop)]
 pub fn warp_tables(
     aux: &AuxCamera,
     plane_y: f64,
@@ -172,7 +178,11 @@ fn inverse_cdf(density: &[f64]) -> [f64; WARP_CELLS + 1] {
     let weights: Vec<f64> = density
         .iter()
         .map(|&d| {
-            let d = if mean > 0.0 && d.is_finite() { d / mean } else { 1.0 };
+            let d = if mean > 0.0 && d.is_finite() {
+                d / mean
+            } else {
+                1.0
+            };
             WARP_UNIFORM_SHARE + (1.0 - WARP_UNIFORM_SHARE) * d
         })
         .collect();
@@ -218,7 +228,11 @@ mod tests {
         let aux = aux_camera(&main, 16.0 / 9.0, 500.0, 500.0);
         assert!(!aux.restricted);
         let d = Camera::to_render(main.direction());
-        assert!((aux.forward - d).length() < 1e-12, "{:?} vs {d:?}", aux.forward);
+        assert!(
+            (aux.forward - d).length() < 1e-12,
+            "{:?} vs {d:?}",
+            aux.forward
+        );
         assert!((aux.tan_y - (main.fov_y / 2.0).tan()).abs() < 1e-12);
     }
 
@@ -252,7 +266,10 @@ mod tests {
         let aux = aux_camera(&camera(-45.0), 16.0 / 9.0, 500.0, -50.0);
         assert!(aux.restricted);
         let (_, bottom) = rows(&aux);
-        assert!((bottom - std::f64::consts::FRAC_PI_2).abs() < 1e-9, "{bottom}");
+        assert!(
+            (bottom - std::f64::consts::FRAC_PI_2).abs() < 1e-9,
+            "{bottom}"
+        );
         // Above relief, the bottom row reaches the foot of the nearest point the main
         // camera's bottom row can see at the highest height.
         let main = camera(-45.0);
@@ -291,9 +308,17 @@ mod tests {
         }
         // The top half of the screen (towards the horizon) gets more than half the rows.
         let half = v.iter().filter(|&&x| x < 0.5).count();
-        assert!(half > WARP_CELLS / 2 + 2, "rows above the middle: {half} of {}", WARP_CELLS + 1);
+        assert!(
+            half > WARP_CELLS / 2 + 2,
+            "rows above the middle: {half} of {}",
+            WARP_CELLS + 1
+        );
         // Across, the grid stays about symmetric.
-        assert!((u[WARP_CELLS / 2] - 0.5).abs() < 0.05, "{}", u[WARP_CELLS / 2]);
+        assert!(
+            (u[WARP_CELLS / 2] - 0.5).abs() < 0.05,
+            "{}",
+            u[WARP_CELLS / 2]
+        );
     }
 
     #[test]

@@ -61,7 +61,9 @@ impl SlotLayout {
     /// The layout for tiles of `tile_size` samples a side (`2^n + 1`, `n` at most
     /// [`GRID_MAX_MIPS`] - 1).
     pub fn new(tile_size: u32) -> SlotLayout {
-        let n = (tile_size - 1).trailing_zeros().min(GRID_MAX_MIPS as u32 - 1);
+        let n = (tile_size - 1)
+            .trailing_zeros()
+            .min(GRID_MAX_MIPS as u32 - 1);
         let mut mips = Vec::with_capacity(n as usize + 1);
         let mut at = 0;
         for m in 0..=n {
@@ -157,7 +159,11 @@ fn tent(src: &[f32], side: usize, x: usize, y: usize) -> f32 {
         (l + 2.0 * c + r) / 4.0
     };
     let c = row(y);
-    let u = if y > 0 { row(y - 1) } else { 2.0 * c - row(y + 1) };
+    let u = if y > 0 {
+        row(y - 1)
+    } else {
+        2.0 * c - row(y + 1)
+    };
     let d = if y + 1 < side {
         row(y + 1)
     } else {
@@ -255,10 +261,10 @@ impl Atlas {
         let colour_side = colour_side(manifest);
         let limits = gpu.device.limits();
         let slot_floats_bytes = u64::from(layout.floats) * 4;
-        let by_buffer = (u64::from(limits.max_storage_buffer_binding_size) / slot_floats_bytes)
+        let by_buffer = (limits.max_storage_buffer_binding_size / slot_floats_bytes)
             .min(limits.max_buffer_size / slot_floats_bytes) as u32;
         let per_side = (limits.max_texture_dimension_2d / colour_side).max(1);
-        let max_capacity = by_buffer.min(per_side * per_side).min(MAX_SLOTS).max(1);
+        let max_capacity = by_buffer.min(per_side * per_side).clamp(1, MAX_SLOTS);
         let levels = (0..manifest.level_count())
             .map(|l| {
                 let g = manifest.grid(l);
@@ -320,10 +326,7 @@ impl Atlas {
 
     /// Every GPU byte the atlas holds.
     pub fn bytes(&self) -> u64 {
-        self.heights.size()
-            + self.infos.size()
-            + self.table.size()
-            + colour_bytes(&self.colour)
+        self.heights.size() + self.infos.size() + self.table.size() + colour_bytes(&self.colour)
     }
 
     /// The colour atlas's size in texels, and slots per row.
@@ -476,8 +479,13 @@ impl Atlas {
             .div_ceil(CAPACITY_STEP)
             .saturating_mul(CAPACITY_STEP)
             .min(self.max_capacity);
-        let (heights, infos, colour, per_row) =
-            allocate(gpu, &self.layout, self.colour_side, capacity, self.max_capacity);
+        let (heights, infos, colour, per_row) = allocate(
+            gpu,
+            &self.layout,
+            self.colour_side,
+            capacity,
+            self.max_capacity,
+        );
         self.heights = heights;
         self.infos = infos;
         self.colour = colour;
@@ -561,8 +569,7 @@ fn copy_colour(
     } else {
         (0, (side / top).trailing_zeros())
     };
-    let count = (texture.mip_level_count() - src0.min(texture.mip_level_count()))
-        .min(mips - dst0);
+    let count = (texture.mip_level_count() - src0.min(texture.mip_level_count())).min(mips - dst0);
     for k in 0..count {
         let (src, dst) = (src0 + k, dst0 + k);
         let texels = side >> dst;
@@ -656,7 +663,10 @@ mod tests {
                 for x in 0..mip.side {
                     let got = floats[(mip.averaged + y * mip.side + x) as usize];
                     let want = plane(x as f32 * step, y as f32 * step);
-                    assert!((got - want).abs() < 1e-3, "mip {m} ({x}, {y}): {got} vs {want}");
+                    assert!(
+                        (got - want).abs() < 1e-3,
+                        "mip {m} ({x}, {y}): {got} vs {want}"
+                    );
                 }
             }
         }

@@ -109,9 +109,15 @@ impl GridIndices {
         let indices = ProjectedGrid::grid_indices(size);
         let (bytes, format): (Vec<u8>, _) = if size[0] * size[1] <= 1 << 16 {
             let short: Vec<u16> = indices.iter().map(|&i| i as u16).collect();
-            (bytemuck::cast_slice(&short).to_vec(), wgpu::IndexFormat::Uint16)
+            (
+                bytemuck::cast_slice(&short).to_vec(),
+                wgpu::IndexFormat::Uint16,
+            )
         } else {
-            (bytemuck::cast_slice(&indices).to_vec(), wgpu::IndexFormat::Uint32)
+            (
+                bytemuck::cast_slice(&indices).to_vec(),
+                wgpu::IndexFormat::Uint32,
+            )
         };
         let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("terrain/persistent grid"),
@@ -337,9 +343,12 @@ impl ProjectedGrid {
             .levels
             .last()
             .map(|level| {
-                level.tiles.iter().fold((f64::MAX, f64::MIN), |(lo, hi), t| {
-                    (lo.min(f64::from(t.min_m)), hi.max(f64::from(t.max_m)))
-                })
+                level
+                    .tiles
+                    .iter()
+                    .fold((f64::MAX, f64::MIN), |(lo, hi), t| {
+                        (lo.min(f64::from(t.min_m)), hi.max(f64::from(t.max_m)))
+                    })
             })
             .unwrap_or((0.0, 0.0));
         ProjectedGrid {
@@ -559,7 +568,11 @@ impl ProjectedGrid {
                 self.manifest.raster.height as f32,
             ],
             sky: [sky[0] as f32, sky[1] as f32, sky[2] as f32, 1.0],
-            inverse_view_proj: camera.view_proj(aspect).inverse().as_mat4().to_cols_array_2d(),
+            inverse_view_proj: camera
+                .view_proj(aspect)
+                .inverse()
+                .as_mat4()
+                .to_cols_array_2d(),
             levels,
             mips,
             warp_u,
@@ -631,11 +644,10 @@ impl LodMethod for ProjectedGrid {
         let ids: Vec<TileId> = input.resident.iter().map(|&(id, _)| id).collect();
         let deviation: std::collections::HashMap<TileId, f32> =
             input.resident.iter().copied().collect();
-        let wanted: Vec<(TileId, f32)> =
-            slot_order(&ids, viewpoint, self.manifest.tile_size - 1)
-                .into_iter()
-                .map(|id| (id, deviation[&id]))
-                .collect();
+        let wanted: Vec<(TileId, f32)> = slot_order(&ids, viewpoint, self.manifest.tile_size - 1)
+            .into_iter()
+            .map(|id| (id, deviation[&id]))
+            .collect();
         {
             let (encoder, tiles) = frame.encoder_and_tiles();
             self.atlas
@@ -737,7 +749,10 @@ impl LodMethod for ProjectedGrid {
             .as_ref()
             .map_or(1.0, |e| f64::from(e.texture.width() * e.texture.height()));
         vec![
-            ("error_pixels_pct", 100.0 * f64::from(counters.errors) / pixels),
+            (
+                "error_pixels_pct",
+                100.0 * f64::from(counters.errors) / pixels,
+            ),
             ("ray_cast_pct", 100.0 * f64::from(counters.rays) / pixels),
             ("ray_hit_pct", 100.0 * f64::from(counters.hits) / pixels),
         ]
@@ -763,7 +778,10 @@ impl LodMethod for ProjectedGrid {
             2 * u64::from(e.texture.width()) * u64::from(e.texture.height())
         });
         let gpu = self.atlas.bytes().saturating_sub(held)
-            + self.indices.as_ref().map_or(0, |(set, _)| set.buffer.size())
+            + self
+                .indices
+                .as_ref()
+                .map_or(0, |(set, _)| set.buffer.size())
             + self.uniform.size()
             + self.counters.size()
             + self.readback.size()
@@ -790,7 +808,7 @@ mod tests {
         };
         assert_eq!(indices.len() as u64, 3 * settings.triangles());
         assert_eq!(settings.triangles(), 16);
-        let mut used = vec![false; 15];
+        let mut used = [false; 15];
         for &i in &indices {
             used[i as usize] = true;
         }

@@ -638,60 +638,58 @@ impl<'f> Frame<'f> {
         self.passes += 1;
         let r = &*self.renderer;
         let depth = &r.depth.as_ref().expect("made in begin_frame").1;
-        let mut pass = self
-            .encoder
-            .begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("terrain"),
-                color_attachments: &[
-                    Some(wgpu::RenderPassColorAttachment {
-                    view: self.target,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: if first {
-                            wgpu::LoadOp::Clear(wgpu::Color {
-                                r: SKY[0],
-                                g: SKY[1],
-                                b: SKY[2],
-                                a: 1.0,
-                            })
-                        } else {
-                            wgpu::LoadOp::Load
-                        },
-                        store: wgpu::StoreOp::Store,
-                    },
-                }),
-                    extra,
-                ][..attachments],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: depth,
-                    depth_ops: Some(wgpu::Operations {
-                        load: if first {
-                            wgpu::LoadOp::Clear(0.0)
-                        } else {
-                            wgpu::LoadOp::Load
-                        },
-                        store: if keep_depth || r.keep_depth {
-                            wgpu::StoreOp::Store
-                        } else {
-                            wgpu::StoreOp::Discard
-                        },
+        let mut pass =
+            self.encoder
+                .begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("terrain"),
+                    color_attachments: &[
+                        Some(wgpu::RenderPassColorAttachment {
+                            view: self.target,
+                            depth_slice: None,
+                            resolve_target: None,
+                            ops: wgpu::Operations {
+                                load: if first {
+                                    wgpu::LoadOp::Clear(wgpu::Color {
+                                        r: SKY[0],
+                                        g: SKY[1],
+                                        b: SKY[2],
+                                        a: 1.0,
+                                    })
+                                } else {
+                                    wgpu::LoadOp::Load
+                                },
+                                store: wgpu::StoreOp::Store,
+                            },
+                        }),
+                        extra,
+                    ][..attachments],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: depth,
+                        depth_ops: Some(wgpu::Operations {
+                            load: if first {
+                                wgpu::LoadOp::Clear(0.0)
+                            } else {
+                                wgpu::LoadOp::Load
+                            },
+                            store: if keep_depth || r.keep_depth {
+                                wgpu::StoreOp::Store
+                            } else {
+                                wgpu::StoreOp::Discard
+                            },
+                        }),
+                        stencil_ops: None,
                     }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: r
-                    .timestamps
-                    .as_ref()
-                    .filter(|_| pass < TIMED_PASSES)
-                    .map(|t| wgpu::RenderPassTimestampWrites {
-                        query_set: &t.set,
-                        beginning_of_pass_write_index: Some(2 * pass),
-                        end_of_pass_write_index: Some(2 * pass + 1),
-                    }),
-                occlusion_query_set: None,
-                multiview_mask: None,
-            })
-            .forget_lifetime();
+                    timestamp_writes: r.timestamps.as_ref().filter(|_| pass < TIMED_PASSES).map(
+                        |t| wgpu::RenderPassTimestampWrites {
+                            query_set: &t.set,
+                            beginning_of_pass_write_index: Some(2 * pass),
+                            end_of_pass_write_index: Some(2 * pass + 1),
+                        },
+                    ),
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                })
+                .forget_lifetime();
         pass.set_bind_group(0, &r.frame_group, &[]);
         FramePass {
             pass,
