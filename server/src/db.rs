@@ -30,6 +30,8 @@ use thiserror::Error;
 pub const MANIFEST_FILE: &str = "manifest.json";
 pub const HEIGHTS_PACK: &str = "heights.pack";
 pub const TEXTURES_PACK: &str = "textures.pack";
+/// The quadtree patches' bodies and index, when built ([`terrain_shared::manifest::PatchesInfo`]).
+pub const PATCHES_PACK: &str = "patches.pack";
 
 /// Why a database could not be opened.
 #[derive(Debug, Error)]
@@ -62,6 +64,8 @@ pub enum DbError {
         expected: String,
         found: String,
     },
+    #[error("the quadtree patches in {pack} are damaged: {message}")]
+    Patches { pack: PathBuf, message: String },
     #[error("the tile blob of tile {id} in {pack} is damaged: {source}")]
     TileBlob {
         pack: PathBuf,
@@ -107,6 +111,8 @@ pub struct TileDb {
     heights: Vec<StoredBlob>,
     /// Per tile, its texture levels coarsest first.
     textures: Vec<Vec<StoredBlob>>,
+    /// Per tile its quadtree patch, then the index, when the database has them.
+    patches: Option<(Vec<StoredBlob>, StoredBlob)>,
 }
 
 impl TileDb {
@@ -173,6 +179,10 @@ impl TileDb {
             .map(|_| flat.by_ref().take(levels).collect())
             .collect();
 
+        let patches = match &manifest.patches {
+            None => None,
+            Some(info) => Some(open_patches(dir, &manifest, info, verify)?),
+        };
         let manifest_gzip = gzip(&manifest_json).map_err(|source| DbError::Io {
             path: manifest_path.clone(),
             source,
@@ -186,6 +196,7 @@ impl TileDb {
             manifest_json: Bytes::from(manifest_json),
             heights,
             textures,
+            patches,
         })
     }
 
@@ -223,6 +234,16 @@ impl TileDb {
         self.heights.get(self.index(id)?)
     }
 
+    /// The quadtree patch of tile `id`, if the database has patches and the tile exists.
+    pub fn patch(&self, id: TileId) -> Option<&StoredBlob> {
+        self.patches.as_ref()?.0.get(self.index(id)?)
+    }
+
+    /// The quadtree patches' index, if the database has patches.
+    pub fn patch_index(&self) -> Option<&StoredBlob> {
+        self.patches.as_ref().map(|p| &p.1)
+    }
+
     /// Texture `level` (0 = coarsest) of tile `id`, if both exist.
     pub fn texture(&self, id: TileId, level: u32) -> Option<&StoredBlob> {
         self.textures.get(self.index(id)?)?.get(level as usize)
@@ -231,6 +252,57 @@ impl TileDb {
     fn index(&self, id: TileId) -> Option<usize> {
         self.manifest.index(id)
     }
+}
+
+/// Slices `patches.pack`: the index is checked against the manifest, the bodies against
+/// the index's sizes (and hashes, with [`Verify::Hashes`]).
+fn open_patches(
+    dir: &Path,
+    manifest: &Manifest,
+    info: &terrain_shared::manifest::PatchesInfo,
+    verify: Verify,
+) -> Result<(Vec<StoredBlob>, StoredBlob), DbError> {
+    let path = dir.join(PATCHES_PACK);
+    let pack = map_file(&path)?;
+    let root = TileId::at(0, 0, 0);
+    let body_end = info.bodies_bytes as usize;
+    if pack.len() as u64 != info.bodies_bytes + info.index.bytes {
+        return Err(DbError::PackSize {
+            pack: path,
+            expected: info.bodies_bytes + info.index.bytes,
+            found: pack.len() as u64,
+        });
+    }
+    let index = slice_pack(
+        &pack.slice(body_end..),
+        &path,
+        std::iter::once((root, "patch index".to_string(), info.index.clone())),
+        Verify::Hashes,
+    )?
+    .remove(0);
+    let count = manifest.tiles().count();
+    let entries = terrain_shared::quadtree::decode_index(&index.bytes, count).map_err(|e| {
+        DbError::Patches {
+            pack: path.clone(),
+            message: e.to_string(),
+        }
+    })?;
+    let bodies = slice_pack(
+        &pack.slice(..body_end),
+        &path,
+        manifest.tiles().zip(&entries).map(|((id, _), e)| {
+            (
+                id,
+                "quadtree patch".to_string(),
+                terrain_shared::Blob {
+                    hash: e.hash_hex(),
+                    bytes: u64::from(e.bytes),
+                },
+            )
+        }),
+        verify,
+    )?;
+    Ok((bodies, index))
 }
 
 /// Maps a pack read-only. An empty file cannot be mapped and needs no map.
@@ -341,7 +413,7 @@ pub fn check_output(out: &Path, force: bool) -> Result<(), WriteError> {
         return Ok(());
     }
     names.sort();
-    let ours = [MANIFEST_FILE, HEIGHTS_PACK, TEXTURES_PACK];
+    let ours = [MANIFEST_FILE, HEIGHTS_PACK, TEXTURES_PACK, PATCHES_PACK];
     let others: Vec<&String> = names
         .iter()
         .filter(|n| !ours.contains(&n.as_str()))
@@ -541,6 +613,24 @@ impl DbWriter {
             Pack::Textures => self.textures_written += bytes.len() as u64,
         }
         Ok(Blob::of(bytes))
+    }
+
+    /// Writes the quadtree patches' pack: the bodies in tile order, then the index.
+    pub fn add_patches(&mut self, bodies: &[Vec<u8>], index: &[u8]) -> Result<(), WriteError> {
+        use std::io::Write;
+        let path = self.tmp.path().join(PATCHES_PACK);
+        let io = |source| WriteError::Io {
+            path: path.clone(),
+            source,
+        };
+        let mut file = std::io::BufWriter::new(File::create(&path).map_err(io)?);
+        for body in bodies {
+            file.write_all(body).map_err(io)?;
+        }
+        file.write_all(index).map_err(io)?;
+        let file = file.into_inner().map_err(|e| io(e.into_error()))?;
+        file.sync_all().map_err(io)?;
+        Ok(())
     }
 
     /// Writes the manifest, syncs everything and renames the directory to its destination.

@@ -8,6 +8,7 @@
 pub mod heights;
 pub mod manifest;
 pub mod mask;
+pub mod quadtree;
 pub mod routes;
 pub mod tile;
 pub mod tile_blob;

@@ -48,6 +48,25 @@ pub struct Manifest {
     pub mask_levels: u32,
     /// The pyramid, level 0 (full resolution) first; the last level is one tile.
     pub levels: Vec<Level>,
+    /// The quadtree progressive patches ([`crate::quadtree`]), when the database was built
+    /// with them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub patches: Option<PatchesInfo>,
+}
+
+/// Where a database's quadtree patches are: one body per tile (a patch of the meta
+/// quadtree is a tile of the pyramid), in the manifest's tile order, then the index
+/// ([`crate::quadtree::encode_index`]), all in `patches.pack`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PatchesInfo {
+    /// Always [`crate::quadtree::FORMAT`].
+    pub format: String,
+    /// The world-space tolerance of the finest patches, metres.
+    pub tolerance_m: f64,
+    /// The index: per patch its hash, size, error and height bounds.
+    pub index: Blob,
+    /// Bytes of every body together (the index follows them in the pack).
+    pub bodies_bytes: u64,
 }
 
 /// One level of the pyramid: level `k` keeps every `2^k`-th sample of level 0.
@@ -448,6 +467,7 @@ impl Manifest {
             },
             texture,
             georeference: None,
+            patches: None,
             mask_levels: crate::mask::level_count(tile_size),
             levels,
         };
@@ -596,6 +616,9 @@ impl Manifest {
                 text.push(' ');
                 text.push_str(&tile.hash);
             }
+        }
+        if let Some(p) = &self.patches {
+            text.push_str(&format!(" patches {}", p.index.hash));
         }
         content_hash(text.as_bytes())[..16].to_string()
     }

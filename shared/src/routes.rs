@@ -21,6 +21,19 @@ pub fn heights(content_version: &str, id: TileId) -> String {
     )
 }
 
+/// Path of the quadtree patch of tile `id` ([`crate::quadtree`]).
+pub fn patch(content_version: &str, id: TileId) -> String {
+    format!(
+        "{API_PREFIX}/{content_version}/levels/{}/tiles/{}/{}/patch",
+        id.level, id.x, id.y
+    )
+}
+
+/// Path of the patch index.
+pub fn patch_index(content_version: &str) -> String {
+    format!("{API_PREFIX}/{content_version}/patches/index")
+}
+
 /// Path of one texture level (0 = coarsest) of one tile.
 pub fn texture(content_version: &str, id: TileId, level: u32) -> String {
     format!(

@@ -21,6 +21,7 @@
 
 pub mod input;
 pub mod levels;
+pub mod patches;
 pub mod texture;
 pub mod tiles;
 pub mod voids;
@@ -112,6 +113,15 @@ pub struct BuildArgs {
     /// zstd level for heights (1-22); decoding speed does not depend on it.
     #[arg(long, default_value_t = heights::DEFAULT_ZSTD_LEVEL, value_parser = clap::value_parser!(i32).range(1..=22))]
     pub zstd_level: i32,
+    /// Also build the quadtree progressive patches (`--method quadtree-patches`): an
+    /// adaptive triangulation per tile with a guaranteed error, stored beside the tiles.
+    /// Holds the whole raster in memory while it runs.
+    #[arg(long)]
+    pub patches: bool,
+    /// World-space tolerance of the finest patches, metres (0 keeps every sample that is
+    /// not on a plane with its neighbours).
+    #[arg(long, default_value_t = 0.0, requires = "patches")]
+    pub patch_tolerance: f64,
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
@@ -143,6 +153,8 @@ pub struct BuildOptions {
     pub texture_size: Option<u32>,
     pub jpeg_quality: u8,
     pub zstd_level: i32,
+    /// The quadtree patches' tolerance (metres), when they are built.
+    pub patches: Option<f64>,
 }
 
 /// Where the texture comes from.
@@ -175,6 +187,7 @@ impl BuildOptions {
             texture_size: None,
             jpeg_quality: texture::DEFAULT_JPEG_QUALITY,
             zstd_level: heights::DEFAULT_ZSTD_LEVEL,
+            patches: None,
         }
     }
 
@@ -219,6 +232,7 @@ impl BuildOptions {
             texture_size: args.texture_size,
             jpeg_quality: args.jpeg_quality,
             zstd_level: args.zstd_level,
+            patches: args.patches.then_some(args.patch_tolerance),
             ..BuildOptions::new(&args.heights, out)
         })
     }
@@ -474,7 +488,11 @@ pub fn build(
     let mut writer = DbWriter::create(&options.out, options.force)?;
     let mut pyramid = Pyramid::new(RasterSize { width, height }, context, progress, cancel);
     let mut rows = heights_input.rows;
+    let mut whole: Vec<i32> = Vec::new();
     while let Some(row) = rows.next_row()? {
+        if options.patches.is_some() {
+            whole.extend_from_slice(row);
+        }
         pyramid.push_row(row, &mut writer)?;
     }
     drop(rows);
@@ -518,7 +536,32 @@ pub fn build(
         georeference,
         mask_levels: mask::level_count(n),
         levels: built.levels,
+        patches: None,
     };
+    if let Some(tolerance_m) = options.patches {
+        if !(tolerance_m.is_finite() && tolerance_m >= 0.0) {
+            return Err(BuildError::BadOption(format!(
+                "--patch-tolerance {tolerance_m} must be a finite number of metres, 0 or more"
+            )));
+        }
+        let made = patches::build(
+            &whole,
+            &manifest,
+            tolerance_m,
+            options.zstd_level,
+            progress,
+            cancel,
+        )?;
+        drop(whole);
+        let index = terrain_shared::quadtree::encode_index(&made.entries);
+        writer.add_patches(&made.bodies, &index)?;
+        manifest.patches = Some(manifest::PatchesInfo {
+            format: terrain_shared::quadtree::FORMAT.into(),
+            tolerance_m,
+            index: terrain_shared::Blob::of(&index),
+            bodies_bytes: made.bodies.iter().map(|b| b.len() as u64).sum(),
+        });
+    }
     manifest.content_version = manifest.compute_content_version();
     if cancel.load(Ordering::Relaxed) {
         return Err(BuildError::Cancelled);
