@@ -249,6 +249,10 @@ pub struct ErrorCapArgs {
     /// (the paper's plain budget sharing).
     #[arg(long)]
     pub no_error_cap: bool,
+    /// Quadtree patches: switch levels at once instead of geomorphing (and blending
+    /// textures) between them.
+    #[arg(long)]
+    pub no_morph: bool,
 }
 
 impl Default for ErrorCapArgs {
@@ -256,6 +260,7 @@ impl Default for ErrorCapArgs {
         ErrorCapArgs {
             max_error_px: DEFAULT_MAX_ERROR_PX,
             no_error_cap: false,
+            no_morph: false,
         }
     }
 }
@@ -274,6 +279,7 @@ impl ErrorCapArgs {
             height,
             max_error_px: self.max_error_px,
             cap_at_needed: !self.no_error_cap,
+            geomorph: !self.no_morph,
         })
     }
 }

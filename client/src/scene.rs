@@ -732,7 +732,11 @@ impl Scene {
                     })
                 })
         });
-        self.in_flight.iter().all(|f| !f) && textures_done
+        let method_done = self
+            .rendering
+            .as_ref()
+            .is_none_or(|r| r.data_pending.is_empty() && r.method.settled());
+        self.in_flight.iter().all(|f| !f) && textures_done && method_done
     }
 
     /// Height of the true surface at world point `(x, y)` (metres), as full resolution

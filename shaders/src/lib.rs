@@ -16,6 +16,25 @@ pub const TERRAIN: &str = include_str!("terrain.wgsl");
 /// The projected grids' WGSL source: persistent grid mapping and the error-bounded
 /// projective grid, with its ray-casting pass.
 pub const GRID: &str = include_str!("grid.wgsl");
+/// The quadtree patches' shader.
+pub const PATCHES: &str = include_str!("patches.wgsl");
+
+/// Entry points of [`PATCHES`].
+pub mod patch_entry {
+    pub const VERTEX: &str = "vs_patch";
+    pub const FRAGMENT: &str = "fs_patch";
+}
+
+/// Mirror of `Patch` in `patches.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PatchUniform {
+    pub origin: [f32; 4],
+    pub spacing: [f32; 4],
+    pub uv: [f32; 4],
+    pub parent_uv: [f32; 4],
+    pub blend: [f32; 4],
+}
 
 /// Entry points of [`GRID`].
 pub mod grid_entry {

@@ -11,5 +11,6 @@ mod hostile;
 mod http;
 mod levels;
 mod methods;
+mod patches;
 mod render;
 mod round_trip;

@@ -169,7 +169,7 @@ impl std::fmt::Display for Knob {
 /// The knobs `method` is swept over with `args`.
 pub fn knobs(method: MethodKind, args: &AccuracyArgs) -> Vec<Knob> {
     match method {
-        MethodKind::Geomipmap => args
+        MethodKind::Geomipmap | MethodKind::QuadtreePatches => args
             .max_errors_px
             .iter()
             .map(|&e| Knob::MaxErrorPx(e))
@@ -387,6 +387,9 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         reference_ms.push(report.draw_ms);
         for config in configs(args) {
             let render = config.render(base);
+            session
+                .prepare(centre, camera, render, Duration::from_secs(120))
+                .await?;
             let measured =
                 session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
             if i + 1 == cameras.len() {
@@ -416,6 +419,9 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             .collect::<Result<Vec<_>, FlightError>>()?;
         for config in configs(args) {
             let render = config.render(base);
+            session
+                .prepare(centre, &slow[0], render, Duration::from_secs(120))
+                .await?;
             let frames = slow
                 .iter()
                 .map(|camera| Ok(session.capture(camera, render)?.0))

@@ -161,6 +161,20 @@ impl Session {
         }
     }
 
+    /// Switches to `config` and, if its method wants data of its own (the quadtree
+    /// patches), updates at `position` until it has it (see [`Session::settle`]); a method
+    /// built anew asks for its data again.
+    pub async fn prepare(
+        &mut self,
+        position: [f64; 3],
+        camera: &Camera,
+        config: RenderConfig,
+        timeout: Duration,
+    ) -> Result<bool, FlightError> {
+        self.reconfigure(config);
+        self.settle(position, camera, timeout).await
+    }
+
     /// Draws the frame seen from `camera` with the session's current configuration.
     pub fn draw(&mut self, camera: &Camera) -> Option<DrawReport> {
         self.scene.draw(&self.target.view, camera, Instant::now())

@@ -67,6 +67,8 @@ pub struct LodSettings {
     /// needs: what it would not use goes to the other tiles (model no more than the scene
     /// needs: a flat tile draws its coarsest mask).
     pub cap_at_needed: bool,
+    /// Whether methods that can morph between levels do (the quadtree patches).
+    pub geomorph: bool,
 }
 
 /// Default of [`LodSettings::max_error_px`], pixels.
@@ -79,6 +81,7 @@ impl Default for LodSettings {
             height: HeightMeasure::default(),
             max_error_px: DEFAULT_MAX_ERROR_PX,
             cap_at_needed: true,
+            geomorph: true,
         }
     }
 }

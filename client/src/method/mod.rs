@@ -24,6 +24,7 @@ pub mod atlas;
 pub mod fillers;
 pub mod geomipmap;
 pub mod projected_grid;
+pub mod quadtree_patches;
 pub mod strip_masks;
 
 pub use fillers::CrackFiller;
@@ -188,6 +189,12 @@ pub trait LodMethod: std::fmt::Debug + Send {
         Vec::new()
     }
 
+    /// Whether it holds everything it wants of the resident tiles, with nothing in the
+    /// making: what the accuracy measures wait for, with the tiles.
+    fn settled(&self) -> bool {
+        true
+    }
+
     /// A piece of data it wanted arrived, hash-checked.
     fn data_arrived(&mut self, _gpu: &Gpu, _id: TileId, _key: u32, _bytes: Bytes) {}
 
@@ -236,6 +243,11 @@ pub enum MethodKind {
     /// cells on the ground, its error from min/max pyramids, rays cast where it passes
     /// `--max-error-px`. Knobs: `--grid`, `--max-error-px`.
     ProjectiveGrid,
+    /// Quadtree progressive patches (Yusov and Turlapov 2007): per tile an adaptive
+    /// triangulation with a guaranteed world-space error, streamed coarse to fine, drawn
+    /// where its projected error is within `--max-error-px`, geomorphed (`--no-morph` to
+    /// turn off). Needs a database built with `--patches`.
+    QuadtreePatches,
 }
 
 impl MethodKind {
@@ -246,6 +258,7 @@ impl MethodKind {
             MethodKind::Geomipmap => "geomipmap",
             MethodKind::Pgm => "pgm",
             MethodKind::ProjectiveGrid => "projective-grid",
+            MethodKind::QuadtreePatches => "quadtree-patches",
         }
     }
 
@@ -262,7 +275,8 @@ impl MethodKind {
             MethodKind::StripMasks
             | MethodKind::Reference
             | MethodKind::Pgm
-            | MethodKind::ProjectiveGrid => terrain_shared::mask::level_count(tile_size) - 1,
+            | MethodKind::ProjectiveGrid
+            | MethodKind::QuadtreePatches => terrain_shared::mask::level_count(tile_size) - 1,
         }
     }
 
@@ -292,6 +306,9 @@ pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
         MethodKind::Geomipmap => Box::new(geomipmap::GeoMipMaps::new(config, with)),
         MethodKind::Pgm | MethodKind::ProjectiveGrid => {
             Box::new(projected_grid::ProjectedGrid::new(config, with))
+        }
+        MethodKind::QuadtreePatches => {
+            Box::new(quadtree_patches::QuadtreePatches::new(config, with))
         }
     }
 }

@@ -47,6 +47,9 @@ pub enum HttpError {
     UnknownContentVersion { requested: String, current: String },
     #[error("no such route")]
     NoRoute,
+    /// The database was built without quadtree patches.
+    #[error("this database has no quadtree patches: build it with `terrain-server build --patches`")]
+    NoPatches,
     #[error("method not allowed: this API only answers GET and HEAD")]
     MethodNotAllowed,
     /// Load shedding: the concurrency limit is reached, and waiting in a queue would only
@@ -69,7 +72,8 @@ impl HttpError {
             | HttpError::NoSuchLevel { .. }
             | HttpError::NoSuchTextureLevel { .. }
             | HttpError::UnknownContentVersion { .. }
-            | HttpError::NoRoute => StatusCode::NOT_FOUND,
+            | HttpError::NoRoute
+            | HttpError::NoPatches => StatusCode::NOT_FOUND,
             HttpError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             // 503 rather than 408 for a timeout: 408 says the *client* was too slow to send
             // its request, while here the server was too slow to answer it.

@@ -105,6 +105,8 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
         .route(MANIFEST, get(routes::manifest))
         .route(&routes::heights_template(), get(routes::heights))
         .route(&routes::texture_template(), get(routes::texture))
+        .route(&routes::patch_template(), get(routes::patch))
+        .route(&routes::patch_index_template(), get(routes::patch_index))
         .route(&routes::legacy_heights_template(), get(routes::legacy_tile))
         .route(&routes::legacy_texture_template(), get(routes::legacy_tile));
     #[cfg(feature = "test-hooks")]

@@ -48,6 +48,25 @@ pub fn texture_template() -> String {
     format!("{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/texture/{{mip}}")
 }
 
+/// axum route template of [`terrain_shared::routes::patch`].
+pub fn patch_template() -> String {
+    format!("{API_PREFIX}/{{content_version}}/levels/{{level}}/tiles/{{x}}/{{y}}/patch")
+}
+
+/// axum route template of [`terrain_shared::routes::patch_index`].
+pub fn patch_index_template() -> String {
+    format!("{API_PREFIX}/{{content_version}}/patches/index")
+}
+
+/// Content type of a quadtree patch body and of the patch index
+/// (`terrain_shared::quadtree`).
+pub const PATCH_CONTENT_TYPE: &str = "application/vnd.terrain.patch";
+
+#[derive(Debug, serde::Deserialize)]
+pub(super) struct IndexPath {
+    content_version: String,
+}
+
 /// The level-0 spelling of the single-level API, answered with a permanent redirect to
 /// [`heights_template`] at level 0.
 pub fn legacy_heights_template() -> String {
@@ -184,6 +203,46 @@ pub(super) async fn heights(
     ))
 }
 
+pub(super) async fn patch(
+    State(state): State<Arc<AppState>>,
+    uri: Uri,
+    path: Result<Path<HeightsPath>, PathRejection>,
+    conditional: Conditional,
+) -> Result<Response, HttpError> {
+    check_canonical(&uri, PATCH_SPELLING)?;
+    let Path(path) = path.map_err(malformed_path)?;
+    let id = parse_tile(&path.level, &path.x, &path.y)?;
+    state.check_content_version(&path.content_version)?;
+    state.check_in_grid(id)?;
+    let blob = state.db.patch(id).ok_or(HttpError::NoPatches)?;
+    Ok(entity(
+        &conditional,
+        &blob.bytes,
+        blob.etag.as_ref(),
+        PATCH_CONTENT_TYPE,
+        TILE_CACHE_CONTROL,
+    ))
+}
+
+pub(super) async fn patch_index(
+    State(state): State<Arc<AppState>>,
+    uri: Uri,
+    path: Result<Path<IndexPath>, PathRejection>,
+    conditional: Conditional,
+) -> Result<Response, HttpError> {
+    check_canonical(&uri, PATCH_INDEX_SPELLING)?;
+    let Path(path) = path.map_err(malformed_path)?;
+    state.check_content_version(&path.content_version)?;
+    let blob = state.db.patch_index().ok_or(HttpError::NoPatches)?;
+    Ok(entity(
+        &conditional,
+        &blob.bytes,
+        blob.etag.as_ref(),
+        PATCH_CONTENT_TYPE,
+        TILE_CACHE_CONTROL,
+    ))
+}
+
 pub(super) async fn texture(
     State(state): State<Arc<AppState>>,
     uri: Uri,
@@ -311,6 +370,9 @@ fn entity(
 
 const HEIGHTS_SPELLING: &str =
     "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/heights, plain digits, no query";
+const PATCH_SPELLING: &str =
+    "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/patch, plain digits, no query";
+const PATCH_INDEX_SPELLING: &str = "/v1/{content_version}/patches/index, no query";
 const TEXTURE_SPELLING: &str =
     "/v1/{content_version}/levels/{level}/tiles/{x}/{y}/texture/{mip}, plain digits, no query";
 

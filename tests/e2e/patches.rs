@@ -1,0 +1,219 @@
+//! The quadtree progressive patches against a real server: the routes, golden images on
+//! jacksboro, the guarantee on the Puget Sound and himalaya_4097 sweeps, geomorphing
+//! against popping.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use terrain_client::eval::accuracy::{self, AccuracyArgs};
+use terrain_client::eval::session::Session;
+use terrain_client::lod::budget::BudgetMode;
+use terrain_client::method::MethodKind;
+use terrain_client::render::Camera;
+use terrain_client::scene::RenderConfig;
+use terrain_server::build::{BuildOptions, build};
+use terrain_tests::data::{jacksboro, kit_file};
+use terrain_tests::golden;
+use terrain_tests::server::TestServer;
+
+const WIDTH: u32 = 320;
+const HEIGHT: u32 = 240;
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime")
+}
+
+/// Builds `input` into `dir/db` with the quadtree patches (tolerance 0).
+fn build_with_patches(input: &Path, dir: &Path) -> PathBuf {
+    let options = BuildOptions {
+        patches: Some(0.0),
+        ..BuildOptions::new(input, dir.join("db"))
+    };
+    build(&options, &|_, _| {}, &std::sync::atomic::AtomicBool::new(false))
+        .expect("builds")
+        .out
+}
+
+/// The index and every body are served with immutable, content-versioned URLs and strong
+/// entity tags; a database without patches answers 404 with the way to build them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_serves_the_patches_and_says_when_there_are_none() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_with_patches(&jacksboro(), tmp.path());
+    let server = TestServer::start(&db);
+    let client = reqwest::Client::new();
+    let get = |path: String| {
+        let client = client.clone();
+        let url = format!("{}{path}", server.base_url());
+        async move { client.get(url).send().await.expect("answer") }
+    };
+    let manifest = get(terrain_shared::routes::MANIFEST.to_string()).await;
+    let manifest =
+        terrain_shared::Manifest::from_json(&manifest.bytes().await.expect("body")).expect("manifest");
+    let info = manifest.patches.clone().expect("the manifest lists the patches");
+    let cv = manifest.content_version.clone();
+    let index = get(terrain_shared::routes::patch_index(&cv)).await;
+    assert_eq!(index.status(), 200);
+    assert!(index.headers()["cache-control"].to_str().unwrap().contains("immutable"));
+    let index = index.bytes().await.expect("body");
+    assert_eq!(terrain_shared::manifest::content_hash(&index), info.index.hash);
+    let entries =
+        terrain_shared::quadtree::decode_index(&index, manifest.tile_count()).expect("decodes");
+    for ((id, _), entry) in manifest.tiles().zip(&entries) {
+        let body = get(terrain_shared::routes::patch(&cv, id)).await;
+        assert_eq!(body.status(), 200, "{id}");
+        assert_eq!(
+            body.headers()["etag"].to_str().unwrap(),
+            format!("\"{}\"", entry.hash_hex())
+        );
+        assert_eq!(body.bytes().await.expect("bytes").len() as u32, entry.bytes);
+    }
+    // The same database without patches.
+    let plain = terrain_tests::data::build_jacksboro(&tmp.path().join("plain"));
+    let server = TestServer::start(&plain.out);
+    let cv = &plain.manifest.content_version;
+    let refused = client
+        .get(format!(
+            "{}{}",
+            server.base_url(),
+            terrain_shared::routes::patch_index(cv)
+        ))
+        .send()
+        .await
+        .expect("answer");
+    assert_eq!(refused.status(), 404);
+    let text = refused.text().await.expect("text");
+    assert!(text.contains("--patches"), "{text}");
+}
+
+/// Two views of jacksboro, as the other methods' golden images.
+fn cameras(extent: [f64; 2]) -> Vec<(&'static str, Camera)> {
+    vec![
+        (
+            "across",
+            Camera::looking_at(
+                [-0.1 * extent[0], 1.1 * extent[1], 9000.0],
+                [0.5 * extent[0], 0.5 * extent[1], 300.0],
+            ),
+        ),
+        (
+            "low",
+            Camera::new([0.3 * extent[0], 0.7 * extent[1], 900.0], -0.6, -0.25),
+        ),
+    ]
+}
+
+/// Golden images of the patches on jacksboro, each frame within the guarantee against the
+/// full-resolution reference drawn in the same session, with morphing on and off.
+#[test]
+fn quadtree_patches_over_jacksboro_match_their_golden_images() {
+    let test = "patches::quadtree_patches_over_jacksboro_match_their_golden_images";
+    if golden::gpu(test).is_none() {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_with_patches(&jacksboro(), tmp.path());
+    let server = TestServer::start(&db);
+    runtime().block_on(async {
+        let config = RenderConfig {
+            budget: BudgetMode::Fixed(u32::MAX),
+            ..RenderConfig::default()
+        };
+        let mut session = Session::open(server.base_url(), None, config, (WIDTH, HEIGHT))
+            .await
+            .expect("session");
+        let extent = session.manifest.extent_m;
+        for (view, camera) in cameras(extent) {
+            let centre = session.centre();
+            assert!(session.settle(centre, &camera, Duration::from_secs(120)).await.expect("loads"));
+            let (reference, _) = session.reference(&camera).expect("reference");
+            for geomorph in [true, false] {
+                let mut render = RenderConfig {
+                    method: MethodKind::QuadtreePatches,
+                    ..config
+                };
+                render.lod.geomorph = geomorph;
+                assert!(
+                    session
+                        .prepare(centre, &camera, render, Duration::from_secs(120))
+                        .await
+                        .expect("patches load")
+                );
+                let measured = session.measure(&camera, render, &reference, 1.0, 1).expect("measured");
+                let m = &measured.measures;
+                let name = format!(
+                    "jacksboro-quadtree-patches-{view}{}",
+                    if geomorph { "" } else { "-no-morph" }
+                );
+                eprintln!(
+                    "{name}: {} triangles, error mean {:.3} / p99 {:.2} / max {:.2} px, {} crack px, {} holes, PSNR {:.1} dB",
+                    measured.report.stats.triangles,
+                    m.error.mean_px,
+                    m.error.p99_px,
+                    m.error.max_px,
+                    m.crack_pixels,
+                    m.hole_pixels,
+                    m.psnr_db,
+                );
+                assert!(measured.report.stats.triangles > 0, "{name}: drew nothing");
+                assert!(m.error.terrain_pixels > u64::from(WIDTH * HEIGHT / 8), "{name}: the terrain is in view");
+                assert!(m.error.p99_px <= 1.0, "{name}: p99 {} px", m.error.p99_px);
+                assert_eq!(m.hole_pixels, 0, "{name}: the flanges leave no hole");
+                golden::compare(&name, &measured.capture.color);
+            }
+        }
+        session.close();
+    });
+}
+
+/// The guarantee (Yusov and Turlapov, section 3.7): at a tolerance of 1 px, the 99th
+/// percentile of the screen-space error stays within 1 px on every camera of the sweep;
+/// the maximum is printed beside the reference's own (the measure's floor).
+fn guarantee_holds_over(test: &str, relative: &str) {
+    let Some(input) = kit_file(test, relative) else {
+        return;
+    };
+    let Some(_) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_with_patches(&input, tmp.path());
+    let server = TestServer::start(&db);
+    let mut args = AccuracyArgs {
+        max_errors_px: vec![1.0],
+        repeats: 1,
+        popping_frames: 0,
+        ..AccuracyArgs::new(server.base_url(), tmp.path().join("acc"))
+    };
+    args.variants.methods = vec![MethodKind::QuadtreePatches];
+    let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+    assert_eq!(report.rows.len(), 8);
+    for (row, floor) in report.rows.iter().zip(&report.reference_errors) {
+        let m = &row.measured;
+        let e = &m.measures.error;
+        println!(
+            "camera {}: p99 {:.3} px, max {:.3} px (the reference's own max {:.3}), mean {:.4} px, {} triangles, {} holes",
+            row.camera, e.p99_px, e.max_px, floor.max_px, e.mean_px, m.report.stats.triangles, m.measures.hole_pixels,
+        );
+        assert!(m.report.stats.triangles > 0, "camera {}: drew nothing", row.camera);
+        assert!(e.p99_px <= 1.0, "camera {}: {e:?}", row.camera);
+    }
+}
+
+#[test]
+fn quadtree_patches_keep_p99_within_a_pixel_over_puget_sound() {
+    guarantee_holds_over(
+        "patches::quadtree_patches_keep_p99_within_a_pixel_over_puget_sound",
+        "puget_sound_1k/ps_height_1k.png",
+    );
+}
+
+#[test]
+fn quadtree_patches_keep_p99_within_a_pixel_over_himalaya() {
+    guarantee_holds_over(
+        "patches::quadtree_patches_keep_p99_within_a_pixel_over_himalaya",
+        "himalaya_4097/g10g_himalaya_4097.png",
+    );
+}
