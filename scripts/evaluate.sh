@@ -49,7 +49,7 @@ mkdir -p "$docs"
 
 # serve NAME INPUT: builds INPUT and serves it; sets $url.
 serve() {
-  "$bin/terrain-server" build "$2" --out "$work/$1" >"$work/$1.build.log" 2>&1
+  "$bin/terrain-server" build "$2" --out "$work/$1" --patches >"$work/$1.build.log" 2>&1
   "$bin/terrain-server" serve "$work/$1" --addr 127.0.0.1:0 >"$work/$1.stdout" 2>"$work/$1.log" &
   pids+=($!)
   url=
@@ -82,26 +82,30 @@ if [ -n "${TERRAIN_DATA_DIR:-}" ]; then
   serve himalaya_4097 "$kit/himalaya_4097/g10g_himalaya_4097.png"
   data+=(--data "himalaya_4097=$url")
   "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget" \
-    --methods strip-masks,geomipmap,pgm,projective-grid \
+    --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches \
     | tee "$work/accuracy-puget.txt"
+  # The quadtree patches without geomorphing, for the popping figure with it on and off.
+  "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget-no-morph" \
+    --methods quadtree-patches --no-morph --label "puget_sound_1k, no morphing" \
+    | tee "$work/accuracy-puget-no-morph.txt"
   # The projected grids' paper tables, on the papers' own flight area.
   "$bin/terrain-client" bench grids --server "$puget" --out "$docs/grids" --cameras 3 \
     | tee "$work/grids.txt"
 fi
 "$bin/terrain-client" bench accuracy --server "$jacksboro" --out "$docs/accuracy-jacksboro" \
-  --methods strip-masks,geomipmap,pgm,projective-grid \
+  --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches \
   | tee "$work/accuracy-jacksboro.txt"
 for own in "$@"; do
   name=${own%%=*}
   serve "$name" "${own#*=}"
   data+=(--data "$name=$url")
   "$bin/terrain-client" bench accuracy --server "$url" --out "$docs/accuracy-$name" \
-    --methods strip-masks,geomipmap,pgm,projective-grid --label "$name" \
+    --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches --label "$name" \
     | tee "$work/accuracy-$name.txt"
   own_sections+=("$name")
 done
 "$bin/terrain-client" bench stability --server "$primary" "${data[@]}" --out "$docs/stability" \
-  --methods strip-masks,geomipmap,pgm,projective-grid \
+  --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches \
   | tee "$work/stability.txt"
 
 fi
@@ -214,6 +218,23 @@ EOF
       echo "![$chart on the GPU](evaluation-h100/$chart.png)"
       echo
     done
+  fi
+  if [ -f "$docs/accuracy-puget-no-morph/accuracy.csv" ]; then
+    echo "## Quadtree patches: popping with geomorphing on and off"
+    echo
+    echo "The Puget Sound sweep's quadtree patches again with \`--no-morph\` (levels switch at once, at"
+    echo "the threshold, and textures do not blend). Popping is the measure above, per setting of the"
+    echo "tolerance: the method's frame-to-frame change minus the reference's, colour mean and depth"
+    echo "99th percentile (%)."
+    echo
+    echo "| tolerance (px) | morphing: colour / depth p99 (%) | no morphing: colour / depth p99 (%) | triangles on / off |"
+    echo "|---:|---:|---:|---:|"
+    paste -d'|' <(grep '^| quadtree-patches ' "$docs/accuracy-puget/summary.md") \
+      <(grep '^| quadtree-patches ' "$docs/accuracy-puget-no-morph/summary.md") |
+      awk -F"|" '{ printf "| %s | %s | %s | %s / %s |\n", $3, $20, $42, $4, $26 }'
+    echo
+    echo "![popping without morphing](evaluation/accuracy-puget-no-morph/popping.png)"
+    echo
   fi
   if [ -f "$docs/grids/grids.md" ]; then
     echo "## The projected grids' paper tables"

@@ -665,6 +665,9 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     )
     .await?;
     let manifest = Arc::clone(&connection.manifest);
+    if let Some(config) = &render_config {
+        crate::method::check_database(config.method, &manifest).map_err(FlightError::BadOption)?;
+    }
     let path = match &args.flight {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),

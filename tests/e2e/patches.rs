@@ -31,9 +31,13 @@ fn build_with_patches(input: &Path, dir: &Path) -> PathBuf {
         patches: Some(0.0),
         ..BuildOptions::new(input, dir.join("db"))
     };
-    build(&options, &|_, _| {}, &std::sync::atomic::AtomicBool::new(false))
-        .expect("builds")
-        .out
+    build(
+        &options,
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .expect("builds")
+    .out
 }
 
 /// The index and every body are served with immutable, content-versioned URLs and strong
@@ -50,22 +54,33 @@ async fn the_server_serves_the_patches_and_says_when_there_are_none() {
         async move { client.get(url).send().await.expect("answer") }
     };
     let manifest = get(terrain_shared::routes::MANIFEST.to_string()).await;
-    let manifest =
-        terrain_shared::Manifest::from_json(&manifest.bytes().await.expect("body")).expect("manifest");
-    let info = manifest.patches.clone().expect("the manifest lists the patches");
+    let manifest = terrain_shared::Manifest::from_json(&manifest.bytes().await.expect("body"))
+        .expect("manifest");
+    let info = manifest
+        .patches
+        .clone()
+        .expect("the manifest lists the patches");
     let cv = manifest.content_version.clone();
     let index = get(terrain_shared::routes::patch_index(&cv)).await;
     assert_eq!(index.status(), 200);
-    assert!(index.headers()["cache-control"].to_str().unwrap().contains("immutable"));
+    assert!(
+        index.headers()["cache-control"]
+            .to_str()
+            .expect("ascii")
+            .contains("immutable")
+    );
     let index = index.bytes().await.expect("body");
-    assert_eq!(terrain_shared::manifest::content_hash(&index), info.index.hash);
+    assert_eq!(
+        terrain_shared::manifest::content_hash(&index),
+        info.index.hash
+    );
     let entries =
         terrain_shared::quadtree::decode_index(&index, manifest.tile_count()).expect("decodes");
     for ((id, _), entry) in manifest.tiles().zip(&entries) {
         let body = get(terrain_shared::routes::patch(&cv, id)).await;
         assert_eq!(body.status(), 200, "{id}");
         assert_eq!(
-            body.headers()["etag"].to_str().unwrap(),
+            body.headers()["etag"].to_str().expect("ascii"),
             format!("\"{}\"", entry.hash_hex())
         );
         assert_eq!(body.bytes().await.expect("bytes").len() as u32, entry.bytes);
@@ -195,9 +210,19 @@ fn guarantee_holds_over(test: &str, relative: &str) {
         let e = &m.measures.error;
         println!(
             "camera {}: p99 {:.3} px, max {:.3} px (the reference's own max {:.3}), mean {:.4} px, {} triangles, {} holes",
-            row.camera, e.p99_px, e.max_px, floor.max_px, e.mean_px, m.report.stats.triangles, m.measures.hole_pixels,
+            row.camera,
+            e.p99_px,
+            e.max_px,
+            floor.max_px,
+            e.mean_px,
+            m.report.stats.triangles,
+            m.measures.hole_pixels,
         );
-        assert!(m.report.stats.triangles > 0, "camera {}: drew nothing", row.camera);
+        assert!(
+            m.report.stats.triangles > 0,
+            "camera {}: drew nothing",
+            row.camera
+        );
         assert!(e.p99_px <= 1.0, "camera {}: {e:?}", row.camera);
     }
 }

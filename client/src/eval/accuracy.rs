@@ -335,6 +335,9 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         .ok_or_else(|| FlightError::BadOption("--server (or --data NAME=URL) is needed".into()))?;
     let mut session = Session::open(server, None, base, args.size).await?;
     let manifest = std::sync::Arc::clone(&session.manifest);
+    for &method in &args.variants.methods {
+        crate::method::check_database(method, &manifest).map_err(FlightError::BadOption)?;
+    }
     let path = match &args.flight {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),

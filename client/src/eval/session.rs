@@ -73,8 +73,12 @@ pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
         .map(|(_, t)| expected_tile_bytes(manifest, t, copies).total() + finer_rgba)
         .sum::<u64>()
         + finer_encoded
-        // The projected grids' atlas slot per tile, the most any method holds beside it.
+        // The projected grids' atlas slot per tile, and the quadtree patches: what methods
+        // hold beside the tiles.
         + manifest.tile_count() as u64 * crate::method::atlas::slot_bytes_for(manifest)
+        + manifest.patches.as_ref().map_or(0, |p| {
+            crate::method::quadtree_patches::expected_bytes(p.bodies_bytes)
+        })
 }
 
 impl Session {

@@ -705,6 +705,7 @@ async fn run_one(
         args.memory.0.min(database / 4 * 3)
     };
     let mut session = Session::open(server, Some(limit), config, args.size).await?;
+    crate::method::check_database(method, &session.manifest).map_err(FlightError::BadOption)?;
     let cams = cameras(scenario.kind, &session.manifest, args.frames);
     let mut times = Vec::new();
     let (mut peak, mut held) = (0, 0);
@@ -753,6 +754,10 @@ async fn run_one(
         (reference, measured)
     } else {
         let (reference, _) = session.reference(&last)?;
+        // A method with data of its own asks for it again after the reference's frame.
+        session
+            .prepare(last.position, &last, frozen, Duration::from_secs(20))
+            .await?;
         let measured = session.measure(&last, frozen, &reference, 1.0, 1)?;
         (reference, measured)
     };

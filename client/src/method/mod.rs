@@ -296,6 +296,18 @@ impl MethodKind {
     }
 }
 
+/// Whether `manifest`'s database holds what `kind` needs: the quadtree patches need a
+/// database built with `--patches`. The error says how to get one.
+pub fn check_database(kind: MethodKind, manifest: &Manifest) -> Result<(), String> {
+    if kind == MethodKind::QuadtreePatches && manifest.patches.is_none() {
+        return Err(format!(
+            "--method quadtree-patches needs a database with quadtree patches, and {:?} has none: build it with `terrain-server build --patches`",
+            manifest.dataset
+        ));
+    }
+    Ok(())
+}
+
 /// Builds the method `config.kind`.
 pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
     match config.kind {

@@ -148,10 +148,26 @@ impl QuadtreePatches {
             immediate_size: 0,
         });
         let attributes = [
-            wgpu::VertexAttribute { format: wgpu::VertexFormat::Float32x3, offset: 0, shader_location: 0 },
-            wgpu::VertexAttribute { format: wgpu::VertexFormat::Float32x3, offset: 12, shader_location: 1 },
-            wgpu::VertexAttribute { format: wgpu::VertexFormat::Float32, offset: 24, shader_location: 2 },
-            wgpu::VertexAttribute { format: wgpu::VertexFormat::Snorm8x4, offset: 28, shader_location: 3 },
+            wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32x3,
+                offset: 0,
+                shader_location: 0,
+            },
+            wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32x3,
+                offset: 12,
+                shader_location: 1,
+            },
+            wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32,
+                offset: 24,
+                shader_location: 2,
+            },
+            wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Snorm8x4,
+                offset: 28,
+                shader_location: 3,
+            },
         ];
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("patches"),
@@ -201,6 +217,9 @@ impl QuadtreePatches {
             mipmap_filter: wgpu::MipmapFilterMode::Linear,
             ..Default::default()
         });
+        if let Err(message) = super::check_database(config.kind, with.manifest) {
+            tracing::error!("{message}");
+        }
         let (jobs, work) = mpsc::channel::<Job>();
         let (sender, receiver) = mpsc::channel();
         // One worker: meshes are built off the render thread, in the order asked.
@@ -278,7 +297,10 @@ impl QuadtreePatches {
             .keys()
             .copied()
             .filter(|id| !self.building.contains(id) && !self.ready.contains_key(id))
-            .filter(|&id| self.parent_of(id).is_none_or(|p| self.ready.contains_key(&p)))
+            .filter(|&id| {
+                self.parent_of(id)
+                    .is_none_or(|p| self.ready.contains_key(&p))
+            })
             .collect();
         for id in startable {
             let Some(body) = self.bodies.get(&id).cloned() else {
@@ -313,21 +335,33 @@ impl QuadtreePatches {
             match made.result {
                 Ok((data, vertices, indices, triangles)) => {
                     use wgpu::util::DeviceExt;
-                    let v = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some("terrain/patch vertices"),
-                        contents: bytemuck::cast_slice(&vertices),
-                        usage: wgpu::BufferUsages::VERTEX,
-                    });
+                    let v = gpu
+                        .device
+                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                            label: Some("terrain/patch vertices"),
+                            contents: bytemuck::cast_slice(&vertices),
+                            usage: wgpu::BufferUsages::VERTEX,
+                        });
                     let (contents, index_count, format): (&[u8], u32, wgpu::IndexFormat) =
                         match &indices {
-                            Indices::U16(i) => (bytemuck::cast_slice(i), i.len() as u32, wgpu::IndexFormat::Uint16),
-                            Indices::U32(i) => (bytemuck::cast_slice(i), i.len() as u32, wgpu::IndexFormat::Uint32),
+                            Indices::U16(i) => (
+                                bytemuck::cast_slice(i),
+                                i.len() as u32,
+                                wgpu::IndexFormat::Uint16,
+                            ),
+                            Indices::U32(i) => (
+                                bytemuck::cast_slice(i),
+                                i.len() as u32,
+                                wgpu::IndexFormat::Uint32,
+                            ),
                         };
-                    let i = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some("terrain/patch indices"),
-                        contents,
-                        usage: wgpu::BufferUsages::INDEX,
-                    });
+                    let i = gpu
+                        .device
+                        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                            label: Some("terrain/patch indices"),
+                            contents,
+                            usage: wgpu::BufferUsages::INDEX,
+                        });
                     // A finest patch has no children to read against it: its heights go.
                     let data = if made.id.level == 0 {
                         Arc::new(PatchData {
@@ -377,6 +411,13 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
+/// What the method will hold for patch bodies of `body_bytes` (an upper estimate: a body
+/// spends about 2 bytes an active vertex, which becomes a vertex, its share of the
+/// triangles' 16-bit indices and of the flanges, and its decoded height).
+pub fn expected_bytes(body_bytes: u64) -> u64 {
+    body_bytes * (VERTEX_BYTES + 12 + 32) / 2
+}
+
 /// CPU bytes a decoded patch holds (its maps' entries, about).
 fn data_bytes(data: &PatchData) -> u64 {
     (data.nodes.len() * 32 + data.border.len() * 24 + data.cut.tree.nodes() / 8 + 64) as u64
@@ -402,7 +443,12 @@ fn surface_at(triangles: &[[[f32; 3]; 3]], p: [f32; 2]) -> Option<f32> {
 }
 
 /// A patch's triangles with positions (patch units) and heights (metres).
-fn placed(tree: Tree, far: [f32; 2], data: &PatchData, metres: impl Fn(i32) -> f32) -> Vec<[[f32; 3]; 3]> {
+fn placed(
+    tree: Tree,
+    far: [f32; 2],
+    data: &PatchData,
+    metres: impl Fn(i32) -> f32,
+) -> Vec<[[f32; 3]; 3]> {
     quadtree::triangulate(&data.cut)
         .iter()
         .map(|t| {
@@ -516,7 +562,16 @@ fn build_mesh(
             _ => ([x, y], h),
         };
         let index = (vertices.len() / 8) as u32;
-        vertices.extend_from_slice(&[x, y, h, target[0], target[1], th, f32::from(u8::from(flange)), 0.0]);
+        vertices.extend_from_slice(&[
+            x,
+            y,
+            h,
+            target[0],
+            target[1],
+            th,
+            f32::from(u8::from(flange)),
+            0.0,
+        ]);
         index
     };
     let mut indices = Vec::with_capacity(triangles.len() * 3);
@@ -556,7 +611,11 @@ fn build_mesh(
             [p[1][0] - p[0][0], p[1][1] - p[0][1], p[1][2] - p[0][2]],
             [p[2][0] - p[0][0], p[2][1] - p[0][1], p[2][2] - p[0][2]],
         );
-        let mut n = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+        let mut n = [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ];
         if n[1] < 0.0 {
             n = n.map(|c| -c);
         }
@@ -587,7 +646,11 @@ fn build_mesh(
         .flat_map(|(v, n)| {
             let length = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().max(1e-12);
             let packed = terrain_shaders::pack_normal(n.map(|c| (c / length) as f32));
-            v[..7].iter().map(|f| f.to_bits()).chain(std::iter::once(packed)).collect::<Vec<_>>()
+            v[..7]
+                .iter()
+                .map(|f| f.to_bits())
+                .chain(std::iter::once(packed))
+                .collect::<Vec<_>>()
         })
         .collect();
     let indices = if count <= usize::from(u16::MAX) + 1 {
@@ -656,12 +719,16 @@ impl LodMethod for QuadtreePatches {
             }
             // Coarse to fine: a body is read against its parent's patch.
             let parent_ready = self.parent_of(id).is_none_or(|p| {
-                self.ready.contains_key(&p) || self.bodies.contains_key(&p) || self.building.contains(&p)
+                self.ready.contains_key(&p)
+                    || self.bodies.contains_key(&p)
+                    || self.building.contains(&p)
             });
             if !parent_ready {
                 continue;
             }
-            let Some(entry) = self.entry(id) else { continue };
+            let Some(entry) = self.entry(id) else {
+                continue;
+            };
             let hash = entry.hash_hex();
             if self.asked.insert((id, BODY_KEY)) {
                 out.push(DataWant {
@@ -687,7 +754,9 @@ impl LodMethod for QuadtreePatches {
                 self.ready.contains_key(&id)
                     || self.refused.contains(&id)
                     || self.entry(id).is_none()
-                    || self.parent_of(id).is_some_and(|p| !self.resident.contains(&p))
+                    || self
+                        .parent_of(id)
+                        .is_some_and(|p| !self.resident.contains(&p))
             })
     }
 
@@ -720,7 +789,13 @@ impl LodMethod for QuadtreePatches {
         self.collect(&gpu);
         self.start_builds();
         let viewport = frame.viewport();
-        let ranked = plan::rank_visible(frame.camera(), viewport, input.layout, input.tiles, &self.lod);
+        let ranked = plan::rank_visible(
+            frame.camera(),
+            viewport,
+            input.layout,
+            input.tiles,
+            &self.lod,
+        );
         let camera = *frame.camera();
         let projection = plan::error_projection(&camera, viewport);
         let aspect = f64::from(viewport[0]) / f64::from(viewport[1].max(1));
@@ -751,14 +826,17 @@ impl LodMethod for QuadtreePatches {
             // (patch, its parent's projected error or None)
             let mut stack = vec![(root, None::<f64>)];
             while let Some((id, parent_error)) = stack.pop() {
-                let Some(e) = self.entry(id).copied() else { continue };
+                let Some(e) = self.entry(id).copied() else {
+                    continue;
+                };
                 let (lo, hi) = bounds(id, &e);
                 let lo_r = crate::render::Camera::to_render(glam::DVec3::from(lo) - eye);
                 let hi_r = crate::render::Camera::to_render(glam::DVec3::from(hi) - eye);
                 if !frustum.intersects_box(lo_r.min(hi_r), hi_r.max(lo_r)) {
                     continue;
                 }
-                let error_px = f64::from(e.error_m) * projection.pixels_per_metre(lo, hi, threshold);
+                let error_px =
+                    f64::from(e.error_m) * projection.pixels_per_metre(lo, hi, threshold);
                 let alpha = match parent_error {
                     Some(pe) if self.lod.geomorph => {
                         ((threshold - pe) / ((1.0 - MORPH_START) * threshold)).clamp(0.0, 1.0)
@@ -823,7 +901,10 @@ impl LodMethod for QuadtreePatches {
             // Each side's neighbour in the cut: (level difference, morph, error).
             let mut blend = [0.0f32; 4];
             let mut depth = own_error;
-            for (s, (dx, dy)) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)].into_iter().enumerate() {
+            for (s, (dx, dy)) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)]
+                .into_iter()
+                .enumerate()
+            {
                 let (nx, ny) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
                 let mut found = None;
                 if nx >= 0 && ny >= 0 {
@@ -850,10 +931,10 @@ impl LodMethod for QuadtreePatches {
                 blend[s] = value as f32;
                 depth = depth.max(own_error + neighbour_error);
             }
-            if d.alpha > 0.0 {
-                if let Some(p) = self.parent_of(id).and_then(|p| self.entry(p)) {
-                    depth += p.error_m;
-                }
+            if d.alpha > 0.0
+                && let Some(p) = self.parent_of(id).and_then(|p| self.entry(p))
+            {
+                depth += p.error_m;
             }
             let origin = [
                 f64::from(id.x) * span(id) - 0.5 - anchor[0],
@@ -863,7 +944,12 @@ impl LodMethod for QuadtreePatches {
             let parent_scale = own_scale / 2.0;
             let (qx, qy) = (f64::from(id.x % 2), f64::from(id.y % 2));
             let uniform = PatchUniform {
-                origin: [origin[0] as f32, origin[1] as f32, unit as f32, depth + 1e-3],
+                origin: [
+                    origin[0] as f32,
+                    origin[1] as f32,
+                    unit as f32,
+                    depth + 1e-3,
+                ],
                 spacing: [spacing[0] as f32, spacing[1] as f32, d.alpha as f32, 0.0],
                 uv: [
                     own_scale,
@@ -880,7 +966,8 @@ impl LodMethod for QuadtreePatches {
                 blend,
             };
             let at = k * UNIFORM_STRIDE as usize;
-            staged[at..at + size_of::<PatchUniform>()].copy_from_slice(bytemuck::bytes_of(&uniform));
+            staged[at..at + size_of::<PatchUniform>()]
+                .copy_from_slice(bytemuck::bytes_of(&uniform));
         }
         gpu.queue.write_buffer(uniforms, 0, &staged);
 
@@ -889,7 +976,9 @@ impl LodMethod for QuadtreePatches {
         {
             let tiles = frame.tiles();
             for d in &drawn {
-                let own = tiles.texture_of(d.id).map(|(t, _)| t.create_view(&Default::default()));
+                let own = tiles
+                    .texture_of(d.id)
+                    .map(|(t, _)| t.create_view(&Default::default()));
                 let parent = self
                     .parent_of(d.id)
                     .and_then(|p| tiles.texture_of(p))
@@ -899,32 +988,34 @@ impl LodMethod for QuadtreePatches {
                     continue;
                 };
                 let parent = parent.unwrap_or_else(|| own.clone());
-                groups.push(Some(gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("terrain/patch"),
-                    layout: &self.layout,
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                                buffer: uniforms,
-                                offset: 0,
-                                size: wgpu::BufferSize::new(size_of::<PatchUniform>() as u64),
-                            }),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 1,
-                            resource: wgpu::BindingResource::TextureView(&own),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 2,
-                            resource: wgpu::BindingResource::TextureView(&parent),
-                        },
-                        wgpu::BindGroupEntry {
-                            binding: 3,
-                            resource: wgpu::BindingResource::Sampler(&self.sampler),
-                        },
-                    ],
-                })));
+                groups.push(Some(gpu.device.create_bind_group(
+                    &wgpu::BindGroupDescriptor {
+                        label: Some("terrain/patch"),
+                        layout: &self.layout,
+                        entries: &[
+                            wgpu::BindGroupEntry {
+                                binding: 0,
+                                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                    buffer: uniforms,
+                                    offset: 0,
+                                    size: wgpu::BufferSize::new(size_of::<PatchUniform>() as u64),
+                                }),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 1,
+                                resource: wgpu::BindingResource::TextureView(&own),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 2,
+                                resource: wgpu::BindingResource::TextureView(&parent),
+                            },
+                            wgpu::BindGroupEntry {
+                                binding: 3,
+                                resource: wgpu::BindingResource::Sampler(&self.sampler),
+                            },
+                        ],
+                    },
+                )));
             }
         }
         let mut triangles = 0u64;
@@ -969,16 +1060,18 @@ impl LodMethod for QuadtreePatches {
     }
 
     fn tile_bytes(&self, id: TileId) -> u64 {
-        let held = self.ready.get(&id).map_or(0, |r| r.cpu_bytes + r.gpu_bytes());
+        let held = self
+            .ready
+            .get(&id)
+            .map_or(0, |r| r.cpu_bytes + r.gpu_bytes());
         let body = self.bodies.get(&id).map_or(0, |b| b.len() as u64);
         held + body
     }
 
     fn expected_tile_bytes(&self, tile: &TileRecord) -> u64 {
-        // About 2 body bytes an active vertex: its vertex, its two triangles' indices.
         self.by_hash
             .get(&tile.hash)
-            .map_or(0, |e| u64::from(e.bytes) * (VERTEX_BYTES + 24 + 32) / 2)
+            .map_or(0, |e| expected_bytes(u64::from(e.bytes)))
     }
 
     fn shared_bytes(&self) -> MethodBytes {
@@ -1004,6 +1097,7 @@ impl LodMethod for QuadtreePatches {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use terrain_shared::quadtree::Cut;
 
     #[test]
     fn a_patch_at_morph_one_lies_on_its_parent() {
@@ -1018,26 +1112,39 @@ mod tests {
         let mut parent_cut = Cut::full(tree);
         parent_cut.set_split(2, 0, 0, false);
         let parent_body = quadtree::encode_patch(&parent_cut, None, height, false, 3);
-        let parent = quadtree::decode_patch(tree, None, false, &parent_body).unwrap();
-        let link = Parent { cut: &parent.cut, heights: &parent.nodes, quarter: (0, 0) };
+        let parent =
+            quadtree::decode_patch(tree, None, false, &parent_body).expect("the parent decodes");
+        let link = Parent {
+            cut: &parent.cut,
+            heights: &parent.nodes,
+            quarter: (0, 0),
+        };
         let body = quadtree::encode_patch(&Cut::full(tree), Some(&link), height, false, 3);
         let extent = tree.extent() as f32;
         let (_, vertices, _, _) = build_mesh(
             tree,
             TileId::at(0, 0, 0),
             [extent, extent],
-            Some((TileId::at(1, 0, 0), Arc::new(parent.clone()), [extent, extent])),
+            Some((
+                TileId::at(1, 0, 0),
+                Arc::new(parent.clone()),
+                [extent, extent],
+            )),
             (0.0, 1.0),
             [1.0, 1.0],
             &body,
         )
-        .unwrap();
+        .expect("meshes");
         let surface = placed(tree, [extent, extent], &parent, |c| c as f32);
         for v in vertices.chunks_exact(8) {
             let v: Vec<f32> = v.iter().map(|w| f32::from_bits(*w)).collect();
             let target = [(v[3]) / 2.0, (v[4]) / 2.0];
-            let on = surface_at(&surface, target).unwrap();
-            assert!((on - v[5]).abs() < 1e-3, "target {target:?} at {} off the parent's {on}", v[5]);
+            let on = surface_at(&surface, target).expect("on the parent");
+            assert!(
+                (on - v[5]).abs() < 1e-3,
+                "target {target:?} at {} off the parent's {on}",
+                v[5]
+            );
         }
     }
 }

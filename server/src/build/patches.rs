@@ -84,14 +84,28 @@ impl Pyramid {
                     2 => [(lo_x + a, hi_y - 1), (lo_x + a, hi_y)],
                     _ => [(lo_x - 1, lo_y + a), (lo_x, lo_y + a)],
                 };
-                pair.iter().map(|&(px, py)| self.at(k(l), px, py)).sum::<f64>() / 2.0
+                pair.iter()
+                    .map(|&(px, py)| self.at(k(l), px, py))
+                    .sum::<f64>()
+                    / 2.0
             }
             Vertex::Corner { corner, l } => {
-                let cx = if matches!(corner, 1 | 2) { (x + 1) << l } else { x << l };
-                let cy = if matches!(corner, 2 | 3) { (y + 1) << l } else { y << l };
+                let cx = if matches!(corner, 1 | 2) {
+                    (x + 1) << l
+                } else {
+                    x << l
+                };
+                let cy = if matches!(corner, 2 | 3) {
+                    (y + 1) << l
+                } else {
+                    y << l
+                };
                 let far_x = snapped[0] && matches!(corner, 1 | 2);
                 let far_y = snapped[1] && matches!(corner, 2 | 3);
-                let (ax, ay) = (if far_x { cx } else { cx - 1 }, if far_y { cy } else { cy - 1 });
+                let (ax, ay) = (
+                    if far_x { cx } else { cx - 1 },
+                    if far_y { cy } else { cy - 1 },
+                );
                 [(ax, ay), (cx, ay), (ax, cy), (cx, cy)]
                     .iter()
                     .map(|&(px, py)| self.at(k(l), px, py))
@@ -136,7 +150,8 @@ impl Patch<'_> {
             );
             [sx, sy, f64::from(self.height(v))]
         });
-        let det = (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
+        let det =
+            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
         if det.abs() < 1e-12 {
             return 0.0;
         }
@@ -154,8 +169,12 @@ impl Patch<'_> {
         for sy in y0..=y1 as usize {
             for sx in x0..=x1 as usize {
                 let (fx, fy) = (sx as f64, sy as f64);
-                let w1 = ((fx - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (fy - p[0][1])) / det;
-                let w2 = ((p[1][0] - p[0][0]) * (fy - p[0][1]) - (fx - p[0][0]) * (p[1][1] - p[0][1])) / det;
+                let w1 = ((fx - p[0][0]) * (p[2][1] - p[0][1])
+                    - (p[2][0] - p[0][0]) * (fy - p[0][1]))
+                    / det;
+                let w2 = ((p[1][0] - p[0][0]) * (fy - p[0][1])
+                    - (fx - p[0][0]) * (p[1][1] - p[0][1]))
+                    / det;
                 let w0 = 1.0 - w1 - w2;
                 if w0 < -eps || w1 < -eps || w2 < -eps {
                     continue;
@@ -186,7 +205,9 @@ impl Patch<'_> {
                     let a = i * s..((i + 1) * s + 1).min(p + 1);
                     let b = j * s..((j + 1) * s + 1).min(p + 1);
                     let before: HashSet<[Vertex; 3]> =
-                        quadtree::triangles_in(&cut, a.clone(), b.clone()).into_iter().collect();
+                        quadtree::triangles_in(&cut, a.clone(), b.clone())
+                            .into_iter()
+                            .collect();
                     cut.set_split(l, i, j, false);
                     let worst = quadtree::triangles_in(&cut, a, b)
                         .into_iter()
@@ -205,6 +226,9 @@ impl Patch<'_> {
         (cut, error)
     }
 }
+
+/// A patch's body, its index entry and its active vertices.
+type Encoded = (Vec<u8>, PatchEntry, u64);
 
 /// What [`build`] made: per tile of the manifest, in its order, the body and the index
 /// entry.
@@ -227,7 +251,10 @@ pub fn build(
     cancel: &AtomicBool,
 ) -> Result<Built, BuildError> {
     let tree = Tree::for_tile_size(manifest.tile_size);
-    let (w, h) = (manifest.raster.width as usize, manifest.raster.height as usize);
+    let (w, h) = (
+        manifest.raster.width as usize,
+        manifest.raster.height as usize,
+    );
     let top = manifest.levels.len() as u32 - 1;
     let pyramid = Pyramid::new(codes, w, h, top + tree.n);
     let quantum = manifest.heights.quantum_m / SUBCODES;
@@ -271,8 +298,9 @@ pub fn build(
                     let below = &manifest.levels[level as usize - 1].grid;
                     let children: [Option<&Cut>; 4] = std::array::from_fn(|q| {
                         let (cx, cy) = (2 * x + q as u32 % 2, 2 * y + q as u32 / 2);
-                        (cx < below.columns && cy < below.rows)
-                            .then(|| &cuts[level as usize - 1][(cy * below.columns + cx) as usize].0)
+                        (cx < below.columns && cy < below.rows).then(|| {
+                            &cuts[level as usize - 1][(cy * below.columns + cx) as usize].0
+                        })
                     });
                     let start = Cut::from_children(tree, children);
                     let e = start_error(&start);
@@ -291,7 +319,11 @@ pub fn build(
         cut.leaves()
             .into_iter()
             .map(|(l, i, j)| {
-                let v = Vertex::Node { l: l as u8, i: i as u16, j: j as u16 };
+                let v = Vertex::Node {
+                    l: l as u8,
+                    i: i as u16,
+                    j: j as u16,
+                };
                 // Nodes do not depend on the ring's placement.
                 ((l, i, j), pyramid.vertex(tree, id, [false; 2], v))
             })
@@ -309,13 +341,16 @@ pub fn build(
                 .into_par_iter()
                 .map(|index| {
                     let id = TileId::at(level + 1, index % above.columns, index / above.columns);
-                    (id, node_heights(id, &cuts[level as usize + 1][index as usize].0))
+                    (
+                        id,
+                        node_heights(id, &cuts[level as usize + 1][index as usize].0),
+                    )
                 })
                 .collect()
         } else {
             HashMap::new()
         };
-        let made: Vec<Result<(Vec<u8>, PatchEntry, u64), BuildError>> = (0..info.tiles.len())
+        let made: Vec<Result<Encoded, BuildError>> = (0..info.tiles.len())
             .into_par_iter()
             .map(|index| {
                 if cancel.load(Ordering::Relaxed) {
@@ -337,7 +372,8 @@ pub fn build(
                 let far = quadtree::far_edge(tree, level, id.x, id.y, [w as u32, h as u32], grid);
                 let snapped = far.map(|f| f > tree.extent() as f32);
                 let height = |v: Vertex| pyramid.vertex(tree, id, snapped, v);
-                let body = quadtree::encode_patch(cut, parent.as_ref(), height, level == 0, zstd_level);
+                let body =
+                    quadtree::encode_patch(cut, parent.as_ref(), height, level == 0, zstd_level);
                 let triangles = quadtree::triangulate(cut);
                 let (lo, hi) = triangles
                     .iter()
@@ -381,29 +417,68 @@ mod tests {
     use super::*;
 
     /// Brute force: the triangulation's surface against every level-0 sample in the patch.
-    fn brute_error(pyramid: &Pyramid, tree: Tree, id: TileId, cut: &Cut, raster: [usize; 2], grid: [u32; 2]) -> f64 {
-        let far = quadtree::far_edge(tree, id.level, id.x, id.y, [raster[0] as u32, raster[1] as u32], grid);
-        let patch = Patch { pyramid, tree, id, far, raster };
-        quadtree::triangulate(cut).iter().map(|t| patch.error(t)).fold(0.0, f64::max)
+    fn brute_error(
+        pyramid: &Pyramid,
+        tree: Tree,
+        id: TileId,
+        cut: &Cut,
+        raster: [usize; 2],
+        grid: [u32; 2],
+    ) -> f64 {
+        let far = quadtree::far_edge(
+            tree,
+            id.level,
+            id.x,
+            id.y,
+            [raster[0] as u32, raster[1] as u32],
+            grid,
+        );
+        let patch = Patch {
+            pyramid,
+            tree,
+            id,
+            far,
+            raster,
+        };
+        quadtree::triangulate(cut)
+            .iter()
+            .map(|t| patch.error(t))
+            .fold(0.0, f64::max)
     }
 
     #[test]
     fn a_plane_merges_to_the_root_and_a_bump_keeps_its_vertices() {
         let tree = Tree { n: 3 };
         let (w, h) = (65usize, 65usize);
-        let plane: Vec<i32> = (0..h).flat_map(|y| (0..w).map(move |x| (3 * x + 2 * y) as i32)).collect();
+        let plane: Vec<i32> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (3 * x + 2 * y) as i32))
+            .collect();
         let pyramid = Pyramid::new(&plane, w, h, 6);
         // Away from the raster's border, where the clamped extension bends the plane.
         let id = TileId::at(0, 3, 3);
         let far = quadtree::far_edge(tree, 0, 3, 3, [65, 65], [8, 8]);
-        let patch = Patch { pyramid: &pyramid, tree, id, far, raster: [w, h] };
+        let patch = Patch {
+            pyramid: &pyramid,
+            tree,
+            id,
+            far,
+            raster: [w, h],
+        };
         let (cut, error) = patch.simplify(Cut::full(tree), 0.0, 0.0);
-        assert_eq!(cut.leaves().len(), 1, "a plane needs its root alone: {:?}", cut.leaves());
+        assert_eq!(
+            cut.leaves().len(),
+            1,
+            "a plane needs its root alone: {:?}",
+            cut.leaves()
+        );
         assert!(error <= 1e-9);
         let mut bump = plane.clone();
         bump[28 * w + 28] += 50;
         let pyramid = Pyramid::new(&bump, w, h, 6);
-        let patch = Patch { pyramid: &pyramid, ..patch };
+        let patch = Patch {
+            pyramid: &pyramid,
+            ..patch
+        };
         let (cut, error) = patch.simplify(Cut::full(tree), 0.0, 0.0);
         assert!(cut.is_leaf(3, 4, 4), "the bump's sample stays active");
         assert!(error <= 1e-9);
@@ -421,7 +496,13 @@ mod tests {
         for (x, y) in [(0, 0), (1, 2), (3, 3)] {
             let id = TileId::at(0, x, y);
             let far = quadtree::far_edge(tree, 0, x, y, [33, 33], [4, 4]);
-            let patch = Patch { pyramid: &pyramid, tree, id, far, raster: [w, h] };
+            let patch = Patch {
+                pyramid: &pyramid,
+                tree,
+                id,
+                far,
+                raster: [w, h],
+            };
             for t in quadtree::triangulate(&Cut::full(tree)) {
                 let e = patch.error(&t);
                 // Only the ring on the raster's last sample row or column is off.
@@ -443,10 +524,19 @@ mod tests {
             for (x, y) in [(0, 0), (2, 1), (2, 2)] {
                 let id = TileId::at(0, x, y);
                 let far = quadtree::far_edge(tree, 0, x, y, [w as u32, h as u32], grid);
-                let patch = Patch { pyramid: &pyramid, tree, id, far, raster: [w, h] };
+                let patch = Patch {
+                    pyramid: &pyramid,
+                    tree,
+                    id,
+                    far,
+                    raster: [w, h],
+                };
                 let (cut, error) = patch.simplify(Cut::full(tree), 0.0, tol);
                 let brute = brute_error(&pyramid, tree, id, &cut, [w, h], grid);
-                assert!(brute <= error + 1e-9, "tolerance {tol}: brute {brute} > reported {error}");
+                assert!(
+                    brute <= error + 1e-9,
+                    "tolerance {tol}: brute {brute} > reported {error}"
+                );
                 assert!(error <= tol + 1e-9);
             }
         }

@@ -48,7 +48,9 @@ pub enum HttpError {
     #[error("no such route")]
     NoRoute,
     /// The database was built without quadtree patches.
-    #[error("this database has no quadtree patches: build it with `terrain-server build --patches`")]
+    #[error(
+        "this database has no quadtree patches: build it with `terrain-server build --patches`"
+    )]
     NoPatches,
     #[error("method not allowed: this API only answers GET and HEAD")]
     MethodNotAllowed,
