@@ -176,8 +176,11 @@ per-frame rows are in \`docs/evaluation/*/accuracy.csv\` and \`stability/stabili
 - **Popping**: on a slow flight (8 frames 4 m apart, straight ahead from the first
   camera), each pixel's colour change (mean absolute difference of R, G, B) and depth
   change (percent of the distance) between consecutive frames; a method's mean and 99th
-  percentile minus the reference's over the same cameras (\`client/src/eval/popping.rs\`).
-  A still camera gives zero (tested).
+  percentile minus the reference's over the same cameras (\`client/src/eval/popping.rs\`),
+  and the worst step: the largest mean colour change between two consecutive frames. The
+  means sum every step's change, so a level that switches at once and one that morphs over
+  many frames give the same mean; the worst step tells them apart (tested). A still camera
+  gives zero (tested).
 - **PSNR** of the colours against the reference.
 - **Triangles needed**: per tile, the coarsest mask whose maximum vertical error (the
   builder's per-mask errors) keeps every pixel the tile draws within 1 px, by the bound of
@@ -227,7 +230,7 @@ EOF
     echo "tolerance: the method's frame-to-frame change minus the reference's, colour mean and depth"
     echo "99th percentile (%)."
     echo
-    echo "| tolerance (px) | morphing: colour / depth p99 (%) | no morphing: colour / depth p99 (%) | triangles on / off |"
+    echo "| tolerance (px) | morphing: colour / depth p99 (%) / worst step | no morphing: colour / depth p99 (%) / worst step | triangles on / off |"
     echo "|---:|---:|---:|---:|"
     paste -d'|' <(grep '^| quadtree-patches ' "$docs/accuracy-puget/summary.md") \
       <(grep '^| quadtree-patches ' "$docs/accuracy-puget-no-morph/summary.md") |

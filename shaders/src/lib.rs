@@ -298,6 +298,24 @@ mod tests {
     }
 
     #[test]
+    fn the_patch_shader_parses_validates_and_matches_the_rust_layout() {
+        let module = parse(PATCHES);
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::empty(),
+        )
+        .validate(&module)
+        .expect("patches.wgsl validates");
+        assert_eq!(size_in(&module, "Patch"), size_of::<PatchUniform>());
+        for entry in [patch_entry::VERTEX, patch_entry::FRAGMENT] {
+            assert!(
+                module.entry_points.iter().any(|e| e.name == entry),
+                "{entry}"
+            );
+        }
+    }
+
+    #[test]
     fn normals_pack_as_wgsl_does() {
         assert_eq!(pack_normal([0.0, 1.0, 0.0]), 0x00_7f_00);
         assert_eq!(pack_normal([-1.0, 0.0, 0.0]), 0x81);

@@ -790,7 +790,7 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) | error px / ray cast (%) |",
+        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) / worst step | error px / ray cast (%) |",
         report.threshold_px
     );
     let _ = writeln!(
@@ -822,8 +822,8 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.cpu_ms,
             m.held_bytes / crate::memory::MIB,
             m.popping.map_or("-".to_string(), |p| format!(
-                "{:.2} / {:.2}",
-                p.colour_mean, p.depth_p99_pct
+                "{:.2} / {:.2} / {:.2}",
+                p.colour_mean, p.depth_p99_pct, p.colour_worst_step
             )),
             match (m.error_pixels_pct, m.ray_cast_pct) {
                 (Some(e), Some(r)) => format!("{e:.2} / {r:.2}"),
@@ -1042,6 +1042,14 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
                     y_desc: "depth change (% of distance)".into(),
                     log_x: true,
                     series: popping(&|p| p.depth_p99_pct),
+                },
+                XyPanel {
+                    title: "the worst step: the largest mean colour change between two frames"
+                        .into(),
+                    x_desc: "triangles per frame (log)".into(),
+                    y_desc: "mean colour change (0-255)".into(),
+                    log_x: true,
+                    series: popping(&|p| p.colour_worst_step),
                 },
             ],
             &path,

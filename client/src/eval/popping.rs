@@ -25,6 +25,8 @@ use super::metrics::percentile;
 pub struct Changes {
     colour: Vec<f64>,
     depth_pct: Vec<f64>,
+    /// Per pair of frames, its mean colour change.
+    steps: Vec<f64>,
 }
 
 /// One frame: a method's capture and the reference's, from the camera at `eye`.
@@ -38,6 +40,7 @@ pub struct Pair<'a> {
 impl Changes {
     /// Adds the changes from frame `a` to frame `b`.
     pub fn add(&mut self, a: Pair<'_>, b: Pair<'_>) {
+        let before = self.colour.len();
         let pixels = a
             .method
             .color
@@ -53,6 +56,11 @@ impl Changes {
                 })
                 .sum();
             self.colour.push(sum / 3.0);
+        }
+        let step = &self.colour[before..];
+        if !step.is_empty() {
+            self.steps
+                .push(step.iter().sum::<f64>() / step.len() as f64);
         }
         let distance = |p: &[f64; 3], eye: [f64; 3]| {
             ((p[0] - eye[0]).powi(2) + (p[1] - eye[1]).powi(2) + (p[2] - eye[2]).powi(2)).sqrt()
@@ -90,6 +98,7 @@ impl Changes {
             colour_p99: percentile(&mut self.colour.clone(), 99.0),
             depth_mean_pct: mean(&self.depth_pct),
             depth_p99_pct: percentile(&mut self.depth_pct.clone(), 99.0),
+            colour_worst_step: self.steps.iter().copied().fold(0.0, f64::max),
         }
     }
 }
@@ -103,6 +112,10 @@ pub struct Popping {
     /// Depth, percent of the distance: mean and 99th percentile.
     pub depth_mean_pct: f64,
     pub depth_p99_pct: f64,
+    /// The largest mean colour change of one step: a level switched at once puts its whole
+    /// change into one step, a morph spreads it over many (the means above, sums over every
+    /// step, cannot tell the two apart).
+    pub colour_worst_step: f64,
 }
 
 #[cfg(test)]
@@ -181,5 +194,32 @@ mod tests {
             pair(&mb, &reference, [0.0; 3]),
         );
         assert_eq!(changes.summary().depth_mean_pct, 0.0);
+    }
+
+    #[test]
+    fn a_change_spread_over_steps_has_the_same_mean_but_a_smaller_worst_step() {
+        let reference = capture([10, 10, 10], Some(100.0));
+        let frames: Vec<Capture> = [10, 40, 40, 40]
+            .iter()
+            .map(|&c| capture([c, 10, 10], Some(100.0)))
+            .collect();
+        let morphed: Vec<Capture> = [10, 20, 30, 40]
+            .iter()
+            .map(|&c| capture([c, 10, 10], Some(100.0)))
+            .collect();
+        let run = |frames: &[Capture]| {
+            let mut changes = Changes::default();
+            for k in 1..frames.len() {
+                changes.add(
+                    pair(&frames[k - 1], &reference, [0.0; 3]),
+                    pair(&frames[k], &reference, [0.0; 3]),
+                );
+            }
+            changes.summary()
+        };
+        let (at_once, spread) = (run(&frames), run(&morphed));
+        assert!((at_once.colour_mean - spread.colour_mean).abs() < 1e-12);
+        assert_eq!(at_once.colour_worst_step, 10.0);
+        assert!((spread.colour_worst_step - 10.0 / 3.0).abs() < 1e-12);
     }
 }

@@ -227,6 +227,44 @@ impl Patch<'_> {
     }
 }
 
+/// What the patches take, for the build's report.
+#[derive(Debug, Clone, Copy)]
+pub struct Stats {
+    /// Every body's header and split bits: the progressive representation.
+    pub split_bytes: u64,
+    /// Every body's compressed heights.
+    pub height_bytes: u64,
+    pub bodies_bytes: u64,
+    pub index_bytes: u64,
+    /// Active vertices of the finest patches.
+    pub active_vertices: u64,
+    pub elapsed: std::time::Duration,
+}
+
+impl Stats {
+    pub fn of(built: &Built, index_bytes: u64, elapsed: std::time::Duration) -> Stats {
+        let split: u64 = built
+            .bodies
+            .iter()
+            .map(|b| {
+                let bits = b
+                    .get(8..12)
+                    .map_or(0, |w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]));
+                12 + u64::from(bits).div_ceil(8)
+            })
+            .sum();
+        let bodies: u64 = built.bodies.iter().map(|b| b.len() as u64).sum();
+        Stats {
+            split_bytes: split,
+            height_bytes: bodies - split,
+            bodies_bytes: bodies,
+            index_bytes,
+            active_vertices: built.active_vertices,
+            elapsed,
+        }
+    }
+}
+
 /// A patch's body, its index entry and its active vertices.
 type Encoded = (Vec<u8>, PatchEntry, u64);
 
