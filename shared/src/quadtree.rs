@@ -1059,4 +1059,27 @@ mod tests {
             assert_eq!(corners, 4);
         }
     }
+
+    #[test]
+    fn the_last_patches_reach_the_terrains_last_sample() {
+        let tree = Tree { n: 3 };
+        // 33 samples: 4 patches of 8 end half a sample short of sample 32 unless the last
+        // one's far side moves out to it; 30 samples end inside the last patch.
+        for (width, grid) in [(33u32, 4u32), (30, 4), (65, 8)] {
+            for x in 0..grid {
+                let far = far_edge(tree, 0, x, 0, [width, width], [grid, grid]);
+                let right = sample_of(tree, 0, x, 0, [far[0], 0.0])[0];
+                if x + 1 == grid {
+                    assert!(
+                        right >= f64::from(width - 1),
+                        "{width}: patch {x} ends at {right}"
+                    );
+                } else {
+                    assert_eq!(far[0], tree.extent() as f32);
+                    let next = sample_of(tree, 0, x + 1, 0, [0.0, 0.0])[0];
+                    assert_eq!(right, next, "patches meet");
+                }
+            }
+        }
+    }
 }
