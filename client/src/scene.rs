@@ -997,6 +997,10 @@ impl Scene {
                     r.method.data_arrived(&gpu, id, key, bytes);
                     tile.bytes.method = r.method.tile_bytes(id);
                     self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
+                    // Data that changes what the method expects of other tiles (an index).
+                    if r.method.bytes_changed() {
+                        self.recount();
+                    }
                 }
             }
             FetchEvent::Failed {
@@ -1262,6 +1266,10 @@ impl Scene {
             if let Some(i) = self.manifest.index(id) {
                 r.importance[i] = importance;
             }
+        }
+        // What the method holds per tile changed (its own data meshed since): counted again.
+        if r.method.bytes_changed() {
+            self.recount();
         }
         // A method's index sets and buffers grow as frames need them: what they took past
         // the limit comes off the textures at once.

@@ -189,6 +189,13 @@ pub trait LodMethod: std::fmt::Debug + Send {
         Vec::new()
     }
 
+    /// Whether what it holds for its tiles, or expects to hold for tiles not in yet, changed
+    /// since it was last asked (its data arrived or was built later than the tile): the
+    /// scene then counts every tile again, so the pager sees the bytes held and expected.
+    fn bytes_changed(&mut self) -> bool {
+        false
+    }
+
     /// Whether it holds everything it wants of the resident tiles, with nothing in the
     /// making: what the accuracy measures wait for, with the tiles.
     fn settled(&self) -> bool {

@@ -101,6 +101,8 @@ pub struct QuadtreePatches {
     uniforms: Option<wgpu::Buffer>,
     /// A body that would not decode, said once.
     refused: HashSet<TileId>,
+    /// Whether bytes held or expected changed since the scene last asked.
+    changed: bool,
 }
 
 impl std::fmt::Debug for QuadtreePatches {
@@ -251,6 +253,7 @@ impl QuadtreePatches {
             sampler,
             uniforms: None,
             refused: HashSet::new(),
+            changed: false,
         }
     }
 
@@ -374,6 +377,7 @@ impl QuadtreePatches {
                     };
                     let cpu_bytes = data_bytes(&data);
                     self.bodies.remove(&made.id);
+                    self.changed = true;
                     self.ready.insert(
                         made.id,
                         Ready {
@@ -742,6 +746,10 @@ impl LodMethod for QuadtreePatches {
         out
     }
 
+    fn bytes_changed(&mut self) -> bool {
+        std::mem::take(&mut self.changed)
+    }
+
     fn settled(&self) -> bool {
         if self.manifest.patches.is_none() {
             return true;
@@ -772,6 +780,7 @@ impl LodMethod for QuadtreePatches {
                         .map(|((_, t), e)| (t.hash.clone(), *e))
                         .collect();
                     self.index = Some(entries);
+                    self.changed = true;
                 }
                 Err(e) => tracing::warn!("quadtree patch index refused: {e}"),
             }
