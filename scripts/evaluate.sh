@@ -173,14 +173,18 @@ per-frame rows are in \`docs/evaluation/*/accuracy.csv\` and \`stability/stabili
 - **Bytes held**: what the scene holds after the frame, CPU bytes plus every GPU
   allocation for the terrain, with the whole database resident: the cost of each method's
   representation (index sets, per-tile buffers, texture blocks) on top of the same tiles.
-- **Popping**: on a slow flight (8 frames 4 m apart, straight ahead from the first
-  camera), each pixel's colour change (mean absolute difference of R, G, B) and depth
-  change (percent of the distance) between consecutive frames; a method's mean and 99th
-  percentile minus the reference's over the same cameras (\`client/src/eval/popping.rs\`),
-  and the worst step: the largest mean colour change between two consecutive frames. The
-  means sum every step's change, so a level that switches at once and one that morphs over
-  many frames give the same mean; the worst step tells them apart (tested). A still camera
-  gives zero (tested).
+- **Popping**: on an approach (40 frames from the first camera along its view direction,
+  the distance to the ground it looks at halving over the flight, so that each tile's and
+  patch's projected error doubles once and its level switches about once), each pixel's
+  colour change (mean absolute difference of R, G, B) and depth change (percent of the
+  distance) between consecutive frames; a method's mean and 99th percentile minus the
+  reference's over the same cameras (\`client/src/eval/popping.rs\`). The means sum every
+  step's change, so a level that switches at once and one that morphs over many frames give
+  the same mean; the **jump** tells them apart: per step the mean change, and the largest
+  excess of one step over the mean of the two steps beside it, in colour and in depth. What
+  neighbouring steps share (edges re-sampled as the camera moves, an error that grows as
+  the camera nears the surface) cancels; a switch made in one frame stands out (tested). A
+  still camera gives zero (tested).
 - **PSNR** of the colours against the reference.
 - **Triangles needed**: per tile, the coarsest mask whose maximum vertical error (the
   builder's per-mask errors) keeps every pixel the tile draws within 1 px, by the bound of
@@ -227,10 +231,11 @@ EOF
     echo
     echo "The Puget Sound sweep's quadtree patches again with \`--no-morph\` (levels switch at once, at"
     echo "the threshold, and textures do not blend). Popping is the measure above, per setting of the"
-    echo "tolerance: the method's frame-to-frame change minus the reference's, colour mean and depth"
-    echo "99th percentile (%)."
+    echo "tolerance, on the approach: the method's frame-to-frame change minus the reference's (colour"
+    echo "mean, depth 99th percentile in %), and the jump of the largest step over its neighbours"
+    echo "(colour, depth in %)."
     echo
-    echo "| tolerance (px) | morphing: colour / depth p99 (%) / worst step | no morphing: colour / depth p99 (%) / worst step | triangles on / off |"
+    echo "| tolerance (px) | morphing: colour / depth p99 (%) / jump colour / jump depth (%) | no morphing: the same | triangles on / off |"
     echo "|---:|---:|---:|---:|"
     paste -d'|' <(grep '^| quadtree-patches ' "$docs/accuracy-puget/summary.md") \
       <(grep '^| quadtree-patches ' "$docs/accuracy-puget-no-morph/summary.md") |

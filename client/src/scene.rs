@@ -692,7 +692,7 @@ impl Scene {
                 r.texture_costs[i] = extra_costs(&self.manifest, &tile.texture_blobs, copies);
                 tile.bytes.gpu = r.renderer.tiles.tile_bytes(id);
                 tile.bytes.method = r.method.tile_bytes(id);
-                self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
+                self.base_bytes[i] = r.base_bytes(&self.manifest, record, tile);
             }
         }
     }
@@ -953,7 +953,18 @@ impl Scene {
                     let copies = r.config.method_config().texture_copies();
                     r.texture_costs[i] = extra_costs(&self.manifest, &texture, copies);
                 }
-                self.base_bytes[i] = bytes.total();
+                // What the method expects to hold for it and does not yet (data that arrive
+                // after the tile) is reserved, so that the pager does not fill that room.
+                let reserved =
+                    self.rendering
+                        .as_ref()
+                        .zip(self.manifest.tile(id))
+                        .map_or(0, |(r, record)| {
+                            r.method
+                                .expected_tile_bytes(record)
+                                .saturating_sub(bytes.method)
+                        });
+                self.base_bytes[i] = bytes.total() + reserved;
                 self.tiles[i] = Some(ResidentTile {
                     heights,
                     error_minima,
@@ -996,7 +1007,9 @@ impl Scene {
                     let gpu = r.renderer.gpu().clone();
                     r.method.data_arrived(&gpu, id, key, bytes);
                     tile.bytes.method = r.method.tile_bytes(id);
-                    self.base_bytes[i] = r.base_bytes(&self.manifest, tile);
+                    if let Some(record) = self.manifest.tile(id) {
+                        self.base_bytes[i] = r.base_bytes(&self.manifest, record, tile);
+                    }
                     // Data that changes what the method expects of other tiles (an index).
                     if r.method.bytes_changed() {
                         self.recount();
@@ -1378,8 +1391,14 @@ impl Rendering {
     }
 
     /// What the pager counts for resident `tile`: its bytes at its coarsest texture (finer
-    /// levels are paid from the texture budget) and what the method holds for it.
-    fn base_bytes(&self, manifest: &Manifest, tile: &ResidentTile) -> u64 {
+    /// levels are paid from the texture budget) and what the method holds for it, or
+    /// expects to hold once its data are in, whichever is more.
+    fn base_bytes(
+        &self,
+        manifest: &Manifest,
+        record: &terrain_shared::TileRecord,
+        tile: &ResidentTile,
+    ) -> u64 {
         let copies = self.renderer.tiles.texture_copies();
         let gpu_texture = if tile.uploaded_levels > 0 {
             coarsest_rgba_bytes(manifest)
@@ -1391,7 +1410,8 @@ impl Rendering {
             + tile.textures.first().map_or(0, |t| t.len() as u64)
             + self.renderer.tiles.sample_buffer_bytes()
             + copies * gpu_texture
-            + tile.bytes.method
+            // What the method holds, or expects to hold once its data are in.
+            + tile.bytes.method.max(self.method.expected_tile_bytes(record))
     }
 
     /// MapBlocks on or off as the method wants, and the texture costs that follow (a block

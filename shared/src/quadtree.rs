@@ -30,7 +30,7 @@
 use std::collections::HashMap;
 
 /// Name and version of the patch data, in the manifest.
-pub const FORMAT: &str = "quadtree-patches/1";
+pub const FORMAT: &str = "quadtree-patches/2";
 
 /// Patch heights are codes of an eighth of the database's quantum: a coarse vertex at a
 /// cell's centre lies between samples, and on a plane through whole codes it lands on an
@@ -761,6 +761,32 @@ pub struct PatchEntry {
     /// Height bounds of its vertices, metres.
     pub min_m: f32,
     pub max_m: f32,
+    /// Its triangulation's size ([`MeshCounts::of`]): what a client's mesh of it holds is
+    /// known before the body arrives.
+    pub mesh: MeshCounts,
+}
+
+/// The size of a patch's triangulation: distinct vertices and triangles of its surface
+/// ([`triangulate`]), and vertices of the ring around it ([`border_loop`]), which a client
+/// hangs its flanges from.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MeshCounts {
+    pub vertices: u32,
+    pub triangles: u32,
+    pub ring: u32,
+}
+
+impl MeshCounts {
+    /// The counts of `cut`'s triangulation, `triangles` ([`triangulate`] of it).
+    pub fn of(cut: &Cut, triangles: &[[Vertex; 3]]) -> MeshCounts {
+        let distinct: std::collections::HashSet<Vertex> =
+            triangles.iter().flatten().copied().collect();
+        MeshCounts {
+            vertices: distinct.len() as u32,
+            triangles: triangles.len() as u32,
+            ring: border_loop(cut).len() as u32,
+        }
+    }
 }
 
 impl PatchEntry {
@@ -771,9 +797,10 @@ impl PatchEntry {
 }
 
 /// Bytes per index entry.
-pub const INDEX_ENTRY_BYTES: usize = 32;
+pub const INDEX_ENTRY_BYTES: usize = 44;
 
-/// The patch index: `QTPI`, the count, then 32 bytes per patch.
+/// The patch index: `QTPI`, the count, then 44 bytes per patch: hash, body size, error,
+/// height bounds, then the mesh counts (vertices, triangles, ring).
 pub fn encode_index(entries: &[PatchEntry]) -> Vec<u8> {
     let mut out = Vec::with_capacity(8 + entries.len() * INDEX_ENTRY_BYTES);
     out.extend_from_slice(INDEX_MAGIC);
@@ -783,6 +810,9 @@ pub fn encode_index(entries: &[PatchEntry]) -> Vec<u8> {
         out.extend_from_slice(&e.bytes.to_le_bytes());
         for f in [e.error_m, e.min_m, e.max_m] {
             out.extend_from_slice(&f.to_le_bytes());
+        }
+        for n in [e.mesh.vertices, e.mesh.triangles, e.mesh.ring] {
+            out.extend_from_slice(&n.to_le_bytes());
         }
     }
     out
@@ -810,12 +840,18 @@ pub fn decode_index(bytes: &[u8], count: usize) -> Result<Vec<PatchEntry>, Patch
             let mut hash = [0; 16];
             hash.copy_from_slice(&c[..16]);
             let f = |k: usize| f32::from_le_bytes(word(&c[20 + 4 * k..]));
+            let n = |k: usize| u32::from_le_bytes(word(&c[32 + 4 * k..]));
             PatchEntry {
                 hash,
                 bytes: u32::from_le_bytes(word(&c[16..20])),
                 error_m: f(0),
                 min_m: f(1),
                 max_m: f(2),
+                mesh: MeshCounts {
+                    vertices: n(0),
+                    triangles: n(1),
+                    ring: n(2),
+                },
             }
         })
         .collect())
@@ -1038,6 +1074,11 @@ mod tests {
             error_m: 0.5,
             min_m: -3.0,
             max_m: 9.0,
+            mesh: MeshCounts {
+                vertices: 5,
+                triangles: 4,
+                ring: 4,
+            },
         };
         let bytes = encode_index(&[e, e]);
         assert_eq!(decode_index(&bytes, 2).expect("decodes"), vec![e, e]);

@@ -240,7 +240,7 @@ fn the_accuracy_sweep_over_jacksboro_writes_its_charts_and_error_falls_with_the_
         repeats: 1,
         // A still camera: frames that do not move do not pop.
         popping_frames: 3,
-        popping_step_m: 0.0,
+        popping_halvings: 0.0,
         ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
     };
     let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
@@ -388,7 +388,7 @@ pub(crate) fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
 
 /// Checks every run of the matrix: no failure, memory within a limit that binds (below
 /// what the whole database takes), as counted and as held (CPU and GPU allocations).
-fn check_matrix(report: &stability::StabilityReport) {
+pub(crate) fn check_matrix(report: &stability::StabilityReport) {
     eprintln!("{report}");
     assert!(!report.runs.is_empty());
     for r in &report.runs {

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use terrain_client::eval::accuracy::{self, AccuracyArgs};
 use terrain_client::eval::session::Session;
+use terrain_client::eval::stability::{self, StabilityArgs};
 use terrain_client::lod::budget::BudgetMode;
 use terrain_client::method::MethodKind;
 use terrain_client::render::Camera;
@@ -38,6 +39,17 @@ fn build_with_patches(input: &Path, dir: &Path) -> PathBuf {
     )
     .expect("builds")
     .out
+}
+
+/// The data kit's `relative` built with the patches into a temporary directory and served;
+/// `None` (the test said NOT RUN) without the kit or a GPU.
+fn serve_kit_with_patches(test: &str, relative: &str) -> Option<(tempfile::TempDir, TestServer)> {
+    let input = kit_file(test, relative)?;
+    golden::gpu(test)?;
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_with_patches(&input, tmp.path());
+    let server = TestServer::start(&db);
+    Some((tmp, server))
 }
 
 /// The index and every body are served with immutable, content-versioned URLs and strong
@@ -187,15 +199,9 @@ fn quadtree_patches_over_jacksboro_match_their_golden_images() {
 /// percentile of the screen-space error stays within 1 px on every camera of the sweep;
 /// the maximum is printed beside the reference's own (the measure's floor).
 fn guarantee_holds_over(test: &str, relative: &str) {
-    let Some(input) = kit_file(test, relative) else {
+    let Some((tmp, server)) = serve_kit_with_patches(test, relative) else {
         return;
     };
-    let Some(_) = golden::gpu(test) else {
-        return;
-    };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_with_patches(&input, tmp.path());
-    let server = TestServer::start(&db);
     let mut args = AccuracyArgs {
         max_errors_px: vec![1.0],
         repeats: 1,
@@ -241,4 +247,82 @@ fn quadtree_patches_keep_p99_within_a_pixel_over_himalaya() {
         "patches::quadtree_patches_keep_p99_within_a_pixel_over_himalaya",
         "himalaya_4097/g10g_himalaya_4097.png",
     );
+}
+
+/// Popping (done when 4): on the sweep's approach over Puget Sound, at the tolerances where
+/// a patch switch is larger than what every step changes anyway (8 and 16 px), the largest
+/// step stands out of its neighbours at least three times less with geomorphing and
+/// texture morphing on than off, in colour and in depth.
+#[test]
+fn geomorphing_takes_the_jump_out_of_a_level_switch_over_puget_sound() {
+    let test = "patches::geomorphing_takes_the_jump_out_of_a_level_switch";
+    let Some((tmp, server)) = serve_kit_with_patches(test, "puget_sound_1k/ps_height_1k.png")
+    else {
+        return;
+    };
+    let run = |morph: bool| {
+        let mut args = AccuracyArgs {
+            max_errors_px: vec![8.0, 16.0],
+            cameras: 1,
+            repeats: 1,
+            ..AccuracyArgs::new(
+                server.base_url(),
+                tmp.path().join(if morph { "on" } else { "off" }),
+            )
+        };
+        args.error.no_morph = !morph;
+        args.variants.methods = vec![MethodKind::QuadtreePatches];
+        let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+        report
+            .summaries
+            .iter()
+            .map(|s| {
+                (
+                    s.config.knob.to_string(),
+                    s.popping.expect("popping measured"),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    let (on, off) = (run(true), run(false));
+    assert_eq!(on.len(), 2);
+    for ((knob, on), (_, off)) in on.iter().zip(&off) {
+        println!(
+            "{knob}: jump colour {:.3} on / {:.3} off, depth {:.4} % on / {:.4} % off; mean colour {:.3} / {:.3}",
+            on.colour_jump,
+            off.colour_jump,
+            on.depth_jump_pct,
+            off.depth_jump_pct,
+            on.colour_mean,
+            off.colour_mean
+        );
+        assert!(
+            on.colour_jump * 3.0 < off.colour_jump && on.depth_jump_pct * 3.0 < off.depth_jump_pct,
+            "{knob}: {on:?} with morphing, {off:?} without"
+        );
+    }
+}
+
+/// The stability matrix's scenarios of any terrain over Puget Sound, whose patches need
+/// more than the 64 MiB limit: no failure, and what the scene counts and holds (CPU and
+/// GPU) stays within the limit in every frame, patches included.
+#[test]
+fn quadtree_patches_stay_within_memory_in_the_stability_matrix() {
+    let test = "patches::quadtree_patches_stay_within_memory_in_the_stability_matrix";
+    let Some((tmp, server)) = serve_kit_with_patches(test, "puget_sound_1k/ps_height_1k.png")
+    else {
+        return;
+    };
+    let mut args = StabilityArgs {
+        frames: 10,
+        ..StabilityArgs::new(server.base_url(), tmp.path().join("stability"))
+    };
+    args.variants.methods = vec![MethodKind::QuadtreePatches];
+    let report = runtime().block_on(stability::run(&args)).expect("matrix");
+    crate::accuracy::check_matrix(&report);
+    let generic = stability::SCENARIOS
+        .iter()
+        .filter(|s| s.dataset.is_none())
+        .count();
+    assert_eq!(report.runs.len(), generic);
 }

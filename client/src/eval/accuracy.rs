@@ -90,13 +90,15 @@ pub struct AccuracyArgs {
     /// Name of the dataset in titles (default: the manifest's).
     #[arg(long)]
     pub label: Option<String>,
-    /// Frames of the slow flight popping is measured on (from the first camera, straight
-    /// ahead); 0 leaves popping out.
-    #[arg(long, default_value_t = 8)]
+    /// Frames of the approach popping is measured on (from the first camera towards the
+    /// ground it looks at, see `--popping-halvings`); 0 leaves popping out.
+    #[arg(long, default_value_t = 40)]
     pub popping_frames: u32,
-    /// Metres the camera moves between two frames of that flight.
-    #[arg(long, default_value_t = 4.0)]
-    pub popping_step_m: f64,
+    /// How many times the distance to the ground the first camera looks at halves over
+    /// that approach: each halving doubles every patch's and tile's projected error once,
+    /// so each crosses about one level switch; 0 keeps the camera still.
+    #[arg(long, default_value_t = 1.0)]
+    pub popping_halvings: f64,
 }
 
 impl AccuracyArgs {
@@ -119,8 +121,8 @@ impl AccuracyArgs {
             error: ErrorCapArgs::default(),
             repeats: 3,
             label: None,
-            popping_frames: 8,
-            popping_step_m: 4.0,
+            popping_frames: 40,
+            popping_halvings: 1.0,
         }
     }
 }
@@ -411,8 +413,17 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             bar.inc(1);
         }
     }
-    // Popping, on a slow flight from the first camera.
-    let slow = slow_flight(&cameras[0], args.popping_frames, args.popping_step_m);
+    // Popping, on an approach from the first camera.
+    let ground = session
+        .scene
+        .ground_under(cameras[0].position)
+        .unwrap_or(manifest.heights.min_m);
+    let slow = approach_flight(
+        &cameras[0],
+        ground,
+        args.popping_frames,
+        args.popping_halvings,
+    );
     let mut popping = Vec::new();
     if slow.len() >= 2 {
         bar.set_message("popping");
@@ -539,16 +550,26 @@ pub fn configs(args: &AccuracyArgs) -> Vec<Config> {
     out
 }
 
-/// `frames` cameras from `start`, each `step_m` metres further along its heading, at its
-/// height and pitch.
-pub fn slow_flight(start: &Camera, frames: u32, step_m: f64) -> Vec<Camera> {
-    let (dx, dy) = (start.yaw.cos(), start.yaw.sin());
+/// `frames` cameras from `start` along its view direction towards the point where it meets
+/// the plane at height `ground_m`, the distance to that point shrinking by the same factor
+/// every frame, `2^halvings` over the flight, with the heading and pitch of `start`. A
+/// camera level with or above the horizon, or under the plane, approaches a point a
+/// kilometre ahead instead.
+pub fn approach_flight(start: &Camera, ground_m: f64, frames: u32, halvings: f64) -> Vec<Camera> {
+    let dir = start.direction();
+    let height = start.position[2] - ground_m;
+    let distance = if dir.z < -1e-3 && height > 0.0 {
+        height / -dir.z
+    } else {
+        1000.0
+    };
+    let last = f64::from(frames.max(2) - 1);
     (0..frames)
         .map(|i| {
-            let d = f64::from(i) * step_m;
-            let [x, y, z] = start.position;
+            let travelled = distance * (1.0 - (-halvings * f64::from(i) / last).exp2());
+            let p = glam::DVec3::from(start.position) + dir * travelled;
             Camera {
-                position: [x + d * dx, y + d * dy, z],
+                position: p.to_array(),
                 ..*start
             }
         })
@@ -790,7 +811,7 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) / worst step | error px / ray cast (%) |",
+        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) / jump colour / jump depth (%) | error px / ray cast (%) |",
         report.threshold_px
     );
     let _ = writeln!(
@@ -822,8 +843,8 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.cpu_ms,
             m.held_bytes / crate::memory::MIB,
             m.popping.map_or("-".to_string(), |p| format!(
-                "{:.2} / {:.2} / {:.2}",
-                p.colour_mean, p.depth_p99_pct, p.colour_worst_step
+                "{:.2} / {:.2} / {:.2} / {:.3}",
+                p.colour_mean, p.depth_p99_pct, p.colour_jump, p.depth_jump_pct
             )),
             match (m.error_pixels_pct, m.ray_cast_pct) {
                 (Some(e), Some(r)) => format!("{e:.2} / {r:.2}"),
@@ -1044,12 +1065,19 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
                     series: popping(&|p| p.depth_p99_pct),
                 },
                 XyPanel {
-                    title: "the worst step: the largest mean colour change between two frames"
+                    title: "the jump: the largest step's mean colour change beyond its neighbours'"
                         .into(),
                     x_desc: "triangles per frame (log)".into(),
                     y_desc: "mean colour change (0-255)".into(),
                     log_x: true,
-                    series: popping(&|p| p.colour_worst_step),
+                    series: popping(&|p| p.colour_jump),
+                },
+                XyPanel {
+                    title: "the jump in depth: the largest step's beyond its neighbours'".into(),
+                    x_desc: "triangles per frame (log)".into(),
+                    y_desc: "mean depth change (% of distance)".into(),
+                    log_x: true,
+                    series: popping(&|p| p.depth_jump_pct),
                 },
             ],
             &path,

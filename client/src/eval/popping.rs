@@ -27,6 +27,8 @@ pub struct Changes {
     depth_pct: Vec<f64>,
     /// Per pair of frames, its mean colour change.
     steps: Vec<f64>,
+    /// Per pair of frames, its mean depth change (percent).
+    depth_steps: Vec<f64>,
 }
 
 /// One frame: a method's capture and the reference's, from the camera at `eye`.
@@ -65,6 +67,7 @@ impl Changes {
         let distance = |p: &[f64; 3], eye: [f64; 3]| {
             ((p[0] - eye[0]).powi(2) + (p[1] - eye[1]).powi(2) + (p[2] - eye[2]).powi(2)).sqrt()
         };
+        let depth_before = self.depth_pct.len();
         let points = a
             .method
             .points
@@ -82,6 +85,9 @@ impl Changes {
                 }
             }
         }
+        let step = &self.depth_pct[depth_before..];
+        self.depth_steps
+            .push(step.iter().sum::<f64>() / step.len().max(1) as f64);
     }
 
     /// Mean and 99th percentile of the colour and depth changes gathered.
@@ -99,8 +105,22 @@ impl Changes {
             depth_mean_pct: mean(&self.depth_pct),
             depth_p99_pct: percentile(&mut self.depth_pct.clone(), 99.0),
             colour_worst_step: self.steps.iter().copied().fold(0.0, f64::max),
+            colour_jump: jump(&self.steps),
+            depth_jump_pct: jump(&self.depth_steps),
         }
     }
+}
+
+/// The largest excess of one step over the mean of the two steps on either side of it,
+/// 0 when no step stands out (and with fewer than three steps). A level switched at once
+/// puts its whole change into one step; what neighbouring steps share (the floor of
+/// re-sampled edges, an error that grows steadily as the camera nears the surface) is
+/// taken off.
+fn jump(steps: &[f64]) -> f64 {
+    steps
+        .windows(3)
+        .map(|w| w[1] - (w[0] + w[2]) / 2.0)
+        .fold(0.0, f64::max)
 }
 
 /// Frame-to-frame change beyond the reference's (see the module docs).
@@ -116,6 +136,11 @@ pub struct Popping {
     /// change into one step, a morph spreads it over many (the means above, sums over every
     /// step, cannot tell the two apart).
     pub colour_worst_step: f64,
+    /// The largest step's excess over its neighbours' mean, colour (0 to 255) and depth
+    /// (percent): one switch stands out, a morph's change and the drift every step shares
+    /// do not.
+    pub colour_jump: f64,
+    pub depth_jump_pct: f64,
 }
 
 #[cfg(test)]
@@ -221,5 +246,30 @@ mod tests {
         assert!((at_once.colour_mean - spread.colour_mean).abs() < 1e-12);
         assert_eq!(at_once.colour_worst_step, 10.0);
         assert!((spread.colour_worst_step - 10.0 / 3.0).abs() < 1e-12);
+        // Two steps on either side of the switch.
+        let frames: Vec<Capture> = [10, 10, 10, 40, 40, 40]
+            .iter()
+            .map(|&c| capture([c, 10, 10], Some(100.0)))
+            .collect();
+        let morphed: Vec<Capture> = [10, 16, 22, 28, 34, 40]
+            .iter()
+            .map(|&c| capture([c, 10, 10], Some(100.0)))
+            .collect();
+        let (at_once, spread) = (run(&frames), run(&morphed));
+        assert_eq!(at_once.colour_jump, 10.0);
+        assert!(spread.colour_jump.abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_jump_stands_out_of_a_drift_that_every_step_shares() {
+        // Steps of a frame whose error grows as the camera nears (1, 2, 3, ...), with one
+        // level switch adding 5 at the fourth step.
+        let steps = [1.0, 2.0, 3.0, 9.0, 5.0, 6.0];
+        assert!((jump(&steps) - 5.0).abs() < 1e-12);
+        assert_eq!(jump(&[1.0, 2.0, 3.0, 4.0]), 0.0);
+        assert_eq!(jump(&[2.0, 2.0, 2.0]), 0.0);
+        assert_eq!(jump(&[4.0, 1.0]), 0.0);
+        assert_eq!(jump(&[3.0]), 0.0);
+        assert_eq!(jump(&[]), 0.0);
     }
 }

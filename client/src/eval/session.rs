@@ -58,9 +58,47 @@ impl Measured {
 }
 
 /// Bytes the whole database holds with every texture level, as the scene counts them for a
-/// method with MapBlocks, plus an atlas slot per tile for the projected grids (the most any
-/// method holds).
+/// method with MapBlocks, plus an atlas slot per tile for the projected grids and the
+/// quadtree patches estimated from their bodies' size (what methods hold beside the tiles;
+/// [`whole_database_bytes_from`] counts the patches exactly).
 pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
+    tiles_bytes(manifest)
+        + manifest.patches.as_ref().map_or(0, |p| {
+            crate::method::quadtree_patches::estimated_bytes(p.bodies_bytes)
+        })
+}
+
+/// [`whole_database_bytes`] with the quadtree patches counted patch by patch from their
+/// index, fetched from `server` ([`crate::method::quadtree_patches::expected_bytes`]): what
+/// a scene must be allowed to hold every patch whole.
+pub async fn whole_database_bytes_from(
+    server: &str,
+    manifest: &Manifest,
+) -> Result<u64, FlightError> {
+    use terrain_shared::quadtree;
+    let Some(info) = &manifest.patches else {
+        return Ok(whole_database_bytes(manifest));
+    };
+    let client = crate::fetch::TileClient::new(server)?;
+    let bytes = client
+        .blob(
+            &terrain_shared::routes::patch_index(&manifest.content_version),
+            Some(&info.index.hash),
+        )
+        .await?;
+    let entries = quadtree::decode_index(&bytes, manifest.tile_count())
+        .map_err(|e| FlightError::BadOption(format!("the quadtree patches' index: {e}")))?;
+    let tree = quadtree::Tree::for_tile_size(manifest.tile_size);
+    let patches: u64 = manifest
+        .tiles()
+        .zip(&entries)
+        .map(|((id, _), e)| crate::method::quadtree_patches::expected_bytes(e, tree, id.level))
+        .sum();
+    Ok(tiles_bytes(manifest) + patches)
+}
+
+/// [`whole_database_bytes`] less the quadtree patches.
+fn tiles_bytes(manifest: &Manifest) -> u64 {
     let copies = crate::render::blocks::TEXTURE_COPIES;
     // The finer levels' encoded sizes per tile are in the tile blobs; the manifest gives
     // their totals.
@@ -73,12 +111,8 @@ pub fn whole_database_bytes(manifest: &Manifest) -> u64 {
         .map(|(_, t)| expected_tile_bytes(manifest, t, copies).total() + finer_rgba)
         .sum::<u64>()
         + finer_encoded
-        // The projected grids' atlas slot per tile, and the quadtree patches: what methods
-        // hold beside the tiles.
+        // The projected grids' atlas slot per tile: what they hold beside the tiles.
         + manifest.tile_count() as u64 * crate::method::atlas::slot_bytes_for(manifest)
-        + manifest.patches.as_ref().map_or(0, |p| {
-            crate::method::quadtree_patches::expected_bytes(p.bodies_bytes)
-        })
 }
 
 impl Session {
@@ -100,8 +134,10 @@ impl Session {
         let manifest = Arc::clone(&connection.manifest);
         let gpu = Gpu::headless()?;
         let target = Offscreen::new(&gpu, size.0, size.1);
-        let limit =
-            memory_limit.unwrap_or_else(|| whole_database_bytes(&manifest) / 10 * 11 + (1 << 20));
+        let limit = match memory_limit {
+            Some(limit) => limit,
+            None => whole_database_bytes_from(server, &manifest).await? / 10 * 11 + (1 << 20),
+        };
         let mut scene = connection.scene(
             limit,
             true,

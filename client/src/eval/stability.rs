@@ -735,7 +735,14 @@ async fn run_one(
         // level 0 to draw it, or to give the true surface the errors are measured against.
         let mut cache = whole.lock().await;
         if cache.as_ref().is_none_or(|(url, _)| url != server) {
-            let mut opened = Session::open(server, None, config, args.size).await?;
+            // Its frames while it loads are the strip masks' (cheap, and with no data of
+            // their own to wait for: with levels off, the quadtree patches' index, which
+            // comes with the top level, would never arrive); it draws the reference.
+            let loading = RenderConfig {
+                method: MethodKind::StripMasks,
+                ..config
+            };
+            let mut opened = Session::open(server, None, loading, args.size).await?;
             opened.scene.use_levels(false);
             *cache = Some((server.to_string(), opened));
         }

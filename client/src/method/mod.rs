@@ -312,6 +312,17 @@ pub fn check_database(kind: MethodKind, manifest: &Manifest) -> Result<(), Strin
             manifest.dataset
         ));
     }
+    if kind == MethodKind::QuadtreePatches
+        && let Some(p) = &manifest.patches
+        && p.format != terrain_shared::quadtree::FORMAT
+    {
+        return Err(format!(
+            "--method quadtree-patches reads patches of format {:?}, and {:?} holds {:?}: build it again with this version's `terrain-server build --patches`",
+            terrain_shared::quadtree::FORMAT,
+            manifest.dataset,
+            p.format
+        ));
+    }
     Ok(())
 }
 

@@ -85,8 +85,12 @@ pub struct QuadtreePatches {
     tree: Tree,
     masks: MaskSet,
     index: Option<Vec<PatchEntry>>,
-    /// Per tile hash, its patch's entry (what the pager expects before the tile is in).
-    by_hash: HashMap<String, PatchEntry>,
+    /// What the pager is told to expect of a patch until the index is in: the most one
+    /// can hold ([`most_bytes`]).
+    unknown: u64,
+    /// Per tile hash, its patch's entry and level (what the pager expects before the tile
+    /// is in).
+    by_hash: HashMap<String, (PatchEntry, u32)>,
     resident: HashSet<TileId>,
     asked: HashSet<(TileId, u32)>,
     bodies: HashMap<TileId, Bytes>,
@@ -234,10 +238,12 @@ impl QuadtreePatches {
                     }
                 }
             });
+        let tree = Tree::for_tile_size(with.manifest.tile_size);
         QuadtreePatches {
             lod: config.lod,
             manifest: Arc::new(with.manifest.clone()),
-            tree: Tree::for_tile_size(with.manifest.tile_size),
+            tree,
+            unknown: most_bytes(tree),
             masks: MaskSet::new(with.manifest.tile_size),
             index: None,
             by_hash: HashMap::new(),
@@ -415,11 +421,54 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-/// What the method will hold for patch bodies of `body_bytes` (an upper estimate: a body
-/// spends about 2 bytes an active vertex, which becomes a vertex, its share of the
-/// triangles' 16-bit indices and of the flanges, and its decoded height).
-pub fn expected_bytes(body_bytes: u64) -> u64 {
+/// What the method will hold for patch bodies of `body_bytes` together, estimated from
+/// their size alone (a body spends about 2 bytes an active vertex, which becomes a vertex,
+/// its share of the triangles' 16-bit indices and of the flanges, and its decoded height):
+/// for sizing a whole database from its manifest, before the index is in.
+/// [`expected_bytes`] is the bound per patch.
+pub fn estimated_bytes(body_bytes: u64) -> u64 {
     body_bytes * (VERTEX_BYTES + 12 + 32) / 2
+}
+
+/// The most the method holds for a patch of `entry` at a tree of `tree` and `level`: its
+/// body while it waits to be meshed, then its mesh (every vertex of the surface and of the
+/// flanges' feet, 32 bytes; the surface's and flanges' indices, 16-bit when the vertices
+/// allow) and its decoded data ([`data_bytes`] at most: a node a surface vertex, a border
+/// entry a ring vertex). Known from the index before the body arrives, so the pager can
+/// make room for it.
+pub fn expected_bytes(entry: &PatchEntry, tree: Tree, level: u32) -> u64 {
+    let m = entry.mesh;
+    let vertices = u64::from(m.vertices) + u64::from(m.ring);
+    let index_bytes = if vertices <= u64::from(u16::MAX) + 1 {
+        2
+    } else {
+        4
+    };
+    let indices = 3 * u64::from(m.triangles) + 6 * u64::from(m.ring);
+    let gpu = vertices * VERTEX_BYTES + indices * index_bytes;
+    let cpu = if level == 0 {
+        0
+    } else {
+        u64::from(m.vertices) * 32 + u64::from(m.ring) * 24
+    } + (tree.nodes() / 8 + 64) as u64;
+    u64::from(entry.bytes) + gpu + cpu
+}
+
+/// The most a patch of `tree` can hold ([`expected_bytes`] of the full triangulation, with
+/// a body of 4 bytes a vertex): what the pager expects of a tile while the index that says
+/// better is on its way, so that it does not fill with tiles whose patches do not fit.
+pub fn most_bytes(tree: Tree) -> u64 {
+    let full = quadtree::Cut::full(tree);
+    let mesh = quadtree::MeshCounts::of(&full, &quadtree::triangulate(&full));
+    let entry = PatchEntry {
+        hash: [0; 16],
+        bytes: 4 * mesh.vertices,
+        error_m: 0.0,
+        min_m: 0.0,
+        max_m: 0.0,
+        mesh,
+    };
+    expected_bytes(&entry, tree, 1)
 }
 
 /// CPU bytes a decoded patch holds (its maps' entries, about).
@@ -777,7 +826,7 @@ impl LodMethod for QuadtreePatches {
                         .manifest
                         .tiles()
                         .zip(&entries)
-                        .map(|((_, t), e)| (t.hash.clone(), *e))
+                        .map(|((id, t), e)| (t.hash.clone(), (*e, id.level)))
                         .collect();
                     self.index = Some(entries);
                     self.changed = true;
@@ -1078,9 +1127,12 @@ impl LodMethod for QuadtreePatches {
     }
 
     fn expected_tile_bytes(&self, tile: &TileRecord) -> u64 {
+        if self.index.is_none() {
+            return self.unknown;
+        }
         self.by_hash
             .get(&tile.hash)
-            .map_or(0, |e| expected_bytes(u64::from(e.bytes)))
+            .map_or(0, |(e, level)| expected_bytes(e, self.tree, *level))
     }
 
     fn shared_bytes(&self) -> MethodBytes {
@@ -1154,6 +1206,80 @@ mod tests {
                 "target {target:?} at {} off the parent's {on}",
                 v[5]
             );
+        }
+    }
+
+    #[test]
+    fn the_index_tells_what_a_patch_will_hold() {
+        // Meshes of cuts from full to coarse, at the finest level (heights dropped once
+        // meshed) and above: the GPU bytes are what the counts say, and everything held
+        // stays within the expectation.
+        let tree = Tree { n: 4 };
+        let height = |v: Vertex| match v {
+            Vertex::Node { l, i, j } => 8 * (i32::from(l) * 5 + i32::from(i) * i32::from(j)),
+            Vertex::Side { l, k, .. } => 8 * (i32::from(l) + i32::from(k)),
+            Vertex::Corner { l, .. } => 8 * i32::from(l),
+        };
+        let mut cuts = vec![Cut::full(tree)];
+        let mut coarse = Cut::full(tree);
+        coarse.set_split(3, 1, 2, false);
+        coarse.set_split(2, 0, 0, false);
+        cuts.push(coarse);
+        let extent = tree.extent() as f32;
+        for cut in &cuts {
+            for level in [0, 1] {
+                let body = quadtree::encode_patch(cut, None, height, level == 0, 3);
+                let triangles = quadtree::triangulate(cut);
+                let entry = PatchEntry {
+                    hash: [0; 16],
+                    bytes: body.len() as u32,
+                    error_m: 0.0,
+                    min_m: 0.0,
+                    max_m: 0.0,
+                    mesh: quadtree::MeshCounts::of(cut, &triangles),
+                };
+                let (data, vertices, indices, drawn) = build_mesh(
+                    tree,
+                    TileId::at(level, 0, 0),
+                    [extent, extent],
+                    None,
+                    (0.0, 1.0),
+                    [1.0, 1.0],
+                    &body,
+                )
+                .expect("meshes");
+                let index_bytes = match &indices {
+                    Indices::U16(i) => i.len() * 2,
+                    Indices::U32(i) => i.len() * 4,
+                } as u64;
+                let gpu = vertices.len() as u64 * 4 + index_bytes;
+                let m = entry.mesh;
+                assert_eq!(
+                    drawn,
+                    m.triangles + 2 * m.ring,
+                    "surface and flange triangles"
+                );
+                // A finest patch keeps its cut alone once meshed.
+                let cpu = if level == 0 {
+                    (tree.nodes() / 8 + 64) as u64
+                } else {
+                    data_bytes(&data)
+                };
+                let expected = expected_bytes(&entry, tree, level);
+                let mut at_most_cpu = (tree.nodes() / 8 + 64) as u64;
+                if level > 0 {
+                    at_most_cpu += u64::from(m.vertices) * 32 + u64::from(m.ring) * 24;
+                }
+                assert_eq!(
+                    expected - u64::from(entry.bytes) - at_most_cpu,
+                    gpu,
+                    "level {level}: the GPU bytes are what the counts say"
+                );
+                assert!(
+                    gpu + cpu <= expected && u64::from(entry.bytes) <= expected,
+                    "level {level}: {gpu} + {cpu} held of {expected} expected"
+                );
+            }
         }
     }
 }

@@ -428,6 +428,7 @@ pub fn build(
                     error_m: (error * quantum) as f32,
                     min_m: metres(lo),
                     max_m: metres(hi),
+                    mesh: quadtree::MeshCounts::of(cut, &triangles),
                 };
                 let d = done.fetch_add(1, Ordering::Relaxed) + 1;
                 progress(d, total * 2);
