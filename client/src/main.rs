@@ -37,7 +37,7 @@ enum Command {
 enum BenchCommand {
     /// Error (screen-space pixels, cracks, PSNR) against triangles, frame time and bytes,
     /// each method swept over its own knob (strip masks: fixed budgets; GeoMipMaps: the
-    /// error threshold), over cameras along a flight, with popping on a slow flight; on
+    /// error threshold), over cameras along a flight, with popping on an approach to the ground; on
     /// --server and every --data database; writes accuracy.csv, summary.md and charts.
     Accuracy(terrain_client::eval::accuracy::AccuracyArgs),
     /// Named scenarios (grazing views, above the horizon, under the surface, far outside,

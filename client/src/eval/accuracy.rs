@@ -278,7 +278,7 @@ pub struct Summary {
     pub gpu_ms: Option<f64>,
     /// Mean over the cameras of what the scene held after the frame (CPU and GPU bytes).
     pub held_bytes: f64,
-    /// Frame-to-frame change on the slow flight beyond the reference's own, per pixel
+    /// Frame-to-frame change on the approach beyond the reference's own, per pixel
     /// ([`super::popping`]); `None` when popping was not measured.
     pub popping: Option<Popping>,
     /// The projective grid's shares of the frame's pixels, percent, mean over the cameras:
@@ -418,34 +418,34 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         .scene
         .ground_under(cameras[0].position)
         .unwrap_or(manifest.heights.min_m);
-    let slow = approach_flight(
+    let approach = approach_flight(
         &cameras[0],
         ground,
         args.popping_frames,
         args.popping_halvings,
     );
     let mut popping = Vec::new();
-    if slow.len() >= 2 {
+    if approach.len() >= 2 {
         bar.set_message("popping");
-        let references = slow
+        let references = approach
             .iter()
             .map(|camera| Ok(session.reference(camera)?.0))
             .collect::<Result<Vec<_>, FlightError>>()?;
         for config in configs(args) {
             let render = config.render(base);
             session
-                .prepare(centre, &slow[0], render, Duration::from_secs(120))
+                .prepare(centre, &approach[0], render, Duration::from_secs(120))
                 .await?;
-            let frames = slow
+            let frames = approach
                 .iter()
                 .map(|camera| Ok(session.capture(camera, render)?.0))
                 .collect::<Result<Vec<_>, FlightError>>()?;
             let mut changes = Changes::default();
-            for k in 1..slow.len() {
+            for k in 1..approach.len() {
                 let at = |j: usize| Pair {
                     method: &frames[j],
                     reference: &references[j],
-                    eye: slow[j].position,
+                    eye: approach[j].position,
                 };
                 changes.add(at(k - 1), at(k));
             }
