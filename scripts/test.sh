@@ -6,7 +6,9 @@
 #
 # The data-hungry tests read the data kit from $TERRAIN_DATA_DIR; without it they print
 # "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure; so does
-# REQUIRE_GPU=1 for render tests without a Vulkan adapter.
+# REQUIRE_GPU=1 for render tests without a Vulkan adapter, and REQUIRE_BROWSER=1 for the
+# browser tests (MapLibre and Cesium in headless Chromium) without Chromium and the npm
+# packages, which viewer/setup.sh installs here when it can (apt-get, npm ci).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -29,6 +31,14 @@ ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 
 if [ -z "${TERRAIN_DATA_DIR:-}" ]; then
   echo "note: TERRAIN_DATA_DIR is not set: tests that need the data kit will say NOT RUN"
+fi
+
+if ! bash viewer/setup.sh; then
+  if [ "${REQUIRE_BROWSER:-}" = 1 ]; then
+    echo "error: REQUIRE_BROWSER=1 but viewer/setup.sh failed" >&2
+    exit 1
+  fi
+  echo "note: viewer/setup.sh failed: the browser tests will say NOT RUN"
 fi
 
 cargo build --release --workspace --locked

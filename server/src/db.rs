@@ -32,6 +32,8 @@ pub const HEIGHTS_PACK: &str = "heights.pack";
 pub const TEXTURES_PACK: &str = "textures.pack";
 /// The quadtree patches' bodies and index, when built ([`terrain_shared::manifest::PatchesInfo`]).
 pub const PATCHES_PACK: &str = "patches.pack";
+/// The web tiles (`crate::web`): every tile in the index's order, then the index.
+pub const WEB_PACK: &str = "web.pack";
 
 /// Why a database could not be opened.
 #[derive(Debug, Error)]
@@ -66,6 +68,8 @@ pub enum DbError {
     },
     #[error("the quadtree patches in {pack} are damaged: {message}")]
     Patches { pack: PathBuf, message: String },
+    #[error("the web tiles in {pack} are damaged: {message}")]
+    Web { pack: PathBuf, message: String },
     #[error("the tile blob of tile {id} in {pack} is damaged: {source}")]
     TileBlob {
         pack: PathBuf,
@@ -113,6 +117,8 @@ pub struct TileDb {
     textures: Vec<Vec<StoredBlob>>,
     /// Per tile its quadtree patch, then the index, when the database has them.
     patches: Option<(Vec<StoredBlob>, StoredBlob)>,
+    /// The web tiles by kind and coordinates, when the database has them.
+    web: Option<std::collections::HashMap<crate::web::index::Entry, StoredBlob>>,
 }
 
 impl TileDb {
@@ -183,6 +189,10 @@ impl TileDb {
             None => None,
             Some(info) => Some(open_patches(dir, &manifest, info, verify)?),
         };
+        let web = match &manifest.web {
+            None => None,
+            Some(info) => Some(open_web(dir, info, verify)?),
+        };
         let manifest_gzip = gzip(&manifest_json).map_err(|source| DbError::Io {
             path: manifest_path.clone(),
             source,
@@ -197,6 +207,7 @@ impl TileDb {
             heights,
             textures,
             patches,
+            web,
         })
     }
 
@@ -242,6 +253,16 @@ impl TileDb {
     /// The quadtree patches' index, if the database has patches.
     pub fn patch_index(&self) -> Option<&StoredBlob> {
         self.patches.as_ref().map(|p| &p.1)
+    }
+
+    /// A web tile (`crate::web`), if the database has web tiles and that one.
+    pub fn web_tile(&self, entry: crate::web::index::Entry) -> Option<&StoredBlob> {
+        self.web.as_ref()?.get(&entry)
+    }
+
+    /// Every web tile, in no particular order (for an export).
+    pub fn web_tiles(&self) -> impl Iterator<Item = (&crate::web::index::Entry, &StoredBlob)> + '_ {
+        self.web.iter().flat_map(|w| w.iter())
     }
 
     /// Texture `level` (0 = coarsest) of tile `id`, if both exist.
@@ -303,6 +324,50 @@ fn open_patches(
         verify,
     )?;
     Ok((bodies, index))
+}
+
+/// Slices `web.pack`: the index is checked against the manifest, the tiles against the
+/// index's sizes (and hashes, with [`Verify::Hashes`]).
+fn open_web(
+    dir: &Path,
+    info: &terrain_shared::manifest::WebInfo,
+    verify: Verify,
+) -> Result<std::collections::HashMap<crate::web::index::Entry, StoredBlob>, DbError> {
+    let path = dir.join(WEB_PACK);
+    let pack = map_file(&path)?;
+    let root = TileId::at(0, 0, 0);
+    let tiles_end = info.tiles_bytes as usize;
+    if pack.len() as u64 != info.tiles_bytes + info.index.bytes {
+        return Err(DbError::PackSize {
+            pack: path,
+            expected: info.tiles_bytes + info.index.bytes,
+            found: pack.len() as u64,
+        });
+    }
+    let index = slice_pack(
+        &pack.slice(tiles_end..),
+        &path,
+        std::iter::once((root, "web index".to_string(), info.index.clone())),
+        Verify::Hashes,
+    )?
+    .remove(0);
+    let entries = crate::web::index::decode(&index.bytes).map_err(|e| DbError::Web {
+        pack: path.clone(),
+        message: e.to_string(),
+    })?;
+    let tiles = slice_pack(
+        &pack.slice(..tiles_end),
+        &path,
+        entries.iter().map(|(e, blob)| {
+            (
+                TileId::at(e.z, e.x, e.y),
+                format!("web tile {:?}", e.kind),
+                blob.clone(),
+            )
+        }),
+        verify,
+    )?;
+    Ok(entries.into_iter().map(|(e, _)| e).zip(tiles).collect())
 }
 
 /// Maps a pack read-only. An empty file cannot be mapped and needs no map.
@@ -413,7 +478,13 @@ pub fn check_output(out: &Path, force: bool) -> Result<(), WriteError> {
         return Ok(());
     }
     names.sort();
-    let ours = [MANIFEST_FILE, HEIGHTS_PACK, TEXTURES_PACK, PATCHES_PACK];
+    let ours = [
+        MANIFEST_FILE,
+        HEIGHTS_PACK,
+        TEXTURES_PACK,
+        PATCHES_PACK,
+        WEB_PACK,
+    ];
     let others: Vec<&String> = names
         .iter()
         .filter(|n| !ours.contains(&n.as_str()))
@@ -633,8 +704,16 @@ impl DbWriter {
         Ok(())
     }
 
-    /// Writes the manifest, syncs everything and renames the directory to its destination.
-    pub fn finish(mut self, manifest: &Manifest) -> Result<PathBuf, WriteError> {
+    /// Appends the coarser levels to the packs and writes `manifest` into the temporary
+    /// directory, which then opens as a database ([`TileDb::open`]) for what is made from
+    /// the finished tiles (the web tiles); [`DbWriter::finish`] still has to follow.
+    pub fn seal(&mut self, manifest: &Manifest) -> Result<&Path, WriteError> {
+        self.append_levels(manifest)?;
+        self.write_manifest(manifest)?;
+        Ok(self.tmp.path())
+    }
+
+    fn append_levels(&mut self, manifest: &Manifest) -> Result<(), WriteError> {
         use std::io::Write;
         let listed_heights: u64 = manifest.tiles().map(|(_, t)| t.bytes).sum();
         if listed_heights != self.heights_written {
@@ -658,10 +737,36 @@ impl DbWriter {
             pack.flush().map_err(io)?;
             pack.get_ref().sync_all().map_err(io)?;
         }
+        Ok(())
+    }
+
+    fn write_manifest(&self, manifest: &Manifest) -> Result<(), WriteError> {
+        use std::io::Write;
+        let io = |source| WriteError::Io {
+            path: self.out.clone(),
+            source,
+        };
         let manifest_path = self.tmp.path().join(MANIFEST_FILE);
         let mut file = File::create(&manifest_path).map_err(io)?;
         file.write_all(&manifest.to_json()).map_err(io)?;
         file.sync_all().map_err(io)?;
+        Ok(())
+    }
+
+    /// Path the web tiles' pack is written to, inside the temporary directory.
+    pub fn web_pack_path(&self) -> PathBuf {
+        self.tmp.path().join(WEB_PACK)
+    }
+
+    /// Writes the manifest, syncs everything and renames the directory to its destination.
+    pub fn finish(mut self, manifest: &Manifest) -> Result<PathBuf, WriteError> {
+        self.append_levels(manifest)?;
+        self.write_manifest(manifest)?;
+        let out = self.out.clone();
+        let io = |source| WriteError::Io {
+            path: out.clone(),
+            source,
+        };
 
         // Checked again: the output may have appeared, or changed, while the build ran.
         match check_output(&out, self.force) {

@@ -5,12 +5,15 @@
 //!   writes a database through [`db::DbWriter`].
 //! - [`db`] is the database on disk: its layout, the atomic writer and the read side.
 //! - [`http`] serves an opened [`db::TileDb`] over HTTP.
+//! - [`web`] makes the tiles MapLibre and Cesium read; [`export`] writes them as PMTiles.
 //!
 //! The binary (`src/main.rs`) only parses arguments and maps errors to exit codes.
 
 pub mod build;
 pub mod db;
+pub mod export;
 pub mod http;
+pub mod web;
 
 /// Writes `text` to stdout and flushes it. A closed stdout (`terrain-server build … | head
 /// -0`) is not an error: whoever reads the output has gone, and the work is done, so the

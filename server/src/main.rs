@@ -19,6 +19,8 @@ enum Command {
     Build(terrain_server::build::BuildArgs),
     /// Serve a tile database over HTTP.
     Serve(terrain_server::http::ServeArgs),
+    /// Write a database's XYZ pyramid (Terrarium heights by default) as a PMTiles archive.
+    Export(terrain_server::export::ExportArgs),
 }
 
 fn main() -> ExitCode {
@@ -35,6 +37,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Build(args) => terrain_server::build::run_cli(args),
         Command::Serve(args) => terrain_server::http::run_cli(args),
+        Command::Export(args) => terrain_server::export::run_cli(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -52,6 +52,40 @@ pub struct Manifest {
     /// with them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub patches: Option<PatchesInfo>,
+    /// The tiles the web's own clients read (MapLibre's XYZ tiles, Cesium's
+    /// quantized-mesh), when the source was georeferenced.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub web: Option<WebInfo>,
+}
+
+/// Value of [`WebInfo::format`].
+pub const WEB_FORMAT: &str = "terrain-web/1";
+
+/// Where a database's web tiles are (`web.pack`: every tile in the index's order, then the
+/// index) and what pyramids they make. `docs/api.md` documents the routes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WebInfo {
+    /// Always [`WEB_FORMAT`].
+    pub format: String,
+    /// The source's coordinate reference system, e.g. `EPSG:4326`.
+    pub crs: String,
+    /// Longitude and latitude bounds of the samples, degrees: `[west, south, east, north]`.
+    pub bounds_deg: [f64; 4],
+    /// Pixels per side of an XYZ (Web Mercator) tile.
+    pub xyz_tile_size: u32,
+    /// The finest XYZ zoom: the last whose pixels are no finer than level 0's samples.
+    pub xyz_max_zoom: u32,
+    /// Format of the XYZ texture tiles.
+    pub xyz_texture: ImageFormat,
+    /// The finest level of the quantized-mesh pyramid (geographic tiling scheme).
+    pub cesium_max_level: u32,
+    /// Per quantized-mesh level, the largest vertical distance of any of its meshes from
+    /// the full-resolution surface under it, metres.
+    pub cesium_max_error_m: Vec<f64>,
+    /// The index: per tile its kind, coordinates, hash and size.
+    pub index: Blob,
+    /// Bytes of every tile together (the index follows them in the pack).
+    pub tiles_bytes: u64,
 }
 
 /// Where a database's quadtree patches are: one body per tile (a patch of the meta
@@ -468,6 +502,7 @@ impl Manifest {
             texture,
             georeference: None,
             patches: None,
+            web: None,
             mask_levels: crate::mask::level_count(tile_size),
             levels,
         };
@@ -619,6 +654,9 @@ impl Manifest {
         }
         if let Some(p) = &self.patches {
             text.push_str(&format!(" patches {}", p.index.hash));
+        }
+        if let Some(w) = &self.web {
+            text.push_str(&format!(" web {}", w.index.hash));
         }
         content_hash(text.as_bytes())[..16].to_string()
     }

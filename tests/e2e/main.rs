@@ -1,6 +1,7 @@
 //! End-to-end tests: one binary, linked once.
 
 mod accuracy;
+mod browser;
 mod build;
 mod client_cli;
 mod fetcher;
@@ -14,3 +15,4 @@ mod methods;
 mod patches;
 mod render;
 mod round_trip;
+mod web;

@@ -37,13 +37,29 @@ impl TestServer {
     /// Serves the database in `db_dir` with `options`. Panics if the database does not
     /// open or no port can be bound: a test cannot go on without its server.
     pub fn start_with(db_dir: &Path, options: ServeOptions) -> TestServer {
+        Self::start_state(Self::open(db_dir), options)
+    }
+
+    /// Serves the database in `db_dir` with the viewer page's files from `viewer` under
+    /// `/view/`.
+    pub fn start_with_viewer(db_dir: &Path, viewer: &Path) -> TestServer {
+        let mut state = Self::open(db_dir);
+        state.viewer = Some(viewer.to_path_buf());
+        Self::start_state(state, ServeOptions::default())
+    }
+
+    fn open(db_dir: &Path) -> AppState {
         let db = TileDb::open(db_dir, Verify::Hashes).unwrap_or_else(|error| {
             panic!(
                 "cannot open the test database {}: {error}",
                 db_dir.display()
             )
         });
-        let state = Arc::new(AppState::new(db));
+        AppState::new(db)
+    }
+
+    fn start_state(state: AppState, options: ServeOptions) -> TestServer {
+        let state = Arc::new(state);
         // Bound here, not on the server thread, so the address is known (and connectable:
         // the kernel queues connections) before `start` returns.
         let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("cannot bind 127.0.0.1:0");

@@ -122,6 +122,11 @@ pub struct BuildArgs {
     /// not on a plane with its neighbours).
     #[arg(long, default_value_t = 0.0, requires = "patches")]
     pub patch_tolerance: f64,
+    /// Skip the web tiles (MapLibre's Terrarium and Terrain-RGB XYZ tiles, Cesium's
+    /// quantized-mesh). They are made by default when the input is georeferenced
+    /// (GeoTIFF tags, an .hgt name, dataset.json bounds), from the finished pyramid.
+    #[arg(long)]
+    pub no_web: bool,
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
@@ -155,6 +160,9 @@ pub struct BuildOptions {
     pub zstd_level: i32,
     /// The quadtree patches' tolerance (metres), when they are built.
     pub patches: Option<f64>,
+    /// Make the web tiles when the input is georeferenced (the command line's default;
+    /// off in [`BuildOptions::new`]).
+    pub web: bool,
 }
 
 /// Where the texture comes from.
@@ -188,6 +196,7 @@ impl BuildOptions {
             jpeg_quality: texture::DEFAULT_JPEG_QUALITY,
             zstd_level: heights::DEFAULT_ZSTD_LEVEL,
             patches: None,
+            web: false,
         }
     }
 
@@ -233,6 +242,7 @@ impl BuildOptions {
             jpeg_quality: args.jpeg_quality,
             zstd_level: args.zstd_level,
             patches: args.patches.then_some(args.patch_tolerance),
+            web: !args.no_web,
             ..BuildOptions::new(&args.heights, out)
         })
     }
@@ -274,6 +284,10 @@ pub enum BuildError {
     Cancelled,
     #[error("level {level} stopped after {made} of its {rows} tile rows: the heights ended early")]
     Unfinished { level: u32, made: u32, rows: u32 },
+    #[error("the web tiles: {0}")]
+    Web(#[from] crate::web::build::WebError),
+    #[error("reading the new tiles back for the web tiles: {0}")]
+    ReadBack(#[from] crate::db::DbError),
 }
 
 /// Something a user should know about a finished build; the database is still complete.
@@ -285,6 +299,9 @@ pub enum BuildWarning {
         samples: usize,
     },
     SpacingUnknown,
+    /// No web tiles: the input does not say where it lies on the Earth in a way this build
+    /// can place (the reason); the native routes work as ever.
+    NoWeb(String),
     TextureAspect {
         texture: [u32; 2],
         raster: [u32; 2],
@@ -302,6 +319,10 @@ impl fmt::Display for BuildWarning {
             BuildWarning::OutOfRangeAsNodata { samples } => write!(
                 f,
                 "{samples} float samples no height code holds were taken as no-data (--out-of-range nodata)"
+            ),
+            BuildWarning::NoWeb(reason) => write!(
+                f,
+                "no web tiles (MapLibre and Cesium routes off for this database): {reason}"
             ),
             BuildWarning::SpacingUnknown => {
                 write!(
@@ -331,6 +352,8 @@ pub struct BuildReport {
     pub source_bytes: u64,
     /// The quadtree patches, when built.
     pub patches: Option<patches::Stats>,
+    /// The web tiles, when made.
+    pub web: Option<crate::web::build::Stats>,
     pub elapsed: Duration,
 }
 
@@ -539,6 +562,7 @@ pub fn build(
         mask_levels: mask::level_count(n),
         levels: built.levels,
         patches: None,
+        web: None,
     };
     let mut patch_stats = None;
     if let Some(tolerance_m) = options.patches {
@@ -575,6 +599,31 @@ pub fn build(
     if cancel.load(Ordering::Relaxed) {
         return Err(BuildError::Cancelled);
     }
+    let mut web_stats = None;
+    if options.web {
+        match crate::web::crs::Placement::new(manifest.georeference.as_ref()) {
+            Err(reason) => warnings.push(BuildWarning::NoWeb(reason.to_string())),
+            Ok(placement) => {
+                let dir = writer.seal(&manifest)?.to_path_buf();
+                let db = crate::db::TileDb::open(&dir, crate::db::Verify::SizesOnly)?;
+                let (info, stats) = crate::web::build::build(
+                    &db,
+                    placement,
+                    &writer.web_pack_path(),
+                    progress,
+                    cancel,
+                )
+                .map_err(|e| match e {
+                    crate::web::build::WebError::Cancelled => BuildError::Cancelled,
+                    e => BuildError::Web(e),
+                })?;
+                drop(db);
+                manifest.web = Some(info);
+                manifest.content_version = manifest.compute_content_version();
+                web_stats = Some(stats);
+            }
+        }
+    }
     let out = writer.finish(&manifest)?;
     Ok(BuildReport {
         out,
@@ -585,6 +634,7 @@ pub fn build(
         texture_bytes: built.texture_bytes,
         source_bytes,
         patches: patch_stats,
+        web: web_stats,
         elapsed: started.elapsed(),
     })
 }
@@ -767,6 +817,28 @@ impl fmt::Display for Summary<'_> {
                 p.height_bytes as f64 / samples,
                 p.index_bytes as f64 / 1024.0,
                 100.0 * p.active_vertices as f64 / samples,
+            )?;
+        }
+        if let (Some(w), Some(info)) = (&r.web, &m.web) {
+            writeln!(
+                f,
+                "  web       {:.2} MiB in {:.1} s: {} XYZ tiles (zoom 0-{}; Terrarium {:.2} MiB, Terrain-RGB {:.2} MiB, texture {:.2} MiB) and {} quantized-mesh tiles (level 0-{}, {:.2} MiB, {:.0} vertices a tile); bounds {:.5}, {:.5} .. {:.5}, {:.5} ({})",
+                mib(info.tiles_bytes + info.index.bytes),
+                w.seconds,
+                w.xyz_tiles,
+                info.xyz_max_zoom,
+                mib(w.terrarium_bytes),
+                mib(w.terrain_rgb_bytes),
+                mib(w.texture_bytes),
+                w.mesh_tiles,
+                info.cesium_max_level,
+                mib(w.mesh_bytes),
+                w.mesh_vertices as f64 / w.mesh_tiles.max(1) as f64,
+                info.bounds_deg[0],
+                info.bounds_deg[1],
+                info.bounds_deg[2],
+                info.bounds_deg[3],
+                info.crs,
             )?;
         }
         if r.warnings.is_empty() {

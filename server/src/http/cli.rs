@@ -49,6 +49,14 @@ pub struct ServeArgs {
     /// Seconds shutdown waits for responses in flight after SIGINT or SIGTERM.
     #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_SHUTDOWN_DEADLINE.as_secs_f64(), value_parser = seconds)]
     pub shutdown_deadline: f64,
+    /// `scheme://host[:port]` of the server as browsers reach it, for the absolute tile
+    /// URLs of the TileJSON documents (default: the request's Host, over http).
+    #[arg(long, value_name = "URL")]
+    pub public_url: Option<String>,
+    /// Serve the viewer page (MapLibre and Cesium, `bash viewer/setup.sh` makes it) from
+    /// this directory under `/view/`; `/` then redirects to it.
+    #[arg(long, value_name = "DIR")]
+    pub viewer: Option<PathBuf>,
     /// Runtime worker threads; 0 means one per CPU core.
     #[arg(long, default_value_t = 0)]
     pub worker_threads: usize,
@@ -88,7 +96,21 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
         elapsed_ms = started.elapsed().as_millis() as u64,
         "database opened"
     );
-    let state = Arc::new(AppState::new(db));
+    if let Some(dir) = &args.viewer
+        && !dir.join("index.html").is_file()
+    {
+        anyhow::bail!(
+            "--viewer {}: no index.html there (run `bash viewer/setup.sh` to make viewer/dist)",
+            dir.display()
+        );
+    }
+    if manifest.web.is_none() {
+        tracing::info!("no web tiles in this database: the MapLibre and Cesium routes answer 404");
+    }
+    let mut state = AppState::new(db);
+    state.public_url = args.public_url.clone();
+    state.viewer = args.viewer.clone();
+    let state = Arc::new(state);
     let options = args.options();
 
     let mut runtime = tokio::runtime::Builder::new_multi_thread();

@@ -52,6 +52,26 @@ pub enum HttpError {
         "this database has no quadtree patches: build it with `terrain-server build --patches`"
     )]
     NoPatches,
+    /// The database has no web tiles (MapLibre's and Cesium's routes).
+    #[error(
+        "this database has no web tiles: its source is not georeferenced (GeoTIFF tags, an .hgt name or dataset.json bounds), or it was built with --no-web"
+    )]
+    NoWeb,
+    #[error(
+        "no {what} tile {z}/{x}/{y}: the terrain does not reach it, or it is past the finest zoom {max_zoom}"
+    )]
+    NoWebTile {
+        what: &'static str,
+        z: u32,
+        x: u32,
+        y: u32,
+        max_zoom: u32,
+    },
+    /// A document naming absolute URLs was asked with a Host header that is not a host.
+    #[error(
+        "the Host header is not a host name or address with an optional port; give the server --public-url behind a proxy"
+    )]
+    BadHost,
     #[error("method not allowed: this API only answers GET and HEAD")]
     MethodNotAllowed,
     /// Load shedding: the concurrency limit is reached, and waiting in a queue would only
@@ -69,13 +89,16 @@ impl HttpError {
         match self {
             HttpError::MalformedNumber { .. }
             | HttpError::MalformedPath { .. }
-            | HttpError::NotCanonical { .. } => StatusCode::BAD_REQUEST,
+            | HttpError::NotCanonical { .. }
+            | HttpError::BadHost => StatusCode::BAD_REQUEST,
             HttpError::TileOutsideGrid { .. }
             | HttpError::NoSuchLevel { .. }
             | HttpError::NoSuchTextureLevel { .. }
             | HttpError::UnknownContentVersion { .. }
             | HttpError::NoRoute
-            | HttpError::NoPatches => StatusCode::NOT_FOUND,
+            | HttpError::NoPatches
+            | HttpError::NoWeb
+            | HttpError::NoWebTile { .. } => StatusCode::NOT_FOUND,
             HttpError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             // 503 rather than 408 for a timeout: 408 says the *client* was too slow to send
             // its request, while here the server was too slow to answer it.

@@ -15,7 +15,9 @@
 //!    `/healthz` and `/metrics` stay outside, so an overloaded server can still be watched.
 //!
 //! **Invariant:** nothing from a URL is used as a file path; every lookup goes through
-//! [`TileDb`], by parsed tile id and level.
+//! [`TileDb`], by parsed tile id and level. The one exception is the viewer page under
+//! `/view/`, served only with `--viewer DIR` by tower-http's `ServeDir`, which refuses any
+//! path leaving `DIR`.
 
 pub mod cli;
 pub mod error;
@@ -26,6 +28,7 @@ mod limits;
 pub mod metrics;
 pub mod routes;
 pub mod serve;
+pub mod web;
 
 pub use cli::{ServeArgs, run_cli};
 pub use error::HttpError;
@@ -47,6 +50,11 @@ use tower_http::cors::{Any, CorsLayer};
 pub struct AppState {
     pub db: TileDb,
     pub metrics: Metrics,
+    /// `scheme://host[:port]` put in front of tile URLs in the web documents, instead of
+    /// the request's `Host` (for a server behind a proxy).
+    pub public_url: Option<String>,
+    /// The viewer page's files (`viewer/dist`), served under `/view/`.
+    pub viewer: Option<std::path::PathBuf>,
 }
 
 impl AppState {
@@ -54,6 +62,8 @@ impl AppState {
         AppState {
             db,
             metrics: Metrics::new(),
+            public_url: None,
+            viewer: None,
         }
     }
 
@@ -108,7 +118,21 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
         .route(&routes::patch_template(), get(routes::patch))
         .route(&routes::patch_index_template(), get(routes::patch_index))
         .route(&routes::legacy_heights_template(), get(routes::legacy_tile))
-        .route(&routes::legacy_texture_template(), get(routes::legacy_tile));
+        .route(&routes::legacy_texture_template(), get(routes::legacy_tile))
+        .route(web::TERRARIUM_JSON, get(web::terrarium_json))
+        .route(web::TERRAIN_RGB_JSON, get(web::terrain_rgb_json))
+        .route(web::TEXTURE_JSON, get(web::texture_json))
+        .route(web::CESIUM_LAYER, get(web::cesium_layer));
+    let tile_api = web::tile_templates()
+        .into_iter()
+        .fold(tile_api, |router, (template, kind)| {
+            router.route(
+                &template,
+                get(move |state, uri, path, conditional| {
+                    web::tile(state, kind, uri, path, conditional)
+                }),
+            )
+        });
     #[cfg(feature = "test-hooks")]
     let tile_api = tile_api.route(hooks::SLEEP, get(hooks::sleep));
 
@@ -117,9 +141,16 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
         options.request_timeout,
     ));
 
-    let operations = Router::new()
+    let mut operations = Router::new()
         .route(HEALTHZ, get(routes::healthz))
-        .route(METRICS, get(routes::metrics));
+        .route(METRICS, get(routes::metrics))
+        .route("/", get(web::root));
+    if let Some(dir) = &state.viewer {
+        // The one route that reads files: tower-http's ServeDir, which refuses any path
+        // that would leave `dir` (`..`, absolute paths, symbolic links are followed only
+        // inside what the OS resolves under it).
+        operations = operations.nest_service("/view", tower_http::services::ServeDir::new(dir));
+    }
 
     tile_api
         .merge(operations)

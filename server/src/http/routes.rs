@@ -329,7 +329,7 @@ pub(super) async fn method_not_allowed() -> HttpError {
 }
 
 /// The 200 or 304 answer for one stored entity.
-fn entity(
+pub(super) fn entity(
     conditional: &Conditional,
     bytes: &Bytes,
     etag: Option<&HeaderValue>,
@@ -379,7 +379,7 @@ const TEXTURE_SPELLING: &str =
 /// Refuses the spellings of a tile URL that routing alone would accept: a query string
 /// (ignored by the handler, but part of every cache's key) and percent-encoding (`%31` for
 /// `1`; no segment of a tile URL needs it). Coordinates are checked by [`parse_number`].
-fn check_canonical(uri: &Uri, canonical: &'static str) -> Result<(), HttpError> {
+pub(super) fn check_canonical(uri: &Uri, canonical: &'static str) -> Result<(), HttpError> {
     if uri.query().is_some() {
         return Err(HttpError::NotCanonical {
             reason: "tile URLs take no query string",
@@ -406,7 +406,7 @@ fn parse_tile(level: &str, x: &str, y: &str) -> Result<TileId, HttpError> {
 /// Parses a path segment as a `u32` in its one canonical spelling: ASCII digits, no sign,
 /// no leading zeros. `str::parse` alone would also take `+7` and `007`; refusing those
 /// keeps one URL per tile, so caches cannot be bypassed by respelling a coordinate.
-fn parse_number(segment: &'static str, value: &str) -> Result<u32, HttpError> {
+pub(super) fn parse_number(segment: &'static str, value: &str) -> Result<u32, HttpError> {
     let canonical = !value.is_empty()
         && value.bytes().all(|b| b.is_ascii_digit())
         && (value == "0" || !value.starts_with('0'));
