@@ -108,8 +108,12 @@ fn main() {
         .expect("runtime");
     for (name, input) in inputs {
         let tmp = tempfile::tempdir().expect("tempdir");
+        let options = BuildOptions {
+            web: true,
+            ..BuildOptions::new(&input, tmp.path().join("db"))
+        };
         let report = build(
-            &BuildOptions::new(&input, tmp.path().join("db")),
+            &options,
             &|_, _| {},
             &AtomicBool::new(false),
         )

@@ -534,3 +534,59 @@ async fn a_utm_geotiff_is_placed_on_the_globe_by_its_projection() {
     // interpolation.
     assert!(worst < 0.51, "{worst} m off the plane: misplaced");
 }
+
+/// One raw request (no URL normalisation on the way): the status line's code and the body.
+async fn raw_get(addr: &str, target: &str) -> (u16, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.expect("connect");
+    let request = format!("GET {target} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.expect("write");
+    let mut answer = Vec::new();
+    stream.read_to_end(&mut answer).await.expect("read");
+    let text = String::from_utf8_lossy(&answer).into_owned();
+    let status = text.get(9..12).and_then(|s| s.parse().ok()).unwrap_or(0);
+    (status, text)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_viewer_directory_is_the_only_one_served_and_never_left() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    build(&jacksboro(), &db, &[]);
+    let view = tmp.path().join("view");
+    std::fs::create_dir_all(&view).expect("view");
+    std::fs::write(view.join("index.html"), "<p>viewer</p>").expect("write");
+    std::fs::write(tmp.path().join("secret.txt"), "SECRET").expect("write");
+    let server = TestServer::start_with_viewer(&db, &view);
+    let base = server.base_url();
+    let addr = base.trim_start_matches("http://").to_string();
+    let a = get(&format!("{base}/view/index.html")).await;
+    assert_eq!(a.status, 200);
+    assert_eq!(String::from_utf8_lossy(&a.body), "<p>viewer</p>");
+    let root = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .expect("client")
+        .get(format!("{base}/"))
+        .send()
+        .await
+        .expect("GET /");
+    assert_eq!(root.status().as_u16(), 302);
+    assert_eq!(root.headers()["location"], "/view/index.html");
+    for target in [
+        "/view/../secret.txt",
+        "/view/%2e%2e/secret.txt",
+        "/view/..%2fsecret.txt",
+        "/view/%2e%2e%2fsecret.txt",
+        "/view//etc/passwd",
+        "/view/../../../../etc/passwd",
+        "/view/missing.js",
+    ] {
+        let (status, text) = raw_get(&addr, target).await;
+        assert!(
+            !text.contains("SECRET") && !text.contains("root:"),
+            "{target}: {status} leaked a file outside the viewer: {text}"
+        );
+        assert!(status == 404 || status == 400, "{target}: {status}");
+    }
+}
