@@ -20,9 +20,9 @@ cargo build --release --workspace --locked
 bin=target/release
 
 echo "== databases"
-"$bin/terrain-server" build "$TERRAIN_DATA_DIR/puget_sound_1k/ps_height_1k.png" --out "$out/db/puget_sound_1k" --force --quiet
+"$bin/terrain-server" build "$TERRAIN_DATA_DIR/puget_sound_1k/ps_height_1k.png" --out "$out/db/puget_sound_1k" --force --quiet --no-web
 /usr/bin/time -f "build: %e s wall, peak RSS %M KiB" \
-  "$bin/terrain-server" build "$TERRAIN_DATA_DIR/himalaya_4097/g10g_himalaya_4097.png" --out "$out/db/himalaya_4097" --force --quiet
+  "$bin/terrain-server" build "$TERRAIN_DATA_DIR/himalaya_4097/g10g_himalaya_4097.png" --out "$out/db/himalaya_4097" --force --quiet --no-web
 
 echo "== heights codec"
 cargo bench -p terrain-server --bench codec 2>/dev/null
@@ -53,7 +53,7 @@ done
 kill "$server"; wait "$server" 2>/dev/null || true
 
 echo "== frame-rate controller: rendered flights holding a target frame rate"
-"$bin/terrain-server" build tests/fixtures/jacksboro/jacksboro_fault_dem.png --out "$out/db/jacksboro" --force --quiet
+"$bin/terrain-server" build tests/fixtures/jacksboro/jacksboro_fault_dem.png --out "$out/db/jacksboro" --force --quiet --no-web
 for dataset in jacksboro puget_sound_1k; do
   "$bin/terrain-server" serve "$out/db/$dataset" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
   server=$!

@@ -49,7 +49,7 @@ mkdir -p "$docs"
 
 # serve NAME INPUT: builds INPUT and serves it; sets $url.
 serve() {
-  "$bin/terrain-server" build "$2" --out "$work/$1" --patches >"$work/$1.build.log" 2>&1
+  "$bin/terrain-server" build "$2" --out "$work/$1" --patches --no-web >"$work/$1.build.log" 2>&1
   "$bin/terrain-server" serve "$work/$1" --addr 127.0.0.1:0 >"$work/$1.stdout" 2>"$work/$1.log" &
   pids+=($!)
   url=
