@@ -92,9 +92,10 @@ fn force_replaces_a_database_and_an_empty_directory() {
     let (ok, _, stderr) = run_build(&out, &["--force"]);
     assert!(ok, "a database is replaced: {stderr}");
     assert_eq!(entries(tmp.path()), ["db"]);
+    // The fixture is georeferenced: the command line makes its web tiles too.
     assert_eq!(
         entries(&out),
-        ["heights.pack", "manifest.json", "textures.pack"]
+        ["heights.pack", "manifest.json", "textures.pack", "web.pack"]
     );
 }
 

@@ -429,7 +429,6 @@ async fn missing_tiles_levels_stale_versions_and_unknown_routes_give_404_with_a_
         routes::texture(v, TileId::new(0, 0), levels),
         routes::texture(v, TileId::at(1, 0, 0), levels),
         routes::texture(v, TileId::new(0, 0), u32::MAX),
-        "/".to_string(),
         "/v1".to_string(),
         "/v1/manifest.json/x".to_string(),
         "/v2/manifest.json".to_string(),

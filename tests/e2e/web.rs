@@ -336,6 +336,10 @@ async fn web_tile_urls_have_one_spelling_and_clear_errors() {
         assert_eq!(a.status, status, "{bad}: {body}");
         assert!(body.contains(says), "{bad}: {body}");
     }
+    // `/` says where the routes are.
+    let root = get(&format!("{base}/")).await;
+    assert_eq!(root.status, 200);
+    assert!(String::from_utf8_lossy(&root.body).contains("/v1/terrarium.json"));
     let cv = tilejson["version"].as_str().expect("version");
     let stale = good.replace(cv, "0123456789abcdef");
     assert_eq!(get(&stale).await.status, 404);
