@@ -112,12 +112,8 @@ fn main() {
             web: true,
             ..BuildOptions::new(&input, tmp.path().join("db"))
         };
-        let report = build(
-            &options,
-            &|_, _| {},
-            &AtomicBool::new(false),
-        )
-        .unwrap_or_else(|e| panic!("{}: {e}", input.display()));
+        let report = build(&options, &|_, _| {}, &AtomicBool::new(false))
+            .unwrap_or_else(|e| panic!("{}: {e}", input.display()));
         let db = TileDb::open(&report.out, Verify::SizesOnly).expect("opens");
         let m = db.manifest();
         let info = m.web.as_ref().expect("georeferenced: web tiles");

@@ -377,7 +377,7 @@ fn check_dataset(
         .collect();
     let top = run_page(
         "maplibre-top",
-        &page(&base, &format!("client=maplibre&texture=0&{camera}")),
+        &page(base, &format!("client=maplibre&texture=0&{camera}")),
         &points,
         &out,
     );
@@ -434,7 +434,7 @@ fn check_dataset(
     let pm = run_page(
         "maplibre-pmtiles",
         &page(
-            &base,
+            base,
             &format!(
                 "client=maplibre&texture=0&source=pmtiles&pmtiles={base}/view/{name}.pmtiles&{camera}"
             ),
@@ -457,7 +457,7 @@ fn check_dataset(
     // The picture: pitched, with the texture and hill shading.
     let pitched = run_page(
         "maplibre",
-        &page(&base, &format!("client=maplibre&{maplibre_camera}")),
+        &page(base, &format!("client=maplibre&{maplibre_camera}")),
         &[],
         &out,
     );
@@ -469,7 +469,7 @@ fn check_dataset(
     let stated = layer["max_error_m"][finest].as_f64().expect("max_error_m");
     let cesium = run_page(
         "cesium",
-        &page(&base, &format!("client=cesium&{cesium_camera}")),
+        &page(base, &format!("client=cesium&{cesium_camera}")),
         &points,
         &out,
     );

@@ -424,7 +424,7 @@ fn the_pmtiles_export_holds_every_terrarium_tile_and_replaces_nothing_unasked() 
     let data = (u64_at(56), u64_at(64));
     assert_eq!(
         data.0 + data.1,
-        bytes.len() as u64 - 0,
+        bytes.len() as u64,
         "tile data ends the file"
     );
     let (ok, _, stderr) = export(false);
