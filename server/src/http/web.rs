@@ -177,13 +177,7 @@ pub(super) async fn cesium_layer(
     let manifest = state.db.manifest();
     let mut available: Vec<Vec<serde_json::Value>> = Vec::new();
     for z in 0..=info.cesium_max_level {
-        let tiles = crate::web::tiling::geographic_tiles(info.bounds_deg, z);
-        let (x0, x1) = tiles
-            .iter()
-            .fold((u32::MAX, 0), |(a, b), t| (a.min(t.x), b.max(t.x)));
-        let (y0, y1) = tiles
-            .iter()
-            .fold((u32::MAX, 0), |(a, b), t| (a.min(t.y), b.max(t.y)));
+        let (x0, x1, y0, y1) = crate::web::tiling::geographic_range(info.bounds_deg, z);
         available.push(vec![
             json!({"startX": x0, "startY": y0, "endX": x1, "endY": y1}),
         ]);

@@ -315,6 +315,33 @@ fn mesh_tile(
     ))
 }
 
+/// `make` over one row of tiles, a chunk per thread, each chunk with its own cache of
+/// decoded tiles; results in the row's order.
+fn in_parallel<T: Send>(
+    db: &TileDb,
+    row: &[TileXyz],
+    make: impl Fn(TileXyz, &mut Sampler) -> Result<T, WebError> + Sync,
+    tick: &(dyn Fn() + Sync),
+) -> Result<Vec<T>, WebError> {
+    Ok(row
+        .par_chunks(row.len().div_ceil(rayon::current_num_threads()).max(1))
+        .map(|chunk| {
+            let mut sampler = Sampler::new(db);
+            chunk
+                .iter()
+                .map(|&t| {
+                    let m = make(t, &mut sampler);
+                    tick();
+                    m
+                })
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .collect::<Result<Vec<_>, _>>()?
+        .into_iter()
+        .flatten()
+        .collect())
+}
+
 /// Whether the database can have web tiles, and if not why (for the build's warning).
 pub fn placement(db: &TileDb) -> Result<Placement, WebError> {
     Ok(Placement::new(db.manifest().georeference.as_ref())?)
@@ -400,23 +427,7 @@ pub fn build(
         if cancel.load(Ordering::Relaxed) {
             return Err(WebError::Cancelled);
         }
-        let made: Vec<Made> = row
-            .par_chunks(row.len().div_ceil(rayon::current_num_threads()).max(1))
-            .map(|chunk| {
-                let mut sampler = Sampler::new(db);
-                chunk
-                    .iter()
-                    .map(|&t| {
-                        let m = xyz_tile(&frame, t, &mut sampler);
-                        tick();
-                        m
-                    })
-                    .collect::<Result<Vec<_>, _>>()
-            })
-            .collect::<Result<Vec<_>, _>>()?
-            .into_iter()
-            .flatten()
-            .collect();
+        let made = in_parallel(db, &row, |t, sampler| xyz_tile(&frame, t, sampler), &tick)?;
         for m in made {
             write(m, &mut stats)?;
         }
@@ -426,23 +437,12 @@ pub fn build(
         if cancel.load(Ordering::Relaxed) {
             return Err(WebError::Cancelled);
         }
-        let made: Vec<(Made, f64, u64)> = row
-            .par_chunks(row.len().div_ceil(rayon::current_num_threads()).max(1))
-            .map(|chunk| {
-                let mut sampler = Sampler::new(db);
-                chunk
-                    .iter()
-                    .map(|&t| {
-                        let m = mesh_tile(&frame, t, t.z == max_level, &mut sampler);
-                        tick();
-                        m
-                    })
-                    .collect::<Result<Vec<_>, _>>()
-            })
-            .collect::<Result<Vec<_>, _>>()?
-            .into_iter()
-            .flatten()
-            .collect();
+        let made = in_parallel(
+            db,
+            &row,
+            |t, sampler| mesh_tile(&frame, t, t.z == max_level, sampler),
+            &tick,
+        )?;
         for (m, error, vertices) in made {
             let z = m.entries[0].0.z as usize;
             max_error[z] = max_error[z].max(error);

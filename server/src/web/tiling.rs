@@ -83,9 +83,9 @@ pub fn geographic_rect(t: TileXyz) -> [f64; 4] {
     [west, south, west + d, south + d]
 }
 
-/// The geographic tiles of `level` that overlap `bounds`; every tile at level 0 (Cesium
-/// asks for both).
-pub fn geographic_tiles(bounds: [f64; 4], level: u32) -> Vec<TileXyz> {
+/// The range `(x0, x1, y0, y1)`, inclusive, of the geographic tiles of `level` that
+/// overlap `bounds`; every tile at level 0 (Cesium asks for both).
+pub fn geographic_range(bounds: [f64; 4], level: u32) -> (u32, u32, u32, u32) {
     let d = geographic_tile_deg(level);
     let columns = 2u32 << level;
     let rows = 1u32 << level;
@@ -93,7 +93,7 @@ pub fn geographic_tiles(bounds: [f64; 4], level: u32) -> Vec<TileXyz> {
     let index = |v: f64, origin: f64, count: u32| {
         (((v - origin) / d).floor().max(0.0) as u32).min(count - 1)
     };
-    let (x0, x1, y0, y1) = if level == 0 {
+    if level == 0 {
         (0, 1, 0, 0)
     } else {
         (
@@ -102,7 +102,12 @@ pub fn geographic_tiles(bounds: [f64; 4], level: u32) -> Vec<TileXyz> {
             index(south, -90.0, rows),
             index(north, -90.0, rows),
         )
-    };
+    }
+}
+
+/// The geographic tiles of `level` that overlap `bounds` ([`geographic_range`]).
+pub fn geographic_tiles(bounds: [f64; 4], level: u32) -> Vec<TileXyz> {
+    let (x0, x1, y0, y1) = geographic_range(bounds, level);
     let mut out = Vec::new();
     for y in y0..=y1 {
         for x in x0..=x1 {
