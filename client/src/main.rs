@@ -23,8 +23,9 @@ enum Command {
     /// a target frame rate, crack filling, textures refined within the budget), and write
     /// frames, flight.csv (one row per frame) and charts (flight.png, render.png).
     Fly(terrain_client::flight::FlightArgs),
-    /// Open a window and fly over the streamed terrain with mouse and keyboard (needs an
-    /// X11 display): the same paging, streaming and rendering as `fly`.
+    /// Open a window and fly over the streamed terrain with mouse and keyboard (X11 or
+    /// Wayland on Linux; Metal on macOS, Direct3D 12 on Windows): the same paging,
+    /// streaming and rendering as `fly`.
     View(terrain_client::viewer::ViewArgs),
     /// Measure accuracy against speed: `bench accuracy` sweeps budgets and crack fillers
     /// over a flight against full-resolution reference frames; `bench stability` runs the

@@ -151,7 +151,8 @@ pub struct DrawReport {
     pub stats: RenderStats,
     /// Time of the method's decisions (culling, importance, budget sharing, masks).
     pub lod_ms: f64,
-    /// Time from the start of the draw to the GPU's completion.
+    /// Time from the start of the draw to its submission (and to the GPU's completion with
+    /// [`Scene::wait_for_each_frame`]; otherwise it includes the wait for the frame before).
     pub draw_ms: f64,
     /// The fewest triangles that keep every drawn tile's projected error within
     /// [`LodSettings::max_error_px`] ([`crate::lod::needed`]).
@@ -188,6 +189,18 @@ impl GeometryMemory {
     pub fn per_sample(&self) -> f64 {
         self.bytes() as f64 / self.samples.max(1) as f64
     }
+
+    /// GPU geometry per resident sample (the samples held on the GPU and the method's index
+    /// sets and buffers) if every resident tile held its samples there: the most the GPU
+    /// keeps for this resident set, what the strip-mask paper counts.
+    pub fn gpu_per_sample_all_held(&self) -> f64 {
+        let per_slot = self
+            .gpu
+            .sample_bytes
+            .checked_div(self.gpu.sample_buffers)
+            .unwrap_or(0);
+        (per_slot * self.gpu.tiles + self.method_gpu) as f64 / self.samples.max(1) as f64
+    }
 }
 
 impl std::fmt::Display for GeometryMemory {
@@ -195,7 +208,7 @@ impl std::fmt::Display for GeometryMemory {
         let per = |b: u64| b as f64 / self.samples.max(1) as f64;
         write!(
             f,
-            "{:.2} B/sample: heights {:.2}, error tables {:.3}, GPU samples {:.2} ({} of {} tiles hold a buffer), method GPU (index sets) {:.3}",
+            "{:.2} B/sample: heights {:.2}, error tables {:.3}, GPU samples {:.2} ({} of {} tiles hold a buffer), method GPU (index sets) {:.3}; GPU geometry {:.2} B/sample, {:.2} with every resident tile's samples held",
             self.per_sample(),
             per(self.cpu_heights),
             per(self.cpu_lod),
@@ -203,6 +216,8 @@ impl std::fmt::Display for GeometryMemory {
             self.gpu.sample_buffers,
             self.gpu.tiles,
             per(self.method_gpu),
+            per(self.gpu.sample_bytes + self.method_gpu),
+            self.gpu_per_sample_all_held(),
         )
     }
 }
@@ -216,6 +231,8 @@ struct Rendering {
     data_pending: HashSet<(TileId, u32)>,
     controller: FrameRateController,
     config: RenderConfig,
+    /// Whether each frame is waited for ([`Scene::wait_for_each_frame`]).
+    wait_for_gpu: bool,
     /// Target texture level per tile (index as `tiles`), from the last texture budget.
     texture_target: Vec<u32>,
     /// Importance per tile in the last planned frame (0 when not visible).
@@ -346,6 +363,7 @@ impl Scene {
                 data_pending: HashSet::new(),
                 controller: FrameRateController::new(config.budget),
                 config,
+                wait_for_gpu: false,
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
                 texture_costs: vec![Vec::new(); count],
@@ -706,6 +724,15 @@ impl Scene {
     pub fn keep_depth(&mut self, keep: bool) {
         if let Some(r) = &mut self.rendering {
             r.renderer.keep_depth(keep);
+        }
+    }
+
+    /// Makes [`Scene::draw`] wait for each frame to finish on the GPU, so that its
+    /// [`DrawReport::draw_ms`] and GPU time are that frame's: for measurements (the
+    /// evaluation). Off by default: a flight or a window never waits for its frames.
+    pub fn wait_for_each_frame(&mut self, wait: bool) {
+        if let Some(r) = &mut self.rendering {
+            r.wait_for_gpu = wait;
         }
     }
 
@@ -1272,7 +1299,13 @@ impl Scene {
         };
         let mut frame = r.renderer.begin_frame(target, camera);
         let out = r.method.draw(&input, &mut frame);
-        let stats = frame.finish();
+        let mut stats = frame.finish();
+        if r.wait_for_gpu {
+            match r.renderer.wait_for_gpu() {
+                Ok(gpu_ms) => stats.gpu_ms = gpu_ms,
+                Err(e) => tracing::warn!(error = %e, "the frame did not finish"),
+            }
+        }
         let (plan, lod_ms) = (out.plan, out.lod_ms);
         r.importance.fill(0.0);
         for (id, importance) in out.importance {
@@ -1448,7 +1481,7 @@ fn decode_texture(bytes: &[u8], id: TileId, level: u32) -> Option<image::RgbaIma
 
 /// What a tile holds once resident at its coarsest texture, known from the manifest before
 /// it is fetched: decoded codes and the coarsest level's bytes, plus, when rendering, its GPU
-/// samples (8 bytes each) and the coarsest level as RGBA, `gpu_texture_copies` times
+/// samples (16-bit codes, [`crate::render::mesh`]) and the coarsest level as RGBA, `gpu_texture_copies` times
 /// ([`RenderConfig::texture_copies`]; 0 when not rendering: no GPU bytes at all).
 pub fn expected_tile_bytes(
     manifest: &Manifest,
@@ -1461,7 +1494,7 @@ pub fn expected_tile_bytes(
         textures: tile.coarsest_texture_bytes,
         method: 0,
         gpu: if gpu_texture_copies > 0 {
-            samples * size_of::<terrain_shaders::Sample>() as u64
+            4 * crate::render::mesh::words_for(samples)
                 + gpu_texture_copies * coarsest_rgba_bytes(manifest)
         } else {
             0
@@ -1599,9 +1632,10 @@ mod tests {
             scene.resident_bytes(),
             "the pager's expectation is what the tile holds"
         );
-        // Rendering adds the GPU sample buffer (8 bytes a sample) and each texture copy.
+        // Rendering adds the GPU samples (16-bit codes, two a 32-bit word: 5 words for 9) and
+        // each texture copy.
         let rendered = expected_tile_bytes(scene.manifest(), record, 2);
-        assert_eq!(rendered.gpu, 9 * 8 + 2 * 4);
+        assert_eq!(rendered.gpu, 5 * 4 + 2 * 4);
     }
 
     #[test]

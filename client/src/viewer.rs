@@ -96,7 +96,7 @@ pub struct ViewArgs {
 #[derive(Debug, Error)]
 pub enum ViewError {
     #[error(
-        "a window needs an X11 display ({0}); set DISPLAY, or for headless use run \
+        "a window needs a display ({0}); set DISPLAY (X11) or WAYLAND_DISPLAY, or for headless use run \
          `terrain-client fly`, which renders offscreen and writes frames and flight.csv"
     )]
     NoDisplay(String),
@@ -380,13 +380,20 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
     let budget = args.stream.budget()?;
     // Before any network traffic: without a display there is nothing to show it on.
     let display_set = |name: &str| std::env::var_os(name).is_some_and(|v| !v.is_empty());
-    if !display_set("DISPLAY") {
-        let reason = if display_set("WAYLAND_DISPLAY") {
-            "DISPLAY is not set, and this build has no Wayland support (XWayland sets DISPLAY)"
-        } else {
-            "DISPLAY is not set"
-        };
-        return Err(ViewError::NoDisplay(reason.into()));
+    // On Linux and the BSDs winit needs X11 or Wayland; macOS and Windows always have one.
+    if cfg!(all(
+        unix,
+        not(any(
+            target_os = "macos",
+            target_os = "ios",
+            target_os = "android"
+        ))
+    )) && !display_set("DISPLAY")
+        && !display_set("WAYLAND_DISPLAY")
+    {
+        return Err(ViewError::NoDisplay(
+            "neither DISPLAY nor WAYLAND_DISPLAY is set".into(),
+        ));
     }
     let event_loop = EventLoop::new().map_err(|e| {
         // winit says "os error at FILE:LINE: WHY"; the user needs WHY and the display.
@@ -396,7 +403,10 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
             None => &text,
         };
         let display = std::env::var("DISPLAY").unwrap_or_default();
-        ViewError::NoDisplay(format!("DISPLAY={display}: {why}"))
+        let wayland = std::env::var("WAYLAND_DISPLAY").unwrap_or_default();
+        ViewError::NoDisplay(format!(
+            "DISPLAY={display} WAYLAND_DISPLAY={wayland}: {why}"
+        ))
     })?;
 
     let runtime = tokio::runtime::Builder::new_multi_thread()

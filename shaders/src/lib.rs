@@ -151,7 +151,8 @@ pub struct FrameUniform {
     pub clip: [f32; 4],
 }
 
-/// `Tile`, bind group 1: one per drawn tile and frame, at a dynamic offset.
+/// `Tile`: one per drawn tile and frame, per-instance vertex attributes at locations 0 to 8
+/// (one per field, `points` four), picked by the draw's first instance.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 pub struct TileUniform {
@@ -166,16 +167,12 @@ pub struct TileUniform {
     /// Where the tile lies in the texture bound with it: `uv = (x, y) + (column, row) /
     /// cells * (z, w)`; `[0, 0, 1, 1]` for its own texture, a part of a MapBlock's otherwise.
     pub uv: [f32; 4],
-}
-
-/// One sample of a tile in its storage buffer, bind group 2 (its texture is group 3).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
-pub struct Sample {
-    /// Metres above the datum.
-    pub height: f32,
-    /// Unit normal in render space, packed as WGSL's `pack4x8snorm`.
-    pub normal: u32,
+    /// The tile's first word in the sample words (bind group 1 binding 0), its code base and
+    /// its code shift: sample `i`'s height code is `base + (bits_i << shift)`, `bits_i` the
+    /// 16 bits of sample `i` (two a word, the even sample in the low half); `w` unused.
+    pub codes: [i32; 4],
+    /// Metres per code (the quantum) and metres at code 0 (the offset); `z`, `w` unused.
+    pub metres: [f32; 4],
 }
 
 /// Packs a unit vector as WGSL's `pack4x8snorm(vec4(v, 0))`: component `i` in byte `i`.
@@ -294,7 +291,6 @@ mod tests {
         };
         assert_eq!(size_of("Frame"), size_of_val(&FrameUniform::zeroed()));
         assert_eq!(size_of("Tile"), size_of_val(&TileUniform::zeroed()));
-        assert_eq!(size_of("Sample"), size_of_val(&Sample::zeroed()));
     }
 
     #[test]

@@ -1,6 +1,12 @@
 // Terrain tiles: one vertex shader for a tile's surface, skirts and planar shadow (indexed
 // triangle strips over its samples), one fragment shader.
 //
+// Everything a tile needs is bound once a pass: the frame's tiles' parameters (one buffer of
+// per-instance vertex attributes: a draw's first instance picks its tile) and the resident
+// tiles' samples (one storage array of 16-bit height codes, two a word). Only the texture
+// changes between draws. Per-instance attributes are fetched once per draw, where a storage
+// read of the same data would be repeated for every vertex.
+//
 // Render space is camera-relative and right-handed: x east, y up, z south, in metres, with
 // the camera at the origin. The Rust mirrors of these structs are in src/lib.rs.
 
@@ -21,35 +27,42 @@ struct Frame {
     clip: vec4<f32>,
 };
 
+// The tile being drawn: its parameters, per-instance attributes (`TileUniform` in Rust, one
+// per drawn tile and frame). `codes` and `metres` are what turn `words` into heights.
 struct Tile {
     // Sample (0, 0) of the tile as sample indices relative to the camera's anchor sample:
     // (east, 0, south). Whole numbers, exact in f32 up to 2^24.
-    origin: vec4<f32>,
+    @location(0) origin: vec4<f32>,
     // x, y: metres between samples east and south; z: samples per side; w: skirt bottom
     // (the method's floor below the tile), metres above the datum.
-    spacing: vec4<f32>,
+    @location(1) spacing: vec4<f32>,
     // The planar shadow's corners (north-west, south-west, north-east, south-east) in
     // render space, already projected from the viewpoint onto the plane below the tile
     // (on the CPU: four points a tile, see the strip-mask method's `shadow_corner`).
-    points: array<vec4<f32>, 4>,
+    @location(2) point0: vec4<f32>,
+    @location(3) point1: vec4<f32>,
+    @location(4) point2: vec4<f32>,
+    @location(5) point3: vec4<f32>,
     // Where the tile lies in the texture bound with it: uv = xy + (column, row) / cells * zw.
     // (0, 0, 1, 1) for a tile's own texture; a part of a MapBlock's texture otherwise.
-    uv: vec4<f32>,
-};
-
-struct Sample {
-    height: f32,
-    // Unit normal, render space, packed with pack4x8snorm (w unused).
-    normal: u32,
+    @location(6) uv: vec4<f32>,
+    // x: the tile's first word in `words`; y: its code base; z: its code shift. Sample i's
+    // height code is base + (the 16 bits of sample i << shift).
+    @location(7) codes: vec4<i32>,
+    // x: metres per code (the quantum); y: metres at code 0 (the offset).
+    @location(8) metres: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> frame: Frame;
-@group(1) @binding(0) var<uniform> tile: Tile;
-// The tile's samples (group 2) and the texture it is drawn with (group 3: its own, or its
-// MapBlock's, bound once for every tile of the block).
-@group(2) @binding(0) var<storage, read> samples: array<Sample>;
-@group(3) @binding(0) var tile_texture: texture_2d<f32>;
-@group(3) @binding(1) var tile_sampler: sampler;
+// The resident tiles' height codes, 16 bits each, two a word (sample 2k in the low half).
+@group(1) @binding(0) var<storage, read> words: array<u32>;
+// The texture a tile is drawn with: its own, or its MapBlock's, bound once for every tile of
+// the block.
+@group(2) @binding(0) var tile_texture: texture_2d<f32>;
+@group(2) @binding(1) var tile_sampler: sampler;
+
+// The tile being drawn, set at the start of the vertex shader.
+var<private> tile: Tile;
 
 struct Varyings {
     @builtin(position) clip: vec4<f32>,
@@ -94,15 +107,41 @@ fn place(column: u32, row: u32, height: f32) -> Varyings {
 // - 2*n*n + k, k in 0..4: corner k of the planar shadow.
 // One pipeline for all three keeps the render pass free of pipeline switches.
 @vertex
-fn vs_surface(@builtin(vertex_index) vertex: u32) -> Shaded {
+fn vs_surface(@builtin(vertex_index) vertex: u32, drawn: Tile) -> Shaded {
+    tile = drawn;
     let v = vertex_of(vertex);
     return Shaded(v.clip, v.uv, v.normal);
 }
 
 // The same, with the position for the clip at the terrain's edge (`fs_clipped`).
 @vertex
-fn vs_clipped(@builtin(vertex_index) vertex: u32) -> Varyings {
+fn vs_clipped(@builtin(vertex_index) vertex: u32, drawn: Tile) -> Varyings {
+    tile = drawn;
     return vertex_of(vertex);
+}
+
+// Height of sample `i` (row-major), metres above the datum. Two tiles of a level share
+// their border samples' codes, quantum and offset, so they place them identically.
+fn height_at(i: u32) -> f32 {
+    let word = words[u32(tile.codes.x) + i / 2u];
+    let local = (word >> ((i & 1u) * 16u)) & 0xffffu;
+    let code = tile.codes.y + (i32(local) << u32(tile.codes.z));
+    return f32(code) * tile.metres.x + tile.metres.y;
+}
+
+// Unit normal at sample (column, row), render space: central differences of the tile's
+// heights, one-sided on its edges (render space is x east, y up, z south, so the normal of
+// height(east, south) is (-dh/deast, 1, -dh/dsouth), normalized).
+fn normal_at(column: u32, row: u32, n: u32) -> vec3<f32> {
+    let x0 = max(column, 1u) - 1u;
+    let x1 = min(column + 1u, n - 1u);
+    let y0 = max(row, 1u) - 1u;
+    let y1 = min(row + 1u, n - 1u);
+    let dx = (height_at(row * n + x1) - height_at(row * n + x0))
+        / (f32(max(x1 - x0, 1u)) * tile.spacing.x);
+    let dy = (height_at(y1 * n + column) - height_at(y0 * n + column))
+        / (f32(max(y1 - y0, 1u)) * tile.spacing.y);
+    return normalize(vec3<f32>(-dx, 1.0, -dy));
 }
 
 fn vertex_of(vertex: u32) -> Varyings {
@@ -117,13 +156,14 @@ fn vertex_of(vertex: u32) -> Varyings {
         index = vertex - count;
         skirt = true;
     }
-    let sample = samples[index];
-    var height = sample.height;
-    if skirt {
-        height = tile.spacing.w;
+    let column = index % n;
+    let row = index / n;
+    var height = tile.spacing.w;
+    if !skirt {
+        height = height_at(index);
     }
-    var out = place(index % n, index / n, height);
-    out.normal = unpack4x8snorm(sample.normal).xyz;
+    var out = place(column, row, height);
+    out.normal = normal_at(column, row, n);
     return out;
 }
 
@@ -136,9 +176,10 @@ fn shadow_corner(corner: u32) -> Varyings {
     let column = (corner / 2u) * (n - 1u);
     let row = (corner % 2u) * (n - 1u);
     var out = place(column, row, 0.0);
-    out.clip = frame.view_proj * vec4<f32>(tile.points[corner].xyz, 1.0);
-    out.position = tile.points[corner].xyz;
-    out.normal = unpack4x8snorm(samples[row * n + column].normal).xyz;
+    var points = array<vec4<f32>, 4>(tile.point0, tile.point1, tile.point2, tile.point3);
+    out.clip = frame.view_proj * vec4<f32>(points[corner].xyz, 1.0);
+    out.position = points[corner].xyz;
+    out.normal = normal_at(column, row, n);
     return out;
 }
 

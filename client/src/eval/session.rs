@@ -148,6 +148,8 @@ impl Session {
             )),
         );
         scene.keep_depth(true);
+        // Measured frames: each one's time runs to its completion on the GPU.
+        scene.wait_for_each_frame(true);
         let fetcher = connection.fetcher;
         Ok(Session {
             manifest,

@@ -738,7 +738,17 @@ impl LodMethod for ProjectedGrid {
         self.counted = false;
         let slice = self.readback.slice(..);
         slice.map_async(wgpu::MapMode::Read, |_| {});
-        let _ = gpu.device.poll(wgpu::PollType::wait_indefinitely());
+        // A measurement of the frame just drawn (evaluation only): it waits, bounded.
+        if gpu
+            .device
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: Some(crate::render::frame::GPU_TIMEOUT),
+            })
+            .is_err()
+        {
+            return Vec::new();
+        }
         let counters = match slice.get_mapped_range() {
             Ok(data) => *bytemuck::from_bytes::<GridCounters>(&data),
             Err(_) => return Vec::new(),

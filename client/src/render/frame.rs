@@ -9,7 +9,22 @@
 //! ([`Frame::prepare_tiles`]: a sample buffer each, MapBlock textures, per-tile uniforms),
 //! then opens render passes on the target ([`Frame::pass`]: the first clears it to [`SKY`]),
 //! binds tiles and draws its index sets ([`FramePass::bind_tile`], [`FramePass::draw`]), or
-//! sets a pipeline of its own ([`FramePass::raw`]); [`Frame::finish`] submits and waits.
+//! sets a pipeline of its own ([`FramePass::raw`]); [`Frame::finish`] submits.
+//!
+//! **No frame waits for its own completion.** Up to [`FRAMES_IN_FLIGHT`] frames are queued:
+//! [`Frame::finish`] submits, then waits (bounded by [`GPU_TIMEOUT`]) only for the frame
+//! before it, so the CPU records frame `k + 1` while the GPU draws frame `k`. GPU
+//! timestamps go to a ring of read-back buffers mapped asynchronously; a frame reports the
+//! GPU time of the latest frame whose read-back has arrived ([`RenderStats::gpu_ms`]). A
+//! caller that must see a frame finished (a measurement, a read-back of the image) calls
+//! [`Renderer::wait_for_gpu`].
+//!
+//! **Few state changes.** The frame's tiles' parameters are one buffer of per-instance
+//! vertex attributes (a draw's first instance picks its tile: attributes are fetched once a
+//! draw, where a storage array would be read again by every vertex) and the resident tiles'
+//! samples one storage buffer (the sample arena, [`super::tiles`], group 1), both bound once
+//! a pass. Between two tiles only the texture (group 2, skipped within a MapBlock) and the
+//! index buffer (skipped when the same) change.
 //!
 //! Nothing past the terrain's edge ([`Layout::extent_m`]) is drawn: tiles that hold padding
 //! (the last of a row or column) are drawn with a fragment shader that discards what lies
@@ -33,6 +48,19 @@ pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 const TIMED_PASSES: u32 = 4;
 /// Share of the light that is ambient.
 pub const AMBIENT: f32 = 0.45;
+/// Frames queued on the GPU at most: [`Frame::finish`] waits for the one before it.
+pub const FRAMES_IN_FLIGHT: u64 = 2;
+/// The longest any wait for the GPU lasts: past it the GPU is taken as lost (an error, not a
+/// hang).
+pub const GPU_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+/// `TileUniform` as per-instance attributes, locations 0 to 8 (`Tile` in `terrain.wgsl`).
+const TILE_ATTRIBUTES: [wgpu::VertexAttribute; 9] = wgpu::vertex_attr_array![
+    0 => Float32x4, 1 => Float32x4, 2 => Float32x4, 3 => Float32x4, 4 => Float32x4,
+    5 => Float32x4, 6 => Float32x4, 7 => Sint32x4, 8 => Float32x4
+];
+/// Read-back buffers of the timestamp ring: a frame whose buffers are all still pending is
+/// not timed.
+const TIMESTAMP_RING: usize = 4;
 
 /// What one frame drew.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -48,7 +76,9 @@ pub struct RenderStats {
     pub sample_uploads: u32,
     /// CPU time of uniforms, command encoding and submission.
     pub encode_ms: f64,
-    /// GPU time of the render passes, when the adapter has timestamp queries.
+    /// GPU time of the render passes of the latest frame whose timestamps have been read
+    /// back (this frame's after [`Renderer::wait_for_gpu`]; an earlier one's otherwise), when
+    /// the adapter has timestamp queries.
     pub gpu_ms: Option<f64>,
 }
 
@@ -102,9 +132,24 @@ pub struct TileExtras {
 struct Timestamps {
     set: wgpu::QuerySet,
     resolve: wgpu::Buffer,
-    readback: wgpu::Buffer,
+    ring: Vec<Readback>,
     period_ns: f32,
 }
+
+/// One read-back buffer of the timestamp ring.
+#[derive(Debug)]
+struct Readback {
+    buffer: wgpu::Buffer,
+    /// Set (by the map callback) once the buffer is mapped: `Some(frame, passes timed)`
+    /// while a frame's timestamps are in it.
+    pending: Option<(u64, u32)>,
+    mapped: std::sync::Arc<std::sync::atomic::AtomicU8>,
+}
+
+/// [`Readback::mapped`]: still pending, mapped, or failed.
+const MAP_PENDING: u8 = 0;
+const MAP_DONE: u8 = 1;
+const MAP_FAILED: u8 = 2;
 
 /// The shared renderer. See the module documentation.
 #[derive(Debug)]
@@ -115,11 +160,11 @@ pub struct Renderer {
     frame_layout: wgpu::BindGroupLayout,
     frame_buffer: wgpu::Buffer,
     frame_group: wgpu::BindGroup,
-    uniform_layout: wgpu::BindGroupLayout,
-    tile_uniforms: wgpu::Buffer,
-    tile_uniform_group: wgpu::BindGroup,
-    uniform_capacity: u64,
-    uniform_stride: u64,
+    /// The frame's tiles' parameters (`TileUniform`s), per-instance vertex attributes.
+    tile_params: wgpu::Buffer,
+    params_capacity: u64,
+    /// Group 1 (the sample arena), with the arena generation it holds.
+    tiles_group: Option<(wgpu::BindGroup, u64)>,
     tile_pipeline: wgpu::RenderPipeline,
     /// The same, discarding what lies past the terrain's edge: for tiles that reach past
     /// it (padded ones) and whatever a method marks (see [`FramePass::clip_everything`]).
@@ -129,6 +174,11 @@ pub struct Renderer {
     /// Whether the depth buffer is kept after a frame, for [`Renderer::read_depth`].
     keep_depth: bool,
     timestamps: Option<Timestamps>,
+    /// Frames submitted, and the submission of each of the last [`FRAMES_IN_FLIGHT`].
+    frames: u64,
+    submissions: std::collections::VecDeque<wgpu::SubmissionIndex>,
+    /// GPU time of the latest frame read back, and that frame's number.
+    last_gpu: Option<(u64, f64)>,
     /// The resident tiles' GPU resources.
     pub tiles: TileStore,
 }
@@ -152,15 +202,10 @@ impl Renderer {
             label: Some("frame"),
             entries: &[uniform_entry(false, size_of::<FrameUniform>() as u64)],
         });
-        let uniform_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("tile uniforms"),
-            entries: &[uniform_entry(true, size_of::<TileUniform>() as u64)],
-        });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("tiles"),
             bind_group_layouts: &[
                 Some(&frame_layout),
-                Some(&uniform_layout),
                 Some(&tiles.bindings().samples),
                 Some(&tiles.bindings().texture),
             ],
@@ -178,7 +223,11 @@ impl Renderer {
                     module: &shader,
                     entry_point: Some(vertex),
                     compilation_options: Default::default(),
-                    buffers: &[],
+                    buffers: &[Some(wgpu::VertexBufferLayout {
+                        array_stride: size_of::<TileUniform>() as u64,
+                        step_mode: wgpu::VertexStepMode::Instance,
+                        attributes: &TILE_ATTRIBUTES,
+                    })],
                 },
                 primitive: wgpu::PrimitiveState {
                     topology: wgpu::PrimitiveTopology::TriangleStrip,
@@ -227,10 +276,7 @@ impl Renderer {
                 resource: frame_buffer.as_entire_binding(),
             }],
         });
-        let uniform_stride = u64::from(device.limits().min_uniform_buffer_offset_alignment)
-            .max(size_of::<TileUniform>() as u64);
-        let (tile_uniforms, tile_uniform_group) =
-            uniform_buffer(device, &uniform_layout, 64, uniform_stride);
+        let tile_params = params_buffer(device, 64);
         let timestamps = gpu.has_timestamps().then(|| Timestamps {
             set: device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("frame time"),
@@ -243,12 +289,18 @@ impl Renderer {
                 usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
             }),
-            readback: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("timestamps readback"),
-                size: 16 * u64::from(TIMED_PASSES),
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
+            ring: (0..TIMESTAMP_RING)
+                .map(|_| Readback {
+                    buffer: device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("timestamps readback"),
+                        size: 16 * u64::from(TIMED_PASSES),
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    }),
+                    pending: None,
+                    mapped: Default::default(),
+                })
+                .collect(),
             period_ns: gpu.queue.get_timestamp_period(),
         });
         Renderer {
@@ -258,16 +310,17 @@ impl Renderer {
             frame_layout,
             frame_buffer,
             frame_group,
-            uniform_layout,
-            tile_uniforms,
-            tile_uniform_group,
-            uniform_capacity: 64,
-            uniform_stride,
+            tile_params,
+            params_capacity: 64,
+            tiles_group: None,
             tile_pipeline,
             clipped_pipeline,
             depth: None,
             keep_depth: false,
             timestamps,
+            frames: 0,
+            submissions: Default::default(),
+            last_gpu: None,
             tiles,
         }
     }
@@ -413,20 +466,82 @@ impl Renderer {
         self.depth = Some((texture, view));
     }
 
-    fn ensure_uniform_capacity(&mut self, slots: u64) {
-        if slots <= self.uniform_capacity {
+    fn ensure_params_capacity(&mut self, slots: u64) {
+        if slots <= self.params_capacity {
             return;
         }
         let capacity = slots.next_power_of_two();
-        let (buffer, group) = uniform_buffer(
-            &self.gpu.device,
-            &self.uniform_layout,
-            capacity,
-            self.uniform_stride,
-        );
-        self.tile_uniforms = buffer;
-        self.tile_uniform_group = group;
-        self.uniform_capacity = capacity;
+        self.tile_params = params_buffer(&self.gpu.device, capacity);
+        self.params_capacity = capacity;
+        self.tiles_group = None;
+    }
+
+    /// Group 1 made again when the parameters' buffer or the sample arena changed.
+    fn ensure_tiles_group(&mut self) {
+        let generation = self.tiles.arena.generation;
+        if matches!(&self.tiles_group, Some((_, g)) if *g == generation) {
+            return;
+        }
+        let group = self
+            .gpu
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("tile samples"),
+                layout: &self.tiles.bindings().samples,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.tiles.arena.buffer.as_entire_binding(),
+                }],
+            });
+        self.tiles_group = Some((group, generation));
+    }
+
+    /// Waits (at most [`GPU_TIMEOUT`]) for every frame submitted to finish, and reads their
+    /// timestamps back: the GPU time of the last frame, when the adapter measures it. For a
+    /// caller that measures a frame or reads its image; the render loop never calls it.
+    pub fn wait_for_gpu(&mut self) -> Result<Option<f64>, super::GpuError> {
+        self.gpu
+            .device
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: Some(GPU_TIMEOUT),
+            })
+            .map_err(|e| super::GpuError::Readback(format!("waiting for the GPU: {e}")))?;
+        self.collect_timestamps();
+        Ok(self
+            .last_gpu
+            .filter(|&(frame, _)| frame == self.frames)
+            .map(|(_, ms)| ms))
+    }
+
+    /// Reads back the timestamps of every frame whose read-back has arrived (no wait).
+    fn collect_timestamps(&mut self) {
+        let Some(t) = &mut self.timestamps else {
+            return;
+        };
+        for r in &mut t.ring {
+            let Some((frame, timed)) = r.pending else {
+                continue;
+            };
+            match r.mapped.load(std::sync::atomic::Ordering::Acquire) {
+                MAP_PENDING => continue,
+                MAP_DONE => {
+                    let slice = r.buffer.slice(..16 * u64::from(timed));
+                    if let Ok(data) = slice.get_mapped_range() {
+                        let stamps: &[u64] = bytemuck::cast_slice(&data);
+                        // From the first pass's start to the last timed pass's end.
+                        let ticks = stamps[2 * timed as usize - 1].saturating_sub(stamps[0]);
+                        let ms = ticks as f64 * f64::from(t.period_ns) / 1.0e6;
+                        if self.last_gpu.is_none_or(|(f, _)| f < frame) {
+                            self.last_gpu = Some((frame, ms));
+                        }
+                    }
+                    r.buffer.unmap();
+                }
+                _ => {}
+            }
+            r.pending = None;
+        }
     }
 }
 
@@ -444,7 +559,6 @@ fn depth_state() -> wgpu::DepthStencilState {
 #[derive(Debug, Default)]
 struct Prepared {
     ids: Vec<TileId>,
-    samples: Vec<usize>,
     blocks: Vec<Option<[u32; 2]>>,
     /// Whether the tile reaches past the terrain's edge (padded), so is clipped.
     clipped: Vec<bool>,
@@ -520,15 +634,17 @@ impl<'f> Frame<'f> {
                 slots.push(None);
             }
         }
-        r.ensure_uniform_capacity(ids.len() as u64);
+        r.ensure_params_capacity(ids.len() as u64);
         let (samples, uploads) = r.tiles.pool_samples(&ids);
+        r.ensure_tiles_group();
         let blocks = r.tiles.frame_blocks(&ids);
         self.stats.sample_uploads += uploads;
         let n = r.layout.tile_size;
         let cells = f64::from(n - 1);
-        let mut uniforms = vec![0u8; (r.uniform_stride * ids.len() as u64) as usize];
+        let mut uniforms: Vec<TileUniform> = Vec::with_capacity(ids.len());
         for (slot, (&id, extra)) in ids.iter().zip(&extras).enumerate() {
             let (_, uv) = r.tiles.binding_of(id, blocks[slot]);
+            let heights = r.tiles.heights(id).expect("resident");
             // A tile of level k: its samples are 2^k level-0 samples apart, so its origin
             // is counted in its own samples (a division by a power of two: exact) and its
             // spacing is 2^k level 0's. Tiles of one level share their border samples bit
@@ -550,12 +666,15 @@ impl<'f> Frame<'f> {
                 ],
                 points: extra.points,
                 uv,
+                codes: [samples[slot][0], samples[slot][1], samples[slot][2], 0],
+                metres: [heights.quantum_m as f32, heights.offset_m as f32, 0.0, 0.0],
             };
-            let at = slot * r.uniform_stride as usize;
-            uniforms[at..at + size_of::<TileUniform>()].copy_from_slice(bytemuck::bytes_of(&u));
+            uniforms.push(u);
         }
         if !uniforms.is_empty() {
-            r.gpu.queue.write_buffer(&r.tile_uniforms, 0, &uniforms);
+            r.gpu
+                .queue
+                .write_buffer(&r.tile_params, 0, bytemuck::cast_slice(&uniforms));
         }
         let clipped = ids
             .iter()
@@ -570,7 +689,6 @@ impl<'f> Frame<'f> {
             .collect();
         self.prepared = Prepared {
             ids,
-            samples,
             blocks,
             clipped,
         };
@@ -697,12 +815,17 @@ impl<'f> Frame<'f> {
             prepared: &self.prepared,
             stats: &mut self.stats,
             bound: None,
+            tiles_bound: false,
+            slot: 0,
+            index_buffer: None,
             pipeline: None,
             clip_everything: false,
         }
     }
 
-    /// Submits the frame and waits for the GPU to finish it. Returns what it drew.
+    /// Submits the frame, then waits (at most [`GPU_TIMEOUT`]) for the frame before it, so
+    /// that no more than [`FRAMES_IN_FLIGHT`] are queued; never for this one. Returns what
+    /// it drew, with the GPU time of the latest frame read back so far.
     pub fn finish(self) -> RenderStats {
         let Frame {
             renderer: r,
@@ -712,32 +835,52 @@ impl<'f> Frame<'f> {
             passes,
             ..
         } = self;
+        r.collect_timestamps();
+        r.frames += 1;
+        let frame = r.frames;
         let timed = passes.min(TIMED_PASSES);
-        if let (Some(t), true) = (&r.timestamps, timed > 0) {
-            let bytes = 16 * u64::from(timed);
-            encoder.resolve_query_set(&t.set, 0..2 * timed, &t.resolve, 0);
-            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, bytes);
-        }
-        r.gpu.queue.submit([encoder.finish()]);
-        stats.encode_ms = started.elapsed().as_secs_f64() * 1e3;
-        match (&r.timestamps, timed > 0) {
-            (Some(t), true) => {
-                let slice = t.readback.slice(..16 * u64::from(timed));
-                slice.map_async(wgpu::MapMode::Read, |_| {});
-                let _ = r.gpu.device.poll(wgpu::PollType::wait_indefinitely());
-                if let Ok(data) = slice.get_mapped_range() {
-                    let stamps: &[u64] = bytemuck::cast_slice(&data);
-                    // From the first pass's start to the last timed pass's end.
-                    let last = stamps[2 * timed as usize - 1];
-                    let ticks = last.saturating_sub(stamps[0]);
-                    stats.gpu_ms = Some(ticks as f64 * f64::from(t.period_ns) / 1.0e6);
+        // A free read-back buffer of the ring, if any: else this frame is not timed.
+        let readback = match &mut r.timestamps {
+            Some(t) if timed > 0 => {
+                let free = t.ring.iter().position(|b| b.pending.is_none());
+                if let Some(i) = free {
+                    let bytes = 16 * u64::from(timed);
+                    encoder.resolve_query_set(&t.set, 0..2 * timed, &t.resolve, 0);
+                    encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.ring[i].buffer, 0, bytes);
                 }
-                t.readback.unmap();
+                free
             }
-            _ => {
-                let _ = r.gpu.device.poll(wgpu::PollType::wait_indefinitely());
-            }
+            _ => None,
+        };
+        let submission = r.gpu.queue.submit([encoder.finish()]);
+        if let (Some(t), Some(i)) = (&mut r.timestamps, readback) {
+            let b = &mut t.ring[i];
+            b.pending = Some((frame, timed));
+            b.mapped
+                .store(MAP_PENDING, std::sync::atomic::Ordering::Release);
+            let mapped = b.mapped.clone();
+            b.buffer
+                .slice(..16 * u64::from(timed))
+                .map_async(wgpu::MapMode::Read, move |result| {
+                    let state = if result.is_ok() { MAP_DONE } else { MAP_FAILED };
+                    mapped.store(state, std::sync::atomic::Ordering::Release);
+                });
         }
+        r.submissions.push_back(submission);
+        while r.submissions.len() as u64 >= FRAMES_IN_FLIGHT {
+            let Some(earlier) = r.submissions.pop_front() else {
+                break;
+            };
+            // The frame before this one: the GPU has had this frame's recording time to
+            // draw it. A lost device shows as the next frame's error, not a hang.
+            let _ = r.gpu.device.poll(wgpu::PollType::Wait {
+                submission_index: Some(earlier),
+                timeout: Some(GPU_TIMEOUT),
+            });
+        }
+        r.collect_timestamps();
+        stats.gpu_ms = r.last_gpu.map(|(_, ms)| ms);
+        stats.encode_ms = started.elapsed().as_secs_f64() * 1e3;
         stats
     }
 }
@@ -751,6 +894,11 @@ pub struct FramePass<'p> {
     stats: &'p mut RenderStats,
     /// The MapBlock whose texture is bound.
     bound: Option<[u32; 2]>,
+    /// Whether the tiles' parameters and samples (group 1) are bound.
+    tiles_bound: bool,
+    /// The tile bound last (its instance index), and the index buffer set last.
+    slot: u32,
+    index_buffer: Option<wgpu::Buffer>,
     /// The tile pipeline set (`Some(true)`: the clipped one), `None` after another.
     pipeline: Option<bool>,
     clip_everything: bool,
@@ -768,6 +916,8 @@ impl FramePass<'_> {
     pub fn use_tile_pipeline(&mut self) {
         self.pipeline = None;
         self.bound = None;
+        self.tiles_bound = false;
+        self.index_buffer = None;
     }
 
     /// Clips every tile bound from now on at the terrain's edge, not only the padded ones:
@@ -776,8 +926,8 @@ impl FramePass<'_> {
         self.clip_everything = true;
     }
 
-    /// Binds prepared tile `slot`'s uniforms, samples and texture (a MapBlock's only when
-    /// the block changes).
+    /// Makes prepared tile `slot` the one drawn next, binding its texture (a MapBlock's only
+    /// when the block changes); the tiles' parameters and samples are bound once a pass.
     pub fn bind_tile(&mut self, slot: usize) {
         let r = self.renderer;
         let clipped = self.clip_everything || self.prepared.clipped[slot];
@@ -789,25 +939,33 @@ impl FramePass<'_> {
             });
             self.pipeline = Some(clipped);
         }
-        let offset = (slot as u64 * r.uniform_stride) as u32;
-        self.pass
-            .set_bind_group(1, &r.tile_uniform_group, &[offset]);
-        let samples = &r.tiles.pool.get(self.prepared.samples[slot]).group;
-        self.pass.set_bind_group(2, samples, &[]);
+        if !self.tiles_bound
+            && let Some((group, _)) = &r.tiles_group
+        {
+            self.pass.set_bind_group(1, group, &[]);
+            self.pass.set_vertex_buffer(0, r.tile_params.slice(..));
+            self.tiles_bound = true;
+        }
+        self.slot = slot as u32;
         let block = self.prepared.blocks[slot];
         if block.is_none() || block != self.bound {
             let (group, _) = r.tiles.binding_of(self.prepared.ids[slot], block);
-            self.pass.set_bind_group(3, group, &[]);
+            self.pass.set_bind_group(2, group, &[]);
             self.stats.texture_binds += 1;
             self.bound = block;
         }
     }
 
-    /// Draws `set` for the tile bound last; counts a draw call.
+    /// Draws `set` for the tile bound last (the draw's instance index is the tile's slot);
+    /// counts a draw call.
     pub fn draw(&mut self, set: &IndexSet) {
+        if self.index_buffer.as_ref() != Some(&set.buffer) {
+            self.pass
+                .set_index_buffer(set.buffer.slice(..), wgpu::IndexFormat::Uint32);
+            self.index_buffer = Some(set.buffer.clone());
+        }
         self.pass
-            .set_index_buffer(set.buffer.slice(..), wgpu::IndexFormat::Uint32);
-        self.pass.draw_indexed(0..set.len, 0, 0..1);
+            .draw_indexed(0..set.len, 0, self.slot..self.slot + 1);
         self.stats.draw_calls += 1;
     }
 
@@ -817,29 +975,63 @@ impl FramePass<'_> {
     }
 }
 
-fn uniform_buffer(
-    device: &wgpu::Device,
-    layout: &wgpu::BindGroupLayout,
-    slots: u64,
-    stride: u64,
-) -> (wgpu::Buffer, wgpu::BindGroup) {
-    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("tile uniforms"),
-        size: slots * stride,
-        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+/// The tiles' parameters: `slots` `TileUniform`s, per-instance vertex attributes.
+fn params_buffer(device: &wgpu::Device, slots: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("tile parameters"),
+        size: slots * size_of::<TileUniform>() as u64,
+        usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
-    });
-    let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("tile uniforms"),
-        layout,
-        entries: &[wgpu::BindGroupEntry {
-            binding: 0,
-            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                buffer: &buffer,
-                offset: 0,
-                size: wgpu::BufferSize::new(size_of::<TileUniform>() as u64),
-            }),
-        }],
-    });
-    (buffer, group)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    /// Every `.rs` file under `dir`.
+    fn sources(dir: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
+        for entry in std::fs::read_dir(dir).expect("the client's sources") {
+            let path = entry.expect("a directory entry").path();
+            if path.is_dir() {
+                sources(&path, out);
+            } else if path.extension().is_some_and(|e| e == "rs") {
+                out.push(path);
+            }
+        }
+    }
+
+    /// No frame of `fly` or `view` waits for the GPU without a bound: nothing in the client
+    /// waits indefinitely (the few waits left, for a measured frame or an image read back,
+    /// give up after `GPU_TIMEOUT`), and `Frame::finish` waits only for the frame before.
+    #[test]
+    fn nothing_in_the_client_waits_for_the_gpu_without_a_bound() {
+        let needle = ["wait", "_indefinitely"].concat();
+        let mut files = Vec::new();
+        sources(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src"),
+            &mut files,
+        );
+        assert!(files.len() > 20, "the sources were found: {files:?}");
+        let offenders: Vec<_> = files
+            .iter()
+            .filter(|f| {
+                std::fs::read_to_string(f)
+                    .expect("a source file")
+                    .contains(&needle)
+            })
+            .collect();
+        assert!(offenders.is_empty(), "{needle} in {offenders:?}");
+        let this = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/render/frame.rs"),
+        )
+        .expect("this file");
+        let finish = this
+            .split("pub fn finish(self)")
+            .nth(1)
+            .and_then(|s| s.split("\n    }\n").next())
+            .unwrap_or_default();
+        assert!(
+            finish.contains("submission_index: Some(earlier)"),
+            "Frame::finish waits only for an earlier submission"
+        );
+    }
 }

@@ -1,73 +1,134 @@
-//! What a tile's sample buffer holds, computed on the CPU once per tile: its samples with
-//! normals.
+//! What a tile's samples are on the GPU: 16-bit height codes, two a 32-bit word, relative to
+//! a code base of the tile's own ([`pack_codes`]). The shader turns them back into metres
+//! with the tile's quantum and offset, and computes each sample's normal from its neighbours
+//! (`terrain.wgsl`): 2 bytes a sample, where a height and a packed normal took 8.
+//!
+//! A tile whose codes span more than 65,535 quanta cannot keep every code in 16 bits: it is
+//! drawn at a coarser quantum, `2^shift` codes, the smallest that fits (each code rounded to
+//! the nearest multiple of `2^shift`, at most `2^(shift - 1)` quanta off). Its base is a
+//! multiple of `2^shift`, so two such tiles with the same shift round a shared border
+//! sample alike.
 
-use terrain_shaders::{Sample, pack_normal};
 use terrain_shared::Heights;
 
-/// The samples of a tile in its storage buffer: height in metres and a unit normal in
-/// render space (x east, y up, z south), computed once at the finest level by central
-/// differences (one-sided on the tile's edges), whatever mask draws the tile.
-pub fn tile_samples(heights: &Heights, spacing_m: [f64; 2]) -> Vec<Sample> {
-    let (w, h) = (heights.width as usize, heights.height as usize);
-    let metres = heights.to_metres_f32();
-    let at = |x: usize, y: usize| f64::from(metres[y * w + x]);
-    let mut out = Vec::with_capacity(w * h);
-    for y in 0..h {
-        let (y0, y1) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        for x in 0..w {
-            let (x0, x1) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            let dx = (at(x1, y) - at(x0, y)) / (((x1 - x0).max(1)) as f64 * spacing_m[0]);
-            let dy = (at(x, y1) - at(x, y0)) / (((y1 - y0).max(1)) as f64 * spacing_m[1]);
-            // Surface height(east, south): the normal is (-dh/deast, 1, -dh/dsouth) in render space.
-            let n = glam::DVec3::new(-dx, 1.0, -dy).normalize();
-            out.push(Sample {
-                height: metres[y * w + x],
-                normal: pack_normal([n.x as f32, n.y as f32, n.z as f32]),
-            });
-        }
+/// A tile's samples packed for the GPU. See the module documentation.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TileCodes {
+    /// Two samples a word, the even sample (row-major) in the low 16 bits.
+    pub words: Vec<u32>,
+    /// Code of bits 0.
+    pub base: i32,
+    /// Sample `i`'s code is `base + (bits_i << shift)`.
+    pub shift: u32,
+}
+
+impl TileCodes {
+    /// The code sample `i` is drawn with.
+    pub fn code(&self, i: usize) -> i64 {
+        let bits = (self.words[i / 2] >> (16 * (i % 2))) & 0xffff;
+        i64::from(self.base) + (i64::from(bits) << self.shift)
     }
-    out
+}
+
+/// Words of a tile of `samples` samples.
+pub fn words_for(samples: u64) -> u64 {
+    samples.div_ceil(2)
+}
+
+/// Packs `heights`' codes. See the module documentation.
+pub fn pack_codes(heights: &Heights) -> TileCodes {
+    let (lo, hi) = heights.code_range();
+    let (lo, hi) = (i64::from(lo), i64::from(hi));
+    let mut shift = 0u32;
+    let base = |shift: u32| lo.div_euclid(1 << shift) << shift;
+    // The largest code, rounded to its nearest multiple of 2^shift, must fit in 16 bits.
+    while ((hi - base(shift) + ((1i64 << shift) >> 1)) >> shift) > 0xffff {
+        shift += 1;
+    }
+    let b = base(shift);
+    let bits = |code: i32| -> u32 {
+        let rounded = (i64::from(code) - b + ((1i64 << shift) >> 1)) >> shift;
+        rounded.clamp(0, 0xffff) as u32
+    };
+    let words = heights
+        .codes
+        .chunks(2)
+        .map(|pair| bits(pair[0]) | pair.get(1).map_or(0, |&c| bits(c) << 16))
+        .collect();
+    TileCodes {
+        words,
+        // The base of a tile of codes a 32-bit code holds fits too: it is the smallest code,
+        // rounded down to a multiple of 2^shift with shift < 17.
+        base: i32::try_from(b).unwrap_or(i32::MIN),
+        shift,
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
-    fn plane(n: u32, slope_east: f64, slope_south: f64, spacing: f64) -> Heights {
-        let codes = (0..n * n)
-            .map(|i| {
-                let (x, y) = (f64::from(i % n), f64::from(i / n));
-                ((x * slope_east + y * slope_south) * spacing * 100.0).round() as i32
-            })
-            .collect();
+    fn tile(codes: Vec<i32>) -> Heights {
+        let n = (codes.len() as f64).sqrt() as u16;
         Heights {
-            width: n as u16,
-            height: n as u16,
+            width: n,
+            height: n,
             quantum_m: 0.01,
-            offset_m: 0.0,
+            offset_m: -100.0,
             codes,
         }
     }
 
-    fn unpack(n: u32) -> [f64; 3] {
-        let c = |i: u32| f64::from(((n >> (8 * i)) & 0xff) as u8 as i8) / 127.0;
-        [c(0), c(1), c(2)]
+    #[test]
+    fn codes_within_16_bits_of_each_other_come_back_exactly() {
+        let codes: Vec<i32> = (0..9).map(|i| -40_000 + i * 8_000).collect();
+        let packed = pack_codes(&tile(codes.clone()));
+        assert_eq!(packed.shift, 0);
+        assert_eq!(packed.base, -40_000);
+        assert_eq!(packed.words.len(), 5, "9 samples, two a word");
+        for (i, &c) in codes.iter().enumerate() {
+            assert_eq!(packed.code(i), i64::from(c));
+        }
     }
 
     #[test]
-    fn a_flat_tile_has_upward_normals_and_a_slope_tilts_them_downhill() {
-        for s in tile_samples(&plane(5, 0.0, 0.0, 10.0), [10.0, 10.0]) {
-            assert_eq!(unpack(s.normal), [0.0, 1.0, 0.0]);
+    fn a_tile_wider_than_16_bits_takes_the_smallest_shift_and_rounds_to_nearest() {
+        // A span of 200,000 quanta needs 18 bits: shift 2, each code within 2 quanta.
+        let codes = vec![5, 200_005, 100_002, 7, 99_999, 1, 2, 3, 150_001];
+        let packed = pack_codes(&tile(codes.clone()));
+        assert_eq!(packed.shift, 2);
+        assert_eq!(packed.base % 4, 0);
+        for (i, &c) in codes.iter().enumerate() {
+            assert!((packed.code(i) - i64::from(c)).abs() <= 2, "sample {i}");
         }
-        // Rising 1 m per metre eastwards: the normal leans west, at 45 degrees, everywhere
-        // (edges included: one-sided differences see the same slope).
-        for s in tile_samples(&plane(5, 1.0, 0.0, 10.0), [10.0, 10.0]) {
-            let [x, y, z] = unpack(s.normal);
-            let h = std::f64::consts::FRAC_1_SQRT_2;
-            assert!((x + h).abs() < 0.01 && (y - h).abs() < 0.01 && z.abs() < 0.01);
+    }
+
+    proptest! {
+        /// Any tile: every code comes back within 2^(shift-1) quanta (exactly when the
+        /// codes fit in 16 bits), and two tiles of the same shift draw a shared code alike.
+        #[test]
+        fn every_code_comes_back_within_half_a_step(
+            codes in proptest::collection::vec(-3_000_000i32..3_000_000, 9),
+            shared in -3_000_000i32..3_000_000,
+        ) {
+            let mut a = codes.clone();
+            a[8] = shared;
+            let pa = pack_codes(&tile(a.clone()));
+            let half = (1i64 << pa.shift) >> 1;
+            for (i, &c) in a.iter().enumerate() {
+                prop_assert!((pa.code(i) - i64::from(c)).abs() <= half);
+            }
+            let (lo, hi) = tile(a.clone()).code_range();
+            if i64::from(hi) - i64::from(lo) <= 0xffff {
+                prop_assert_eq!(pa.shift, 0);
+            }
+            let mut b: Vec<i32> = codes.iter().map(|c| c / 2).collect();
+            b[0] = shared;
+            let pb = pack_codes(&tile(b));
+            if pb.shift == pa.shift {
+                prop_assert_eq!(pb.code(0), pa.code(8));
+            }
         }
-        // Rising southwards: leans north (negative z in render space).
-        let s = tile_samples(&plane(5, 0.0, 0.5, 10.0), [10.0, 10.0])[12];
-        assert!(unpack(s.normal)[2] < -0.3);
     }
 }

@@ -42,7 +42,7 @@ impl Offscreen {
 }
 
 /// Mip 0 of `texture` (every aspect, `bytes_per_texel` bytes a texel), row after row with
-/// no padding, waiting for the GPU.
+/// no padding, waiting (at most [`super::frame::GPU_TIMEOUT`]) for the GPU.
 pub fn read_texture(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
@@ -86,7 +86,13 @@ pub fn read_texture(
     queue.submit([encoder.finish()]);
     let slice = buffer.slice(..);
     slice.map_async(wgpu::MapMode::Read, |_| {});
-    let _ = device.poll(wgpu::PollType::wait_indefinitely());
+    // An image read back must be finished: this waits, bounded (a lost GPU is an error).
+    device
+        .poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: Some(super::frame::GPU_TIMEOUT),
+        })
+        .map_err(|e| GpuError::Readback(format!("waiting for the GPU: {e}")))?;
     let data = slice
         .get_mapped_range()
         .map_err(|e| GpuError::Readback(e.to_string()))?;

@@ -95,6 +95,11 @@ impl<K: Copy + Eq + Hash, T> LruPool<K, T> {
         &self.slots[slot].value
     }
 
+    /// Every slot's value, in slot order.
+    pub fn values_mut(&mut self) -> impl Iterator<Item = &mut T> {
+        self.slots.iter_mut().map(|s| &mut s.value)
+    }
+
     /// Starts a frame. If the last frame used fewer slots than the pool holds, one slot it
     /// did not use (a free one first, else the least recently used) is dropped and
     /// returned, with the owner that loses it: the pool shrinks one slot a frame.

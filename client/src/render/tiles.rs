@@ -1,9 +1,12 @@
 //! Resident tiles on the GPU, shared by every method: their sample buffers and textures.
 //!
-//! A tile drawn has a storage buffer of its samples (height and normal, 8 bytes each, see
-//! [`super::mesh`]) from a pool of buffers handed to the tiles drawn, least recently used
-//! first ([`super::pool`], the GeoMipMaps paper's VBO manager): a resident tile keeps only
-//! its heights (shared with the scene) until it is drawn. Each tile has a texture holding
+//! A tile drawn has a slot of its samples (16-bit height codes, 2 bytes each, see
+//! [`super::mesh`]) in one storage buffer shared by every tile (the sample arena, bound once a
+//! pass). Slots are handed to the tiles drawn, least recently used first ([`super::pool`],
+//! the GeoMipMaps paper's VBO manager): a resident tile keeps only its heights (shared with
+//! the scene) until it is drawn. The arena holds exactly as many slots as the pool: it grows
+//! when a frame needs more, and is compacted (its live slots copied into a smaller buffer)
+//! when the pool shrinks, so it never holds more than the tiles it is charged to. Each tile has a texture holding
 //! the finest level it has so far, with the coarser levels as its mips; with MapBlocks on
 //! ([`super::blocks`]), tiles are bound block by block with their block's texture.
 //!
@@ -17,7 +20,6 @@ use super::mesh;
 use super::pool::LruPool;
 use std::collections::HashMap;
 use std::sync::Arc;
-use terrain_shaders::Sample;
 use terrain_shared::{Heights, TileId};
 
 /// First part of the label of every GPU allocation held for the terrain (samples, textures,
@@ -26,7 +28,7 @@ pub const TERRAIN_LABEL: &str = "terrain/";
 
 /// Labels of the allocations made here.
 pub mod label {
-    pub const SAMPLES: &str = "terrain/tile samples";
+    pub const SAMPLES: &str = "terrain/sample arena";
     pub const TEXTURE: &str = "terrain/tile texture";
     pub const BLOCK: &str = "terrain/map block";
 }
@@ -36,7 +38,7 @@ pub mod label {
 pub struct GpuResidency {
     /// Resident tiles.
     pub tiles: u64,
-    /// Sample buffers in the pool (at most one per resident tile; only drawn tiles get one).
+    /// Sample slots in the arena (at most one per resident tile; only drawn tiles get one).
     pub sample_buffers: u64,
     pub sample_bytes: u64,
     /// The tiles' own textures, every mip.
@@ -64,17 +66,22 @@ pub(super) struct GpuTile {
     /// Finest texture level uploaded (manifest numbering: 0 is the coarsest).
     pub(super) texture_level: Option<u32>,
     texture_bytes: u64,
+    /// The code base and shift of its samples in the arena ([`mesh::pack_codes`]), set when
+    /// they are uploaded.
+    code_base: (i32, u32),
 }
 
-/// A pooled buffer of one tile's samples, with its bind group.
+/// The sample arena: one storage buffer of `slots` slots, each the words of one tile.
 #[derive(Debug)]
-pub(super) struct PooledSamples {
-    buffer: wgpu::Buffer,
-    pub(super) group: wgpu::BindGroup,
+pub(super) struct Arena {
+    pub(super) buffer: wgpu::Buffer,
+    slots: u32,
+    /// Changes whenever the buffer does, so that bind groups holding it are made again.
+    pub(super) generation: u64,
 }
 
-/// The bind group layouts of a tile's samples and texture, shared with the pipelines that
-/// draw tiles.
+/// The bind group layouts of the sample arena (group 1) and of a tile's texture (group 2),
+/// shared with the pipelines that draw tiles.
 #[derive(Debug)]
 pub struct TileBindings {
     pub samples: wgpu::BindGroupLayout,
@@ -90,7 +97,11 @@ pub struct TileStore {
     bindings: TileBindings,
     sampler: wgpu::Sampler,
     pub(super) tiles: HashMap<TileId, GpuTile>,
-    pub(super) pool: LruPool<TileId, PooledSamples>,
+    /// Each slot's value is its position in the arena.
+    pub(super) pool: LruPool<TileId, u32>,
+    pub(super) arena: Arena,
+    /// Arena positions no pool slot holds.
+    free_positions: Vec<u32>,
     pub(super) blocks: Option<Blocks>,
     next_texture_version: u64,
     max_texture_side: u32,
@@ -99,18 +110,19 @@ pub struct TileStore {
 impl TileStore {
     pub(super) fn new(gpu: &Gpu, layout: Layout) -> TileStore {
         let device = gpu.device.clone();
+        let storage = |binding: u32, size: u64| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::VERTEX,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: true },
+                has_dynamic_offset: false,
+                min_binding_size: wgpu::BufferSize::new(size),
+            },
+            count: None,
+        };
         let samples = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile samples"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::VERTEX,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Storage { read_only: true },
-                    has_dynamic_offset: false,
-                    min_binding_size: wgpu::BufferSize::new(size_of::<Sample>() as u64),
-                },
-                count: None,
-            }],
+            entries: &[storage(0, 4)],
         });
         let texture = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile texture"),
@@ -151,6 +163,12 @@ impl TileStore {
             sampler,
             tiles: HashMap::new(),
             pool: LruPool::default(),
+            arena: Arena {
+                buffer: arena_buffer(&gpu.device, 0, 4),
+                slots: 0,
+                generation: 0,
+            },
+            free_positions: Vec::new(),
             blocks: None,
             next_texture_version: 0,
         }
@@ -202,17 +220,22 @@ impl TileStore {
         }
     }
 
-    /// Bytes of one tile's sample buffer.
+    /// Bytes of one tile's slot in the sample arena.
     pub fn sample_buffer_bytes(&self) -> u64 {
-        u64::from(self.layout.tile_size).pow(2) * size_of::<Sample>() as u64
+        4 * self.slot_words()
+    }
+
+    /// Words of one tile's slot.
+    fn slot_words(&self) -> u64 {
+        mesh::words_for(u64::from(self.layout.tile_size).pow(2))
     }
 
     /// What the tiles hold on the GPU now: every allocation made here.
     pub fn residency(&self) -> GpuResidency {
         GpuResidency {
             tiles: self.tiles.len() as u64,
-            sample_buffers: self.pool.len() as u64,
-            sample_bytes: self.pool.len() as u64 * self.sample_buffer_bytes(),
+            sample_buffers: u64::from(self.arena.slots),
+            sample_bytes: u64::from(self.arena.slots) * self.sample_buffer_bytes(),
             texture_bytes: self.tiles.values().map(|t| t.texture_bytes).sum(),
             block_bytes: self.blocks.as_ref().map_or(0, Blocks::bytes),
         }
@@ -258,6 +281,7 @@ impl TileStore {
                 texture_version,
                 texture_level: None,
                 texture_bytes: 4,
+                code_base: (0, 0),
             },
         );
         self.forget_block_of(id);
@@ -279,7 +303,48 @@ impl TileStore {
 
     fn release_samples(&mut self, id: TileId) {
         let keep = self.tiles.len();
-        self.pool.release(id, keep);
+        if let Some(position) = self.pool.release(id, keep) {
+            self.free_positions.push(position);
+            self.fit_arena();
+        }
+    }
+
+    /// Makes the arena hold exactly the pool's slots: a larger one when the pool grew, a
+    /// compacted smaller one when it shrank (live slots copied on the GPU, positions
+    /// renumbered).
+    fn fit_arena(&mut self) {
+        let wanted = self.pool.len() as u32;
+        if wanted == self.arena.slots && self.free_positions.is_empty() {
+            return;
+        }
+        let words = self.slot_words();
+        let slot_bytes = 4 * words;
+        let buffer = arena_buffer(&self.device, u64::from(wanted), slot_bytes);
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("sample arena"),
+            });
+        let old = &self.arena;
+        for (next, position) in (0u32..).zip(self.pool.values_mut()) {
+            if *position < old.slots {
+                encoder.copy_buffer_to_buffer(
+                    &old.buffer,
+                    u64::from(*position) * slot_bytes,
+                    &buffer,
+                    u64::from(next) * slot_bytes,
+                    slot_bytes,
+                );
+            }
+            *position = next;
+        }
+        self.queue.submit([encoder.finish()]);
+        self.free_positions.clear();
+        self.arena = Arena {
+            buffer,
+            slots: wanted,
+            generation: self.arena.generation + 1,
+        };
     }
 
     /// Replaces `id`'s texture by `levels`, coarsest first: the last is the finest and the
@@ -462,46 +527,64 @@ impl TileStore {
         })
     }
 
-    /// Hands each of `ids` (resident) a sample buffer from the pool, uploading the samples
-    /// of those that had none; returns the slots and the number of uploads.
-    pub(super) fn pool_samples(&mut self, ids: &[TileId]) -> (Vec<usize>, u32) {
-        // What a shrinking pool drops is freed with it.
-        drop(self.pool.begin_frame());
-        let bytes = self.sample_buffer_bytes();
-        let mut uploads = 0;
-        let mut slots = Vec::with_capacity(ids.len());
+    /// Hands each of `ids` (resident) a slot of the sample arena, uploading the samples of
+    /// those that had none; returns each one's first word in the arena, its code base and
+    /// shift, and the number of uploads.
+    pub(super) fn pool_samples(&mut self, ids: &[TileId]) -> (Vec<[i32; 3]>, u32) {
+        if let Some((position, _)) = self.pool.begin_frame() {
+            // What a shrinking pool drops leaves a hole, closed below.
+            self.free_positions.push(position);
+        }
+        let mut fresh = Vec::new();
+        let mut held = Vec::with_capacity(ids.len());
+        let mut next = self.arena.slots + self.free_positions.len() as u32;
         for &id in ids {
-            let (device, layout) = (&self.device, &self.bindings.samples);
+            let free = &mut self.free_positions;
             let got = self.pool.acquire(id, || {
-                let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label::SAMPLES),
-                    size: bytes,
-                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("tile samples"),
-                    layout,
-                    entries: &[wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: buffer.as_entire_binding(),
-                    }],
-                });
-                PooledSamples { buffer, group }
+                // A new slot: a position past the arena's end, made room for below.
+                next += 1;
+                free.pop().unwrap_or(next - 1)
             });
             if got.needs_upload() {
-                let samples =
-                    mesh::tile_samples(&self.tiles[&id].heights, self.layout.spacing_at(id.level));
-                self.queue.write_buffer(
-                    &self.pool.get(got.slot()).buffer,
-                    0,
-                    bytemuck::cast_slice(&samples),
-                );
-                uploads += 1;
+                fresh.push(id);
             }
-            slots.push(got.slot());
+            held.push(id);
         }
-        (slots, uploads)
+        // Fresh slots past the arena's end, or holes: the arena is made to fit first, and
+        // everything is uploaded after (a compaction renumbers positions).
+        self.fit_arena();
+        let words = self.slot_words();
+        let mut codes = std::collections::HashMap::with_capacity(fresh.len());
+        for &id in &fresh {
+            let packed = mesh::pack_codes(&self.tiles[&id].heights);
+            let slot = self.pool.slot_of(id).expect("acquired this frame");
+            let position = *self.pool.get(slot);
+            self.queue.write_buffer(
+                &self.arena.buffer,
+                u64::from(position) * 4 * words,
+                bytemuck::cast_slice(&packed.words),
+            );
+            codes.insert(id, (packed.base, packed.shift));
+        }
+        let uploads = fresh.len() as u32;
+        let out = held
+            .iter()
+            .map(|id| {
+                let slot = self.pool.slot_of(*id).expect("acquired this frame");
+                let first = i64::from(*self.pool.get(slot)) * words as i64;
+                let (base, shift) = match codes.get(id) {
+                    Some(&c) => c,
+                    None => self.tiles[id].code_base,
+                };
+                [i32::try_from(first).unwrap_or(i32::MAX), base, shift as i32]
+            })
+            .collect();
+        for (id, c) in codes {
+            if let Some(t) = self.tiles.get_mut(&id) {
+                t.code_base = c;
+            }
+        }
+        (out, uploads)
     }
 
     /// With MapBlocks on, the block of each of `ids` whose texture is assembled (blocks
@@ -620,6 +703,19 @@ impl TileStore {
 
 fn blocks_mut(blocks: &mut Option<Blocks>) -> &mut Blocks {
     blocks.as_mut().expect("blocks on")
+}
+
+/// A sample arena of `slots` slots of `slot_bytes` (at least 4 bytes: a binding is never
+/// empty).
+fn arena_buffer(device: &wgpu::Device, slots: u64, slot_bytes: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label::SAMPLES),
+        size: (slots * slot_bytes).max(4),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_DST
+            | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    })
 }
 
 /// A tile texture of `mips` levels whose top mip is `width` x `height`, contents undefined.
