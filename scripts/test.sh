@@ -8,7 +8,8 @@
 # "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure; so does
 # REQUIRE_GPU=1 for render tests without a Vulkan adapter, and REQUIRE_BROWSER=1 for the
 # browser tests (MapLibre and Cesium in headless Chromium) without Chromium and the npm
-# packages, which viewer/setup.sh installs here when it can (apt-get, npm ci).
+# packages, which viewer/setup.sh installs here when it can (apt-get, npm ci), and for the
+# windowed client's check (scripts/view-check.sh) without Xvfb and Weston.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -43,6 +44,8 @@ fi
 
 cargo build --release --workspace --locked
 cargo test --release --workspace --locked
+# The windowed client under X11 (Xvfb) and Wayland (headless Weston).
+bash scripts/view-check.sh
 
 install_if_missing docker-compose docker-compose
 docker-compose -f docker-compose.yml config -q

@@ -216,6 +216,68 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
     }
 }
 
+/// The sample arena (one GPU buffer of every drawn tile's 16-bit codes) grows when a frame
+/// draws more tiles, and is compacted as the pool of slots shrinks back, one slot a frame:
+/// through both, each tile still draws its own samples, pixel for pixel as a renderer that
+/// uploads them afresh, and the arena holds exactly the slots in use.
+#[test]
+fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
+    let test = "render::the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let minima = vec![Vec::new(); terrain.tiles.len()];
+    let tiles = candidates(&terrain, &minima);
+    let (_, camera) = cameras().remove(0);
+    let plan = plan_frame(
+        &camera,
+        [WIDTH, HEIGHT],
+        &layout(&terrain.manifest),
+        &tiles,
+        60_000,
+        &masks,
+        &LodSettings {
+            cap_at_needed: false,
+            ..LodSettings::default()
+        },
+    );
+    let all = plan.draws.clone();
+    // Every other tile of the frame: the pool shrinks to these, one slot a frame.
+    let some: Vec<Draw> = all.iter().step_by(2).cloned().collect();
+    assert!(all.len() >= 4 && some.len() < all.len(), "{} tiles drawn", all.len());
+    let mut painter = Painter::finest(&gpu, &terrain);
+    let first = painter.draw(&camera, &all, CrackFiller::None);
+    assert_eq!(
+        painter.renderer.tiles.residency().sample_buffers,
+        all.len() as u64,
+        "one slot per tile drawn"
+    );
+    let mut shrunk = first.clone();
+    for _ in 0..all.len() {
+        shrunk = painter.draw(&camera, &some, CrackFiller::None);
+    }
+    assert_eq!(
+        painter.renderer.tiles.residency().sample_buffers,
+        some.len() as u64,
+        "the arena was compacted to the slots in use"
+    );
+    let fresh = Painter::finest(&gpu, &terrain).draw(&camera, &some, CrackFiller::None);
+    assert_eq!(
+        golden::differing_pixels(&fresh, &shrunk),
+        0,
+        "after the compactions the kept tiles draw their own samples"
+    );
+    let again = painter.draw(&camera, &all, CrackFiller::None);
+    assert_eq!(
+        golden::differing_pixels(&first, &again),
+        0,
+        "grown again, every tile draws its own samples"
+    );
+}
+
 #[test]
 fn the_adapter_is_vulkan_when_a_gpu_is_required() {
     let test = "render::the_adapter_is_vulkan_when_a_gpu_is_required";
