@@ -247,7 +247,11 @@ fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
     let all = plan.draws.clone();
     // Every other tile of the frame: the pool shrinks to these, one slot a frame.
     let some: Vec<Draw> = all.iter().step_by(2).cloned().collect();
-    assert!(all.len() >= 4 && some.len() < all.len(), "{} tiles drawn", all.len());
+    assert!(
+        all.len() >= 4 && some.len() < all.len(),
+        "{} tiles drawn",
+        all.len()
+    );
     let mut painter = Painter::finest(&gpu, &terrain);
     let first = painter.draw(&camera, &all, CrackFiller::None);
     assert_eq!(
