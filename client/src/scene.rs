@@ -233,6 +233,9 @@ struct Rendering {
     config: RenderConfig,
     /// Whether each frame is waited for ([`Scene::wait_for_each_frame`]).
     wait_for_gpu: bool,
+    /// The terrain's GPU allocations after the last frame (the tiles' epoch and the method's
+    /// GPU bytes): a frame after which they changed waits for the GPU.
+    allocations: ((u64, u64, u64), u64),
     /// Target texture level per tile (index as `tiles`), from the last texture budget.
     texture_target: Vec<u32>,
     /// Importance per tile in the last planned frame (0 when not visible).
@@ -364,6 +367,7 @@ impl Scene {
                 controller: FrameRateController::new(config.budget),
                 config,
                 wait_for_gpu: false,
+                allocations: Default::default(),
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
                 texture_costs: vec![Vec::new(); count],
@@ -1300,7 +1304,14 @@ impl Scene {
         let mut frame = r.renderer.begin_frame(target, camera);
         let out = r.method.draw(&input, &mut frame);
         let mut stats = frame.finish();
-        if r.wait_for_gpu {
+        // A frame that made, replaced or dropped GPU allocations of the terrain waits for
+        // its completion: what it dropped is still used by the frames in flight, and is
+        // freed only once they finish, so the memory limit holds at every frame's end.
+        // The others (a steady view) do not wait.
+        let allocations = (r.renderer.tiles.allocation_epoch(), r.method.gpu_bytes());
+        let changed = allocations != r.allocations;
+        r.allocations = allocations;
+        if r.wait_for_gpu || changed {
             match r.renderer.wait_for_gpu() {
                 Ok(gpu_ms) => stats.gpu_ms = gpu_ms,
                 Err(e) => tracing::warn!(error = %e, "the frame did not finish"),

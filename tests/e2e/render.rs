@@ -282,6 +282,49 @@ fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
     );
 }
 
+/// A frame drawing more tiles than the sample arena holds (a device with small buffers)
+/// draws those it has room for, in order, and leaves the rest out: no panic, no tile drawn
+/// with another's samples.
+#[test]
+fn a_frame_with_more_tiles_than_the_arena_holds_draws_those_it_has_room_for() {
+    let test = "render::a_frame_with_more_tiles_than_the_arena_holds_draws_those_it_has_room_for";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let minima = vec![Vec::new(); terrain.tiles.len()];
+    let tiles = candidates(&terrain, &minima);
+    let (_, camera) = cameras().remove(0);
+    let plan = plan_frame(
+        &camera,
+        [WIDTH, HEIGHT],
+        &layout(&terrain.manifest),
+        &tiles,
+        60_000,
+        &masks,
+        &LodSettings {
+            cap_at_needed: false,
+            ..LodSettings::default()
+        },
+    );
+    let all = plan.draws.clone();
+    assert!(all.len() > 3, "{} tiles drawn", all.len());
+    let mut painter = Painter::finest(&gpu, &terrain);
+    painter.renderer.tiles.limit_sample_slots(3);
+    let limited = painter.draw(&camera, &all, CrackFiller::None);
+    assert_eq!(painter.renderer.tiles.residency().sample_buffers, 3);
+    let first_three = Painter::finest(&gpu, &terrain).draw(&camera, &all[..3], CrackFiller::None);
+    assert_eq!(
+        golden::differing_pixels(&first_three, &limited),
+        0,
+        "the three tiles with room are drawn, the others left out"
+    );
+    let everything = Painter::finest(&gpu, &terrain).draw(&camera, &all, CrackFiller::None);
+    assert!(golden::differing_pixels(&everything, &limited) > 0);
+}
+
 #[test]
 fn the_adapter_is_vulkan_when_a_gpu_is_required() {
     let test = "render::the_adapter_is_vulkan_when_a_gpu_is_required";

@@ -30,7 +30,7 @@ use terrain_shared::{Manifest, TileId};
 pub const MAX_COLOUR_SIDE: u32 = 256;
 /// Slots the atlas grows and shrinks by: it holds at most this many more than its tiles
 /// need before giving them back (each resize copies every tile in again).
-pub const CAPACITY_STEP: u32 = 8;
+pub const CAPACITY_STEP: u32 = 4;
 /// Most slots an atlas holds, whatever the adapter allows.
 pub const MAX_SLOTS: u32 = 4096;
 

@@ -618,7 +618,7 @@ impl<'f> Frame<'f> {
     /// Prepares `tiles` (those resident; the others are left out) for the tile pipeline:
     /// a sample buffer each from the pool, their textures (MapBlocks assembled), their
     /// uniforms. Returns each tile's slot for [`FramePass::bind_tile`] (`None`: not
-    /// resident), and, in [`Frame::draw_order`], the order that binds each block once.
+    /// resident, or no room in the sample arena this frame, see [`TileStore::sample_slots`]), and, in [`Frame::draw_order`], the order that binds each block once.
     /// Call it once a frame.
     pub fn prepare_tiles(&mut self, tiles: &[(TileId, TileExtras)]) -> Vec<Option<usize>> {
         let r = &mut *self.renderer;
@@ -634,8 +634,29 @@ impl<'f> Frame<'f> {
                 slots.push(None);
             }
         }
+        let (held, uploads) = r.tiles.pool_samples(&ids);
+        // A tile the arena had no room for this frame (the device's buffer limits) is not
+        // drawn: the others keep their slots, renumbered.
+        if held.iter().any(Option::is_none) {
+            let mut renumbered = vec![None; ids.len()];
+            let mut next = 0;
+            for (old, h) in held.iter().enumerate() {
+                if h.is_some() {
+                    renumbered[old] = Some(next);
+                    next += 1;
+                }
+            }
+            for slot in slots.iter_mut() {
+                *slot = slot.and_then(|old| renumbered[old]);
+            }
+            let keep: Vec<bool> = held.iter().map(Option::is_some).collect();
+            let mut k = keep.iter();
+            ids.retain(|_| *k.next().expect("one flag a tile"));
+            let mut k = keep.iter();
+            extras.retain(|_| *k.next().expect("one flag a tile"));
+        }
+        let samples: Vec<[i32; 3]> = held.into_iter().flatten().collect();
         r.ensure_params_capacity(ids.len() as u64);
-        let (samples, uploads) = r.tiles.pool_samples(&ids);
         r.ensure_tiles_group();
         let blocks = r.tiles.frame_blocks(&ids);
         self.stats.sample_uploads += uploads;

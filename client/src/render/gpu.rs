@@ -94,10 +94,18 @@ impl Gpu {
         }
         // Timestamps measure the GPU's share of a frame; adapters without them still render.
         let required_features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
+        // The adapter's own texture sizes and buffer sizes: the sample arena and the grids'
+        // atlas hold every drawn tile in one buffer, as large as the adapter allows.
+        let available = adapter.limits();
+        let required_limits = wgpu::Limits {
+            max_storage_buffer_binding_size: available.max_storage_buffer_binding_size,
+            max_buffer_size: available.max_buffer_size,
+            ..wgpu::Limits::default().using_resolution(available)
+        };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("terrain"),
             required_features,
-            required_limits: wgpu::Limits::default().using_resolution(adapter.limits()),
+            required_limits,
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device {

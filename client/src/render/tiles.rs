@@ -102,6 +102,11 @@ pub struct TileStore {
     pub(super) arena: Arena,
     /// Arena positions no pool slot holds.
     free_positions: Vec<u32>,
+    /// The most slots the arena may hold: what one storage binding and one buffer of the
+    /// device take.
+    max_slots: u32,
+    /// Tiles left undrawn for want of a slot, over the renderer's life (logged once).
+    pub(super) refused: u64,
     pub(super) blocks: Option<Blocks>,
     next_texture_version: u64,
     max_texture_side: u32,
@@ -169,6 +174,16 @@ impl TileStore {
                 generation: 0,
             },
             free_positions: Vec::new(),
+            max_slots: {
+                let limits = gpu.device.limits();
+                let slot_bytes = 4 * mesh::words_for(u64::from(layout.tile_size).pow(2));
+                let most = limits
+                    .max_storage_buffer_binding_size
+                    .min(limits.max_buffer_size)
+                    / slot_bytes;
+                u32::try_from(most).unwrap_or(u32::MAX).max(1)
+            },
+            refused: 0,
             blocks: None,
             next_texture_version: 0,
         }
@@ -218,6 +233,29 @@ impl TileStore {
         } else {
             1
         }
+    }
+
+    /// Changes whenever an allocation made here is made, replaced or dropped (a texture, the
+    /// arena, a tile): a frame after which it changed waits for the GPU, so that what was
+    /// dropped is freed (see `Scene::draw`).
+    pub fn allocation_epoch(&self) -> (u64, u64, u64) {
+        (
+            self.next_texture_version,
+            self.arena.generation,
+            self.residency().total(),
+        )
+    }
+
+    /// The most tiles whose samples the arena holds at once (the device's limits on one
+    /// buffer); a frame drawing more leaves the rest undrawn (logged).
+    pub fn sample_slots(&self) -> u32 {
+        self.max_slots
+    }
+
+    /// Lowers [`TileStore::sample_slots`] to `slots` (at least 1), as a smaller device
+    /// would: for tests of a frame drawing more tiles than the arena holds.
+    pub fn limit_sample_slots(&mut self, slots: u32) {
+        self.max_slots = self.max_slots.min(slots.max(1));
     }
 
     /// Bytes of one tile's slot in the sample arena.
@@ -529,16 +567,24 @@ impl TileStore {
 
     /// Hands each of `ids` (resident) a slot of the sample arena, uploading the samples of
     /// those that had none; returns each one's first word in the arena, its code base and
-    /// shift, and the number of uploads.
-    pub(super) fn pool_samples(&mut self, ids: &[TileId]) -> (Vec<[i32; 3]>, u32) {
+    /// shift (`None`: no room this frame, [`TileStore::sample_slots`] are in use), and the
+    /// number of uploads.
+    pub(super) fn pool_samples(&mut self, ids: &[TileId]) -> (Vec<Option<[i32; 3]>>, u32) {
         if let Some((position, _)) = self.pool.begin_frame() {
             // What a shrinking pool drops leaves a hole, closed below.
             self.free_positions.push(position);
         }
         let mut fresh = Vec::new();
-        let mut held = Vec::with_capacity(ids.len());
+        let mut held = std::collections::HashSet::with_capacity(ids.len());
         let mut next = self.arena.slots + self.free_positions.len() as u32;
+        let mut refused = 0;
         for &id in ids {
+            if self.pool.slot_of(id).is_none()
+                && self.pool.used_this_frame() >= self.max_slots as usize
+            {
+                refused += 1;
+                continue;
+            }
             let free = &mut self.free_positions;
             let got = self.pool.acquire(id, || {
                 // A new slot: a position past the arena's end, made room for below.
@@ -548,7 +594,18 @@ impl TileStore {
             if got.needs_upload() {
                 fresh.push(id);
             }
-            held.push(id);
+            held.insert(id);
+        }
+        if refused > 0 {
+            if self.refused == 0 {
+                tracing::warn!(
+                    tiles = ids.len(),
+                    slots = self.max_slots,
+                    "more tiles drawn than the sample arena holds on this device: the rest are \
+                     left out of the frame"
+                );
+            }
+            self.refused += refused;
         }
         // Fresh slots past the arena's end, or holes: the arena is made to fit first, and
         // everything is uploaded after (a compaction renumbers positions).
@@ -567,16 +624,19 @@ impl TileStore {
             codes.insert(id, (packed.base, packed.shift));
         }
         let uploads = fresh.len() as u32;
-        let out = held
+        let out = ids
             .iter()
             .map(|id| {
+                if !held.contains(id) {
+                    return None;
+                }
                 let slot = self.pool.slot_of(*id).expect("acquired this frame");
                 let first = i64::from(*self.pool.get(slot)) * words as i64;
                 let (base, shift) = match codes.get(id) {
                     Some(&c) => c,
                     None => self.tiles[id].code_base,
                 };
-                [i32::try_from(first).unwrap_or(i32::MAX), base, shift as i32]
+                Some([i32::try_from(first).unwrap_or(i32::MAX), base, shift as i32])
             })
             .collect();
         for (id, c) in codes {
