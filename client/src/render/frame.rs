@@ -11,13 +11,14 @@
 //! binds tiles and draws its index sets ([`FramePass::bind_tile`], [`FramePass::draw`]), or
 //! sets a pipeline of its own ([`FramePass::raw`]); [`Frame::finish`] submits.
 //!
-//! **No frame waits for its own completion.** Up to [`FRAMES_IN_FLIGHT`] frames are queued:
-//! [`Frame::finish`] submits, then waits (bounded by [`GPU_TIMEOUT`]) only for the frame
-//! before it, so the CPU records frame `k + 1` while the GPU draws frame `k`. GPU
-//! timestamps go to a ring of read-back buffers mapped asynchronously; a frame reports the
-//! GPU time of the latest frame whose read-back has arrived ([`RenderStats::gpu_ms`]). A
-//! caller that must see a frame finished (a measurement, a read-back of the image) calls
-//! [`Renderer::wait_for_gpu`].
+//! **Frames in flight.** Up to [`FRAMES_IN_FLIGHT`] frames are queued: [`Frame::finish`]
+//! submits, then waits (bounded by [`GPU_TIMEOUT`]) only for the frame before it, so the
+//! CPU records frame `k + 1` while the GPU draws frame `k`. GPU timestamps go to a ring of
+//! read-back buffers mapped asynchronously; a frame reports the GPU time of the latest
+//! frame whose read-back has arrived ([`RenderStats::gpu_ms`]). A caller that must see a
+//! frame finished calls [`Renderer::wait_for_gpu`]: a measurement, a read-back of the
+//! image, and `Scene::draw` after a frame that made, replaced or dropped GPU allocations
+//! (what it dropped is freed only once the frames using it finish).
 //!
 //! **Few state changes.** The frame's tiles' parameters are one buffer of per-instance
 //! vertex attributes (a draw's first instance picks its tile: attributes are fetched once a
