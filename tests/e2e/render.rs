@@ -216,21 +216,12 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
     }
 }
 
-/// The sample arena (one GPU buffer of every drawn tile's 16-bit codes) grows when a frame
-/// draws more tiles, and is compacted as the pool of slots shrinks back, one slot a frame:
-/// through both, each tile still draws its own samples, pixel for pixel as a renderer that
-/// uploads them afresh, and the arena holds exactly the slots in use.
-#[test]
-fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
-    let test = "render::the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted";
-    let Some(gpu) = golden::gpu(test) else {
-        return;
-    };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let terrain = fetch_jacksboro(tmp.path());
+/// The first golden camera and the tiles it draws at a 60k budget, every tile by its
+/// share alone (no error cap).
+fn overview_plan(terrain: &Terrain) -> (Camera, Vec<Draw>) {
     let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
     let minima = vec![Vec::new(); terrain.tiles.len()];
-    let tiles = candidates(&terrain, &minima);
+    let tiles = candidates(terrain, &minima);
     let (_, camera) = cameras().remove(0);
     let plan = plan_frame(
         &camera,
@@ -244,7 +235,22 @@ fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
             ..LodSettings::default()
         },
     );
-    let all = plan.draws.clone();
+    (camera, plan.draws)
+}
+
+/// The sample arena (one GPU buffer of every drawn tile's 16-bit codes) grows when a frame
+/// draws more tiles, and is compacted as the pool of slots shrinks back, one slot a frame:
+/// through both, each tile still draws its own samples, pixel for pixel as a renderer that
+/// uploads them afresh, and the arena holds exactly the slots in use.
+#[test]
+fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
+    let test = "render::the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let (camera, all) = overview_plan(&terrain);
     // Every other tile of the frame: the pool shrinks to these, one slot a frame.
     let some: Vec<Draw> = all.iter().step_by(2).cloned().collect();
     assert!(
@@ -293,23 +299,7 @@ fn a_frame_with_more_tiles_than_the_arena_holds_draws_those_it_has_room_for() {
     };
     let tmp = tempfile::tempdir().expect("tempdir");
     let terrain = fetch_jacksboro(tmp.path());
-    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
-    let minima = vec![Vec::new(); terrain.tiles.len()];
-    let tiles = candidates(&terrain, &minima);
-    let (_, camera) = cameras().remove(0);
-    let plan = plan_frame(
-        &camera,
-        [WIDTH, HEIGHT],
-        &layout(&terrain.manifest),
-        &tiles,
-        60_000,
-        &masks,
-        &LodSettings {
-            cap_at_needed: false,
-            ..LodSettings::default()
-        },
-    );
-    let all = plan.draws.clone();
+    let (camera, all) = overview_plan(&terrain);
     assert!(all.len() > 3, "{} tiles drawn", all.len());
     let mut painter = Painter::finest(&gpu, &terrain);
     painter.renderer.tiles.limit_sample_slots(3);
