@@ -115,7 +115,7 @@ section() { # DATASET DIR
   echo
   cat "$2/summary.md"
   echo
-  for chart in error-vs-triangles error-vs-frame-time error-vs-bytes popping cracks-vs-budget used-vs-needed; do
+  for chart in error-vs-triangles error-vs-frame-time error-vs-bytes popping cracks-vs-budget fillers-vs-budget used-vs-needed; do
     [ -f "$2/$chart.png" ] || continue
     echo "![$chart](evaluation/${2#docs/evaluation/}/$chart.png)"
     echo
@@ -144,10 +144,15 @@ per-frame rows are in \`docs/evaluation/*/accuracy.csv\` and \`stability/stabili
   the share of terrain pixels above 1 px. The max is a single pixel, and often the
   measure's floor (below). Pixels showing a crack filler count too: a filler is drawn
   below the surface, so a visible one is a geometric error.
-- **Crack pixels**: where the reference shows terrain and the frame shows a filler (the
-  frame is drawn a second time without its filler; pixels whose depth differs show the
-  filler) or the background with terrain above and below it in the same column. **Holes**
-  are those left showing the background. **Silhouette** pixels show the sky where the
+- **Crack pixels**: where the reference shows terrain and the frame shows a filler filling
+  a crack, or the background with terrain above and below it in the same column. **Holes**
+  are those left showing the background. A frame with a filler is drawn twice more: without
+  it (pixels whose depth differs show the filler) and with the *crack probe*, deep skirts
+  under every side a drawn tile shares (a side whose neighbour draws the same samples hides
+  its skirt under that neighbour, so the probe differs from the unfilled frame exactly
+  where the mesh has a crack). **Filler / leaks**: the pixels showing the filler, and of
+  those the ones where the probe finds no crack (the filler shows past the border, a
+  skyline, or in front of a surface). **Silhouette** pixels show the sky where the
   reference has terrain above the frame's own skyline: a coarser surface lower against the
   sky, an error of the level of detail rather than a crack.
 - **Methods, each a curve over its own knob**: strip masks over a fixed global budget

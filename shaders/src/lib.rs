@@ -134,6 +134,14 @@ pub fn shadow_base(n: u32) -> u32 {
     2 * n * n
 }
 
+/// Index of the planar shadow's first band vertex for tiles of `n` samples a side: sample
+/// `k` of side `s` (north, east, south, west; `k` west to east or north to south) projected
+/// onto the side's plane is `band_base(n) + s * n + k`, its foot on the plane
+/// `band_base(n) + 4n + s * n + k`.
+pub fn band_base(n: u32) -> u32 {
+    2 * n * n + 4
+}
+
 /// `Frame`, bind group 0: one per frame.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]

@@ -36,9 +36,12 @@ struct Tile {
     // x, y: metres between samples east and south; z: samples per side; w: skirt bottom
     // (the method's floor below the tile), metres above the datum.
     @location(1) spacing: vec4<f32>,
-    // The planar shadow's corners (north-west, south-west, north-east, south-east) in
-    // render space, already projected from the viewpoint onto the plane below the tile
-    // (on the CPU: four points a tile, see the strip-mask method's `shadow_corner`).
+    // The paper's planar shadow: its corners (north-west, south-west, north-east,
+    // south-east) in render space, already projected from the viewpoint onto the plane
+    // below the tile (on the CPU: four points a tile, see the strip-mask method's
+    // `shadow_corner`). The banded planar shadow (`shadow_band`): per side (north, east,
+    // south, west), point0 the largest gap along a seam (metres) and point1 the mask the
+    // neighbour draws (-1: a seam); point2.x the tile's own mask.
     @location(2) point0: vec4<f32>,
     @location(3) point1: vec4<f32>,
     @location(4) point2: vec4<f32>,
@@ -104,7 +107,8 @@ fn place(column: u32, row: u32, height: f32) -> Varyings {
 // One vertex shader for everything a tile draws, told apart by the index:
 // - below n*n: sample i (the strip masks);
 // - n*n + i: the foot of sample i's skirt, at the skirt's bottom;
-// - 2*n*n + k, k in 0..4: corner k of the planar shadow.
+// - 2*n*n + k, k in 0..4: corner k of the paper's planar shadow;
+// - 2*n*n + 4 + j, j in 0..8n: a vertex of the planar shadow's bands (`shadow_band`).
 // One pipeline for all three keeps the render pass free of pipeline switches.
 @vertex
 fn vs_surface(@builtin(vertex_index) vertex: u32, drawn: Tile) -> Shaded {
@@ -147,6 +151,9 @@ fn normal_at(column: u32, row: u32, n: u32) -> vec3<f32> {
 fn vertex_of(vertex: u32) -> Varyings {
     let n = u32(tile.spacing.z);
     let count = n * n;
+    if vertex >= 2u * count + 4u {
+        return shadow_band(vertex - 2u * count - 4u);
+    }
     if vertex >= 2u * count {
         return shadow_corner(vertex - 2u * count);
     }
@@ -180,6 +187,90 @@ fn shadow_corner(corner: u32) -> Varyings {
     out.clip = frame.view_proj * vec4<f32>(points[corner].xyz, 1.0);
     out.position = points[corner].xyz;
     out.normal = normal_at(column, row, n);
+    return out;
+}
+
+// Largest stretch of a band's projection, as the paper's corners (`SHADOW_MAX_STRETCH` of
+// the strip-mask fillers).
+const SHADOW_MAX_STRETCH: f32 = 64.0;
+
+// Height at position k (0..n) of a side whose samples are `side_index(k)`, on the polyline
+// through the samples a mask keeping every `step`-th one (and the last) keeps: what a tile
+// drawn at mask step - 1 draws there.
+fn polyline_at(side: u32, k: u32, step: u32, n: u32) -> f32 {
+    let k0 = (k / step) * step;
+    let h0 = height_at(side_index(side, k0, n));
+    if k0 == k {
+        return h0;
+    }
+    let k1 = min(k0 + step, n - 1u);
+    let h1 = height_at(side_index(side, k1, n));
+    return mix(h0, h1, f32(k - k0) / f32(k1 - k0));
+}
+
+// Row-major index of sample k along side `side` (north, east, south, west; k west to east
+// or north to south).
+fn side_index(side: u32, k: u32, n: u32) -> u32 {
+    let last = n - 1u;
+    if side == 0u {
+        return k;
+    } else if side == 1u {
+        return k * n + last;
+    } else if side == 2u {
+        return last * n + k;
+    }
+    return k * n;
+}
+
+// The planar shadow cut to bands along the sides where a crack can open (the strip-mask
+// method's `band_strip`). Vertex j < 4n is position k = j % n of side s = j / n: the point
+// of the tile's own polyline there (mask point2.x) projected from the viewpoint onto the
+// horizontal plane at the crack's bottom there; j >= 4n is that point's foot on the plane.
+// The crack's bottom: the lower of the two polylines at k when the neighbour is a tile of
+// this level drawn at mask point1[s] (>= 0); along a seam (point1[s] < 0), the polyline
+// less point0[s], the largest gap between it and the other level's along the side. On
+// screen each band covers what a skirt hanging from the polyline down to the crack's bottom
+// would, which holds the crack; in depth it lies on the plane, behind the surfaces in
+// front. Textured and lit like the side's sample, as skirts are.
+fn shadow_band(j: u32) -> Varyings {
+    let n = u32(tile.spacing.z);
+    let e = j % (4u * n);
+    let side = e / n;
+    let k = e % n;
+    let i = side_index(side, k, n);
+    let column = i % n;
+    let row = i / n;
+    let own = polyline_at(side, k, u32(tile.point2.x) + 1u, n);
+    var floor = own - tile.point0[side];
+    let across = tile.point1[side];
+    if across >= 0.0 {
+        floor = min(own, polyline_at(side, k, u32(across) + 1u, n));
+    }
+    // The evaluation's crack probe (point2.y = 1): a skirt from the polyline straight down
+    // to the skirts' bottom, not projected.
+    let probe = tile.point2.y > 0.5;
+    if probe {
+        floor = tile.spacing.w;
+    }
+    var out = place(column, row, floor);
+    out.normal = normal_at(column, row, n);
+    if j < 4u * n {
+        let p = position_of(column, row, own);
+        let plane = floor - frame.camera.y;
+        var q = vec3<f32>(p.x, plane, p.z);
+        if probe {
+            q = p;
+        } else if plane < 0.0 {
+            // On the ray from the camera through the point, where it meets the plane; the
+            // stretch capped near grazing angles. With the camera below the plane there is
+            // nothing to project from: the point's foot (an empty band).
+            q = p * (-plane / max(-p.y, -plane / SHADOW_MAX_STRETCH));
+        }
+        out.clip = frame.view_proj * vec4<f32>(q, 1.0);
+        // Clipped at the terrain's edge by the side's own position, not the projected one:
+        // a band hangs from a side inside the terrain wherever its plane point lies.
+        out.position = p;
+    }
     return out;
 }
 

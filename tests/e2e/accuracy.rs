@@ -310,7 +310,7 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
         );
         checked.insert(row.config.series());
     }
-    assert_eq!(checked.len(), 4, "{checked:?}");
+    assert_eq!(checked.len(), args.variants.list().len(), "{checked:?}");
     for s in report.summaries.iter().filter(|s| at_one_px(&s.config)) {
         assert!(s.oracle_triangles > 0.0, "{s:?}");
     }
@@ -458,7 +458,9 @@ fn every_scenario_of_the_stability_matrix_runs_over_jacksboro_within_memory() {
         .iter()
         .filter(|s| s.dataset.is_none())
         .count();
-    assert_eq!(report.runs.len(), generic * 3);
+    // One run per variant: the strip masks with each default filler.
+    let variants = terrain_client::eval::Variants::default().list().len();
+    assert_eq!(report.runs.len(), generic * variants);
     assert_eq!(
         report.skipped.len(),
         stability::SCENARIOS.len() - generic,
@@ -520,7 +522,11 @@ fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
     for name in &altitude {
         for label in [name.to_string(), format!("{name}@puget")] {
             let runs = report.runs.iter().filter(|r| r.scenario == label);
-            assert_eq!(runs.clone().count(), 3, "{label}: one run per variant");
+            assert_eq!(
+                runs.clone().count(),
+                terrain_client::eval::Variants::default().list().len(),
+                "{label}: one run per variant"
+            );
             assert!(runs.clone().all(|r| r.whole_reference), "{label}");
         }
     }

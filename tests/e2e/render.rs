@@ -384,7 +384,7 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
         .draw(&cameras()[0].1, &[], CrackFiller::None)
         .get_pixel(0, 0)
         .0;
-    let mut totals = [0u64; 3];
+    let mut totals = [0u64; 4];
     // The golden cameras, but the low one looks north from inside the terrain: from
     // outside, the DEM's southern edge is in view, where a coarse mask's surface ends
     // elsewhere on screen than the full-resolution one (a silhouette, not a crack between
@@ -407,27 +407,34 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
                 level: if (id.x + id.y) % 2 == 0 { 0 } else { 31 },
             })
             .collect();
-        let mut counts = [0u64; 3];
+        let mut counts = [0u64; 4];
         for (k, filler) in [
             CrackFiller::None,
             CrackFiller::Skirts,
             CrackFiller::PlanarShadow,
+            CrackFiller::PlanarShadowPaper,
         ]
         .into_iter()
         .enumerate()
         {
             let frame = painter.draw(&camera, &mixed, filler);
             counts[k] = crack_pixels(&reference, &frame, sky);
-            if filler == CrackFiller::PlanarShadow && name == "jacksboro-overview" {
-                golden::compare("jacksboro-cracks-planar-shadow", &frame);
+            if name == "jacksboro-overview" && filler != CrackFiller::Skirts {
+                golden::compare(&format!("jacksboro-cracks-{}", filler.name()), &frame);
             }
-            if filler == CrackFiller::None && name == "jacksboro-overview" {
-                golden::compare("jacksboro-cracks-none", &frame);
+            if filler == CrackFiller::PlanarShadow {
+                // Every shared side of the checkerboard changes mask: the bands close every
+                // crack, so no sky pixel is left inside the terrain.
+                assert_eq!(
+                    enclosed_sky_pixels(&frame, sky),
+                    0,
+                    "{name}: the planar shadow leaves no hole"
+                );
             }
         }
         eprintln!(
-            "{name}: sky pixels where the reference has terrain: none {}, skirts {}, planar-shadow {}",
-            counts[0], counts[1], counts[2]
+            "{name}: sky pixels where the reference has terrain: none {}, skirts {}, planar-shadow {}, planar-shadow-paper {}",
+            counts[0], counts[1], counts[2], counts[3]
         );
         // Neighbouring tiles at the same level meet vertex for vertex: with no filler, no
         // sky pixel lies inside the terrain (all four neighbours terrain), where a hairline
@@ -444,13 +451,13 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
                 "the enclosed-pixel count does see cracks between different levels"
             );
         }
-        for k in 0..3 {
+        for k in 0..4 {
             totals[k] += counts[k];
         }
     }
     eprintln!(
-        "all cameras: none {}, skirts {}, planar-shadow {}",
-        totals[0], totals[1], totals[2]
+        "all cameras: none {}, skirts {}, planar-shadow {}, planar-shadow-paper {}",
+        totals[0], totals[1], totals[2], totals[3]
     );
     assert!(
         totals[0] > 100,
@@ -468,6 +475,133 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
         "skirts fill at least three quarters of the cracks: {} against {}",
         totals[1],
         totals[0]
+    );
+    assert!(
+        totals[3] * 4 < totals[0],
+        "the paper's planar shadows fill at least three quarters of the cracks: {} against {}",
+        totals[3],
+        totals[0]
+    );
+}
+
+/// Pixels of `filled` that differ from `bare` (the same frame without a filler) outside the
+/// span of `reference`'s terrain in their column (the full-resolution frame, which has no
+/// crack): the filler showing past the terrain's silhouette, where no crack can be.
+fn filler_past_the_terrain(
+    reference: &image::RgbaImage,
+    bare: &image::RgbaImage,
+    filled: &image::RgbaImage,
+    sky: [u8; 4],
+) -> u64 {
+    let (w, h) = bare.dimensions();
+    let mut count = 0;
+    for x in 0..w {
+        let terrain: Vec<u32> = (0..h)
+            .filter(|&y| reference.get_pixel(x, y).0 != sky)
+            .collect();
+        let (top, bottom) = (terrain.first().copied(), terrain.last().copied());
+        count += (0..h)
+            .filter(|&y| {
+                let outside = match (top, bottom) {
+                    (Some(top), Some(bottom)) => y < top || y > bottom,
+                    _ => true,
+                };
+                outside && bare.get_pixel(x, y) != filled.get_pixel(x, y)
+            })
+            .count() as u64;
+    }
+    count
+}
+
+#[test]
+fn a_tile_on_the_dems_border_draws_no_planar_shadow_past_the_border() {
+    let test = "render::a_tile_on_the_dems_border_draws_no_planar_shadow_past_the_border";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let mut painter = Painter::finest(&gpu, &terrain);
+    let sky = painter
+        .draw(&cameras()[0].1, &[], CrackFiller::None)
+        .get_pixel(0, 0)
+        .0;
+    let extent = terrain.manifest.extent_m;
+    // A checkerboard of the finest and a coarse mask (a crack along every shared side),
+    // seen from outside the terrain: from beyond each corner, looking back at it over the
+    // two borders that meet there. A filler pixel outside the full-resolution frame's
+    // terrain in its column shows past the border (or past the far skyline).
+    let mixed: Vec<Draw> = terrain
+        .tiles
+        .iter()
+        .map(|t| Draw {
+            id: t.id,
+            level: if (t.id.x + t.id.y) % 2 == 0 { 0 } else { 31 },
+        })
+        .collect();
+    let mut paper_total = 0;
+    let corners = [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)];
+    // High above the terrain (heights 236 to 1076 m), and low, under its highest points,
+    // where the open side of the terrain faces the camera.
+    for ((cx, cy), height) in corners.into_iter().flat_map(|c| [(c, 2500.0), (c, 700.0)]) {
+        let corner = [cx * extent[0], cy * extent[1]];
+        // Away from the terrain, east or west and south or north.
+        let away = [2.0 * cx - 1.0, 2.0 * cy - 1.0];
+        // The low camera nearer, looking further in.
+        let (out, inside) = if height > 1000.0 {
+            ([6000.0, 7000.0], 6000.0)
+        } else {
+            ([2500.0, 3000.0], 8000.0)
+        };
+        let camera = Camera::looking_at(
+            [
+                corner[0] + out[0] * away[0],
+                corner[1] + out[1] * away[1],
+                height,
+            ],
+            [
+                corner[0] - inside * away[0],
+                corner[1] - inside * away[1],
+                400.0,
+            ],
+        );
+        let bare = painter.draw(&camera, &mixed, CrackFiller::None);
+        let finest: Vec<Draw> = mixed.iter().map(|d| Draw { level: 0, ..*d }).collect();
+        let reference = painter.draw(&camera, &finest, CrackFiller::None);
+        let terrain_pixels = bare.pixels().filter(|p| p.0 != sky).count();
+        assert!(
+            terrain_pixels > (WIDTH * HEIGHT / 40) as usize,
+            "corner {corner:?} from {height} m is in view: {terrain_pixels} pixels"
+        );
+        let banded = painter.draw(&camera, &mixed, CrackFiller::PlanarShadow);
+        let paper = painter.draw(&camera, &mixed, CrackFiller::PlanarShadowPaper);
+        let past = filler_past_the_terrain(&reference, &bare, &banded, sky);
+        let paper_past = filler_past_the_terrain(&reference, &bare, &paper, sky);
+        let filled = bare
+            .pixels()
+            .zip(banded.pixels())
+            .filter(|(a, b)| a != b)
+            .count();
+        eprintln!(
+            "corner {corner:?} from {height} m: the planar shadow shows in {filled} pixels, {past} past the terrain's silhouette; the paper's, {paper_past}"
+        );
+        if height > 1000.0 {
+            assert!(
+                filled > 0,
+                "corner {corner:?} from {height} m: the planar shadow fills the cracks in view"
+            );
+        }
+        assert_eq!(
+            past, 0,
+            "corner {corner:?} from {height} m: the planar shadow shows past the border"
+        );
+        paper_total += paper_past;
+    }
+    // The measure sees a shadow past the border where there is one: the paper's, a quad
+    // under each border tile, does show there.
+    assert!(
+        paper_total > 0,
+        "the paper's planar shadow shows past the border: {paper_total} pixels"
     );
 }
 

@@ -13,6 +13,7 @@
 //! against frame time, crack pixels against budget, triangles used against needed.
 
 use super::Variants;
+use super::frame::{Capture, Unfilled};
 use super::popping::{Changes, Pair, Popping};
 use super::session::{Measured, Session, median};
 use crate::charts::{self, ChartError, XyPanel, XySeries};
@@ -99,6 +100,11 @@ pub struct AccuracyArgs {
     /// so each crosses about one level switch; 0 keeps the camera still.
     #[arg(long, default_value_t = 1.0)]
     pub popping_halvings: f64,
+    /// Also write every measured frame to OUT/images: `CAMERA-METHOD-SETTING.png`, and for a
+    /// frame with a crack filler `...-filler.png`, the frame with the filler's pixels
+    /// marked: green where it fills a crack, red where it leaks, blue the holes left.
+    #[arg(long)]
+    pub images: bool,
 }
 
 impl AccuracyArgs {
@@ -123,6 +129,7 @@ impl AccuracyArgs {
             label: None,
             popping_frames: 40,
             popping_halvings: 1.0,
+            images: false,
         }
     }
 }
@@ -270,6 +277,10 @@ pub struct Summary {
     pub crack_pixels: f64,
     pub hole_pixels: f64,
     pub silhouette_pixels: f64,
+    /// Pixels showing the crack filler, and of those the ones where the mesh has no crack
+    /// (leaks, [`super::frame::FrameMeasures::leak_pixels`]).
+    pub filler_pixels: f64,
+    pub leak_pixels: f64,
     /// Crack pixels in percent of the reference's terrain pixels.
     pub crack_pct: f64,
     pub psnr_db: f64,
@@ -395,8 +406,22 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             session
                 .prepare(centre, camera, render, Duration::from_secs(120))
                 .await?;
-            let measured =
+            let mut measured =
                 session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
+            let unfilled = measured.unfilled.take();
+            if args.images {
+                write_images(
+                    &args.out.join("images"),
+                    &format!(
+                        "{i}-{}-{}",
+                        config.series().replace('/', "-"),
+                        config.knob.value()
+                    ),
+                    &measured.capture,
+                    unfilled.as_ref(),
+                    &reference,
+                )?;
+            }
             if i + 1 == cameras.len() {
                 let method = config.method.name().to_string();
                 let memory = session.scene.geometry_memory();
@@ -717,6 +742,8 @@ pub fn summarise(
                 crack_pixels: mean(&|m| m.measures.crack_pixels as f64),
                 hole_pixels: mean(&|m| m.measures.hole_pixels as f64),
                 silhouette_pixels: mean(&|m| m.measures.silhouette_pixels as f64),
+                filler_pixels: mean(&|m| m.measures.filler_pixels as f64),
+                leak_pixels: mean(&|m| m.measures.leak_pixels as f64),
                 crack_pct: 100.0
                     * mean(&|m| {
                         m.measures.crack_pixels as f64
@@ -748,13 +775,40 @@ fn mean_measure(of: &[&Measured], name: &str) -> Option<f64> {
 }
 
 /// Columns of `accuracy.csv`.
-pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms,oracle_triangles,error_pixels_pct,ray_cast_pct";
+pub const CSV_HEADER: &str = "camera,method,filler,knob,setting,triangles,triangles_needed,used_over_needed,filler_triangles,draw_calls,terrain_pixels,mean_error_px,max_error_px,above_threshold_pct,crack_pixels,hole_pixels,silhouette_pixels,filler_pixels,reference_terrain_pixels,psnr_db,lod_ms,cpu_ms,gpu_ms,frame_ms,oracle_triangles,error_pixels_pct,ray_cast_pct,p99_error_px,leak_pixels";
+
+/// Writes `frame` as `DIR/NAME.png` and, with `unfilled`, `DIR/NAME-filler.png`: the frame
+/// with its filler's pixels marked ([`super::frame::filler_picture`]).
+fn write_images(
+    dir: &Path,
+    name: &str,
+    frame: &Capture,
+    unfilled: Option<&Unfilled>,
+    reference: &Capture,
+) -> Result<(), FlightError> {
+    std::fs::create_dir_all(dir).map_err(|source| FlightError::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let save = |image: &image::RgbaImage, path: PathBuf| {
+        image.save(&path).map_err(|e| FlightError::Image {
+            message: e.to_string(),
+            path,
+        })
+    };
+    save(&frame.color, dir.join(format!("{name}.png")))?;
+    if let Some(unfilled) = unfilled {
+        let picture = super::frame::filler_picture(frame, unfilled, reference);
+        save(&picture, dir.join(format!("{name}-filler.png")))?;
+    }
+    Ok(())
+}
 
 fn csv_row(r: &Row, oracle: Option<u64>) -> String {
     let m = &r.measured;
     let e = &m.measures.error;
     format!(
-        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3},{},{},{}",
+        "{},{},{},{},{},{},{},{:.4},{},{},{},{:.4},{:.3},{:.3},{},{},{},{},{},{:.2},{:.3},{:.3},{},{:.3},{},{},{},{:.3},{}",
         r.camera,
         r.config.method.name(),
         r.config.filler.name(),
@@ -784,6 +838,8 @@ fn csv_row(r: &Row, oracle: Option<u64>) -> String {
             .map_or(String::new(), |v| format!("{v:.3}")),
         m.method_measure("ray_cast_pct")
             .map_or(String::new(), |v| format!("{v:.3}")),
+        e.p99_px,
+        m.measures.leak_pixels,
     )
 }
 
@@ -811,17 +867,17 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) / jump colour / jump depth (%) | error px / ray cast (%) |",
+        "| method | setting | triangles | oracle | used/oracle | needed | used/needed | mean / p95 / p99 error (px) | max error (px) | > {} px (%) | crack px | holes px | filler px / leaks | silhouette px | cracks (% terrain) | PSNR (dB) | frame (ms) | CPU (ms) | held (MiB) | popping: colour mean / depth p99 (%) / jump colour / jump depth (%) | error px / ray cast (%) |",
         report.threshold_px
     );
     let _ = writeln!(
         s,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     );
     for m in &report.summaries {
         let _ = writeln!(
             s,
-            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.0} | {:.2} | {:.3} / {:.2} / {:.2} | {:.2} | {:.2} | {:.0} | {:.0} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} | {:.1} | {} | {} |",
+            "| {} | {} | {:.0} | {:.0} | {:.2} | {:.0} | {:.2} | {:.3} / {:.2} / {:.2} | {:.2} | {:.2} | {:.0} | {:.0} | {} | {:.0} | {:.2} | {:.1} | {:.1} | {:.2} | {:.1} | {} | {} |",
             m.config.series(),
             m.config.knob,
             m.triangles,
@@ -836,6 +892,11 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             m.above_threshold_pct,
             m.crack_pixels,
             m.hole_pixels,
+            if m.config.method.uses_filler() && m.config.filler != CrackFiller::None {
+                format!("{:.0} / {:.0}", m.filler_pixels, m.leak_pixels)
+            } else {
+                "-".to_string()
+            },
             m.silhouette_pixels,
             m.crack_pct,
             m.psnr_db,
@@ -1103,6 +1164,42 @@ fn draw_charts(report: &AccuracyReport, out: &Path) -> Result<Vec<PathBuf>, Char
         &path,
     )?;
     files.push(path);
+    // The fillers side by side: where each shows without a crack, and what it does to the
+    // largest errors.
+    let filled = |s: &Summary| s.config.method.uses_filler();
+    let fillers = |f: &dyn Fn(&Summary) -> f64| {
+        series_of(&|s| budget(s).filter(|_| filled(s)).map(|b| (b, f(s))))
+    };
+    if !fillers(&|s| s.leak_pixels).is_empty() {
+        let path = out.join("fillers-vs-budget.png");
+        charts::xy_chart(
+            &[
+                XyPanel {
+                    title: format!("{title}: filler pixels where the mesh has no crack (leaks)"),
+                    x_desc: "global triangle budget (log)".into(),
+                    y_desc: "pixels per frame".into(),
+                    log_x: true,
+                    series: fillers(&|s| s.leak_pixels),
+                },
+                XyPanel {
+                    title: "largest error over the cameras".into(),
+                    x_desc: "global triangle budget (log)".into(),
+                    y_desc: "max error (px)".into(),
+                    log_x: true,
+                    series: fillers(&|s| s.max_error_px),
+                },
+                XyPanel {
+                    title: "99th percentile error (per frame, mean)".into(),
+                    x_desc: "global triangle budget (log)".into(),
+                    y_desc: "p99 error (px)".into(),
+                    log_x: true,
+                    series: fillers(&|s| s.p99_error_px),
+                },
+            ],
+            &path,
+        )?;
+        files.push(path);
+    }
     let path = out.join("used-vs-needed.png");
     let mut used = series_of(&|s| budget(s).map(|b| (b, s.triangles)));
     used.truncate(1);

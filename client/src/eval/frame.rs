@@ -68,9 +68,12 @@ impl Capture {
 pub struct FrameMeasures {
     /// Screen-space geometric error of every pixel showing the surface or a filler.
     pub error: ErrorStats,
-    /// Pixels where the reference shows terrain and the frame a filler, or the background
-    /// with terrain above and below it ([`metrics::enclosed_holes`]): the cracks of the
-    /// frame's mesh, filled or not.
+    /// The same of the frame drawn without its filler (same masks), when it has one: what
+    /// the filler's pixels add to it is the difference.
+    pub unfilled_error: Option<ErrorStats>,
+    /// Pixels where the reference shows terrain and the frame a filler filling a crack, or
+    /// the background with terrain above and below it ([`metrics::enclosed_holes`]): the
+    /// cracks of the frame's mesh, filled or not.
     pub crack_pixels: u64,
     /// Of those, the pixels left showing the background.
     pub hole_pixels: u64,
@@ -79,6 +82,9 @@ pub struct FrameMeasures {
     pub silhouette_pixels: u64,
     /// Pixels showing a crack filler.
     pub filler_pixels: u64,
+    /// Of those, the pixels showing it where the mesh has no crack ([`Unfilled::probe`]):
+    /// past a skyline, past the terrain's border, in front of a lower surface.
+    pub leak_pixels: u64,
     /// Pixels where the reference shows terrain.
     pub reference_terrain_pixels: u64,
     /// Of those, the pixels where the frame shows terrain or a filler too.
@@ -87,12 +93,23 @@ pub struct FrameMeasures {
     pub psnr_db: f64,
 }
 
-/// Measures `frame` against `reference` (same camera and size). `unfilled_depth` is the
-/// depth of the same frame drawn without its crack filler (`None` when it has none): where
-/// the two depths differ, the filler shows. `true_height` gives the true surface's height.
+/// The same frame as a filled one, drawn without its filler and with the crack probe.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Unfilled {
+    /// Depth of the frame drawn without a filler: where the filled frame's differs, the
+    /// filler shows.
+    pub depth: Vec<f32>,
+    /// Depth of the frame drawn with the crack probe: where it differs from `depth`, the
+    /// mesh has a crack.
+    pub probe: Vec<f32>,
+}
+
+/// Measures `frame` against `reference` (same camera and size). `unfilled` is the same frame
+/// drawn without its crack filler and with the crack probe (`None` when it has no filler).
+/// `true_height` gives the true surface's height.
 pub fn measure(
     frame: &Capture,
-    unfilled_depth: Option<&[f32]>,
+    unfilled: Option<&Unfilled>,
     reference: &Capture,
     camera: &Camera,
     true_height: impl Fn(f64, f64) -> Option<f64>,
@@ -104,33 +121,54 @@ pub fn measure(
         width,
         height,
         camera,
-        true_height,
+        &true_height,
         threshold_px,
     );
-    let filler: Vec<bool> = match unfilled_depth {
+    let unfilled_error = unfilled.map(|u| {
+        metrics::screen_space_error(
+            &positions_from_depth(&u.depth, width, height, camera),
+            width,
+            height,
+            camera,
+            &true_height,
+            threshold_px,
+        )
+    });
+    // Per pixel: whether the filler shows, and whether the mesh has a crack there.
+    let (filler, crack): (Vec<bool>, Vec<bool>) = match unfilled {
         Some(unfilled) => frame
             .depth
             .iter()
-            .zip(unfilled)
-            .map(|(a, b)| a != b)
-            .collect(),
-        None => vec![false; frame.depth.len()],
+            .zip(&unfilled.depth)
+            .zip(&unfilled.probe)
+            .map(|((filled, bare), probe)| (filled != bare, probe != bare))
+            .unzip(),
+        None => (
+            vec![false; frame.depth.len()],
+            vec![false; frame.depth.len()],
+        ),
     };
     let background = metrics::crack_pixels(&frame.points, &reference.points);
     let hole_pixels = metrics::enclosed_holes(&frame.points, &reference.points, width);
-    let covered = frame
+    let filled = frame
         .points
         .iter()
         .zip(&reference.points)
-        .zip(&filler)
-        .filter(|((f, r), filled)| **filled && f.is_some() && r.is_some())
+        .zip(filler.iter().zip(&crack))
+        .filter(|((f, r), (filler, crack))| **filler && **crack && f.is_some() && r.is_some())
         .count() as u64;
     FrameMeasures {
         error,
-        crack_pixels: hole_pixels + covered,
+        unfilled_error,
+        crack_pixels: hole_pixels + filled,
         hole_pixels,
         silhouette_pixels: background - hole_pixels,
         filler_pixels: filler.iter().filter(|&&f| f).count() as u64,
+        leak_pixels: filler
+            .iter()
+            .zip(&crack)
+            .filter(|&(&f, &c)| f && !c)
+            .count() as u64,
         reference_terrain_pixels: reference.terrain_pixels(),
         covered_pixels: frame
             .points
@@ -140,6 +178,52 @@ pub fn measure(
             .count() as u64,
         psnr_db: metrics::psnr(&frame.color, &reference.color),
     }
+}
+
+/// `frame` with its filler's pixels marked against `unfilled` and `reference`: green where
+/// the filler fills a crack, red where it leaks (shows where the mesh has no crack), blue
+/// where a crack is left showing the background (a hole; magenta where the crack probe saw
+/// no crack there); the rest dimmed.
+pub fn filler_picture(
+    frame: &Capture,
+    unfilled: &Unfilled,
+    reference: &Capture,
+) -> image::RgbaImage {
+    let width = frame.color.width() as usize;
+    let mut picture = frame.color.clone();
+    let holes: Vec<bool> = {
+        let mut holes = vec![false; frame.points.len()];
+        let height = frame.points.len() / width.max(1);
+        for x in 0..width {
+            let column: Vec<usize> = (0..height).map(|y| y * width + x).collect();
+            let drawn: Vec<usize> = column
+                .iter()
+                .copied()
+                .filter(|&i| frame.points[i].is_some())
+                .collect();
+            if let (Some(&top), Some(&bottom)) = (drawn.first(), drawn.last()) {
+                for i in (top..bottom).step_by(width) {
+                    holes[i] = frame.points[i].is_none() && reference.points[i].is_some();
+                }
+            }
+        }
+        holes
+    };
+    for (i, pixel) in picture.pixels_mut().enumerate() {
+        let filler = frame.depth[i] != unfilled.depth[i];
+        let crack = unfilled.probe[i] != unfilled.depth[i];
+        pixel.0 = match (filler, crack, holes[i]) {
+            (true, true, _) => [0, 220, 0, 255],
+            (true, false, _) => [255, 0, 0, 255],
+            (_, true, true) => [0, 80, 255, 255],
+            (_, false, true) => [255, 0, 255, 255],
+            _ => {
+                let [r, g, b, a] = pixel.0;
+                [r / 3, g / 3, b / 3, a]
+            }
+        };
+    }
+    picture
 }
 
 impl FrameMeasures {
@@ -218,14 +302,24 @@ mod tests {
         let camera = Camera::new([0.0, 0.0, 100.0], 0.0, -0.4);
         let ground = Some([300.0, 0.0, 0.0]);
         let reference = capture(vec![ground; 4], vec![0.5; 4], 100);
-        // Pixel 1 is a hole; pixel 2 shows the filler (its depth differs from the unfilled
-        // frame's, where it was a hole too); pixels 0 and 3 are surface.
+        // Pixel 1 is a hole; pixels 0 and 2 show the filler (their depth differs from the
+        // unfilled frame's) where the probe finds a crack (its depth differs too); pixel 3
+        // shows the filler in front of the surface, where the probe shows the surface too:
+        // a leak.
         let frame = capture(
-            vec![ground, None, Some([300.0, 0.0, -40.0]), ground],
-            vec![0.5, 0.0, 0.4, 0.5],
+            vec![
+                Some([300.0, 0.0, -20.0]),
+                None,
+                Some([300.0, 0.0, -40.0]),
+                Some([300.0, 0.0, -30.0]),
+            ],
+            vec![0.45, 0.0, 0.4, 0.6],
             100,
         );
-        let unfilled = [0.5, 0.0, 0.0, 0.5];
+        let unfilled = Unfilled {
+            depth: vec![0.5, 0.0, 0.0, 0.5],
+            probe: vec![0.45, 0.3, 0.3, 0.5],
+        };
         // A 1 x 4 frame (one column) spans few pixels: a threshold of a twentieth of one.
         let m = measure(
             &frame,
@@ -235,18 +329,32 @@ mod tests {
             |_, _| Some(0.0),
             0.05,
         );
-        assert_eq!((m.crack_pixels, m.hole_pixels, m.filler_pixels), (2, 1, 1));
+        assert_eq!(
+            (
+                m.crack_pixels,
+                m.hole_pixels,
+                m.filler_pixels,
+                m.leak_pixels
+            ),
+            (3, 1, 3, 1)
+        );
         assert_eq!(m.reference_terrain_pixels, 4);
         // Pixel 1 shows the background: three of the reference's four terrain pixels drawn.
         assert_eq!(m.covered_pixels, 3);
         assert!((m.coverage() - 0.75).abs() < 1e-12);
-        // The filler pixel lies 40 m under the surface: the only one with an error.
+        // The filler pixels lie 20 to 40 m under the surface: the three with an error.
         assert_eq!(m.error.terrain_pixels, 3);
-        assert_eq!(m.error.above_threshold, 1);
+        assert_eq!(m.error.above_threshold, 3);
+        // The unfilled frame is measured too: its two surface pixels.
+        assert_eq!(m.unfilled_error.map(|e| e.terrain_pixels), Some(2));
         // Against itself: nothing.
         let same = measure(&reference, None, &reference, &camera, |_, _| Some(0.0), 1.0);
-        assert_eq!((same.crack_pixels, same.filler_pixels), (0, 0));
+        assert_eq!(
+            (same.crack_pixels, same.filler_pixels, same.leak_pixels),
+            (0, 0, 0)
+        );
         assert_eq!(same.error.max_px, 0.0);
         assert!(same.psnr_db.is_infinite());
+        assert!(same.unfilled_error.is_none());
     }
 }

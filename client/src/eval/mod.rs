@@ -26,7 +26,7 @@ pub struct Variants {
         long,
         value_enum,
         value_delimiter = ',',
-        default_value = "none,skirts,planar-shadow"
+        default_value = "none,skirts,planar-shadow,planar-shadow-paper"
     )]
     pub fillers: Vec<CrackFiller>,
 }
@@ -39,6 +39,7 @@ impl Default for Variants {
                 CrackFiller::None,
                 CrackFiller::Skirts,
                 CrackFiller::PlanarShadow,
+                CrackFiller::PlanarShadowPaper,
             ],
         }
     }

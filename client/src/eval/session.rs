@@ -2,7 +2,7 @@
 //! frames can be drawn with any method and measured against the reference at the same
 //! camera. The accuracy sweep and the stability matrix both run on it.
 
-use super::frame::{Capture, FrameMeasures, measure};
+use super::frame::{Capture, FrameMeasures, Unfilled, measure};
 use crate::fetcher::{Fetcher, FetcherConfig};
 use crate::flight::FlightError;
 use crate::lod::budget::BudgetMode;
@@ -45,6 +45,8 @@ pub struct Measured {
     /// ([`crate::method::LodMethod::frame_measures`]: the projective grid's shares of
     /// pixels past the threshold and ray cast).
     pub method_measures: Vec<(&'static str, f64)>,
+    /// The same frame without its filler and with the crack probe, when it has a filler.
+    pub unfilled: Option<Unfilled>,
 }
 
 impl Measured {
@@ -285,7 +287,7 @@ impl Session {
         let scene = &self.scene;
         let measures = measure(
             &capture,
-            unfilled.as_deref(),
+            unfilled.as_ref(),
             reference,
             camera,
             |x, y| scene.surface_height(x, y),
@@ -299,24 +301,24 @@ impl Session {
             capture,
             held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
             method_measures: std::mem::take(&mut self.method_measures),
+            unfilled,
         })
     }
 
-    /// With a crack filler, the depth of `camera`'s frame drawn without it (where the two
-    /// depths differ, the filler shows); `None` for a configuration without a filler.
+    /// With a crack filler, the depths of `camera`'s frame drawn without it and with the
+    /// crack probe ([`Unfilled`]); `None` for a configuration without a filler.
     fn unfilled_depth(
         &mut self,
         camera: &Camera,
         config: RenderConfig,
-    ) -> Result<Option<Vec<f32>>, FlightError> {
+    ) -> Result<Option<Unfilled>, FlightError> {
         if !config.method.uses_filler() || config.filler == CrackFiller::None {
             return Ok(None);
         }
-        let bare = RenderConfig {
-            filler: CrackFiller::None,
-            ..config
-        };
-        Ok(Some(self.capture(camera, bare)?.0.depth))
+        let with = |filler| RenderConfig { filler, ..config };
+        let depth = self.capture(camera, with(CrackFiller::None))?.0.depth;
+        let probe = self.capture(camera, with(CrackFiller::CrackProbe))?.0.depth;
+        Ok(Some(Unfilled { depth, probe }))
     }
 
     /// Draws `camera`'s frame with `config` once and measures it against `reference`, a
@@ -335,7 +337,7 @@ impl Session {
         let (capture, report) = self.capture(camera, config)?;
         let measures = measure(
             &capture,
-            unfilled.as_deref(),
+            unfilled.as_ref(),
             reference,
             camera,
             |x, y| truth.surface_height(x, y),
@@ -349,6 +351,7 @@ impl Session {
             capture,
             held_bytes: self.scene.cpu_bytes() + self.scene.gpu_bytes(),
             method_measures: std::mem::take(&mut self.method_measures),
+            unfilled,
         })
     }
 

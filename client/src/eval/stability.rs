@@ -10,7 +10,7 @@
 //! the background in red.
 
 use super::Variants;
-use super::frame::Capture;
+use super::frame::{Capture, Unfilled};
 use super::session::{Session, median, whole_database_bytes};
 use crate::flight::{FlightError, parse_size};
 use crate::lod::budget::BudgetMode;
@@ -286,6 +286,15 @@ pub struct RunResult {
     pub hole_pixels: u64,
     pub reference_terrain_pixels: u64,
     pub max_error_px: f64,
+    /// 99th percentile screen-space error of the measured frame, pixels.
+    pub p99_error_px: f64,
+    /// With a crack filler, the 99th percentile and maximum error of the same frame drawn
+    /// without it (the same masks: the frame-rate controller gives each run its own).
+    pub unfilled_error_px: Option<(f64, f64)>,
+    /// Pixels showing the crack filler, and of those the ones where the mesh has no crack
+    /// ([`crate::eval::frame::FrameMeasures::leak_pixels`]).
+    pub filler_pixels: u64,
+    pub leak_pixels: u64,
     pub above_threshold_pct: f64,
     pub frame_ms_median: f64,
     pub frame_ms_p95: f64,
@@ -525,6 +534,10 @@ fn failed(label: &str, method: MethodKind, filler: CrackFiller, why: String) -> 
         peak_held_bytes: 0,
         memory_limit_bytes: 0,
         database_bytes: 0,
+        p99_error_px: 0.0,
+        unfilled_error_px: None,
+        filler_pixels: 0,
+        leak_pixels: 0,
         flat_tiles: (0, 0),
         triangles: (0, 0),
         coverage_pct: 0.0,
@@ -798,6 +811,10 @@ async fn run_one(
             hole_pixels: m.hole_pixels,
             reference_terrain_pixels: m.reference_terrain_pixels,
             max_error_px: m.error.max_px,
+            p99_error_px: m.error.p99_px,
+            unfilled_error_px: m.unfilled_error.map(|e| (e.p99_px, e.max_px)),
+            filler_pixels: m.filler_pixels,
+            leak_pixels: m.leak_pixels,
             above_threshold_pct: 100.0 * m.error.share_above(),
             frame_ms_median: median(&mut times),
             frame_ms_p95: p95,
@@ -816,7 +833,11 @@ async fn run_one(
             whole_reference: altitude,
             closes_cracks: !method.uses_filler() || filler != CrackFiller::None,
             failure: None,
-            picture: Some(marked(&measured.capture, &reference)),
+            picture: Some(marked(
+                &measured.capture,
+                &reference,
+                measured.unfilled.as_ref(),
+            )),
             reference: Some(reference.color.clone()),
         },
         session.gpu.description(),
@@ -824,13 +845,25 @@ async fn run_one(
 }
 
 /// `frame` with the pixels it lost to the background (where the reference has terrain:
-/// cracks, and silhouettes a coarser surface lowered) painted red.
-fn marked(frame: &Capture, reference: &Capture) -> image::RgbaImage {
+/// cracks, and silhouettes a coarser surface lowered) painted red; with a crack filler
+/// (`unfilled`, the frame without it and with the crack probe), its pixels green where they
+/// fill a crack and magenta where they leak.
+fn marked(frame: &Capture, reference: &Capture, unfilled: Option<&Unfilled>) -> image::RgbaImage {
     let mut image = frame.color.clone();
+    let width = image.width();
     for (i, (f, r)) in frame.points.iter().zip(&reference.points).enumerate() {
+        let at = (i as u32 % width, i as u32 / width);
         if f.is_none() && r.is_some() {
-            let (x, y) = (i as u32 % image.width(), i as u32 / image.width());
-            image.put_pixel(x, y, image::Rgba([255, 0, 0, 255]));
+            image.put_pixel(at.0, at.1, image::Rgba([255, 0, 0, 255]));
+        } else if let Some(u) = unfilled
+            && frame.depth[i] != u.depth[i]
+        {
+            let colour = if u.probe[i] != u.depth[i] {
+                [0, 220, 0, 255]
+            } else {
+                [255, 0, 255, 255]
+            };
+            image.put_pixel(at.0, at.1, image::Rgba(colour));
         }
     }
     image
@@ -845,17 +878,17 @@ pub fn markdown(report: &StabilityReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "| scenario | method | crack px (% of terrain) | holes px | coverage (%) | mean / max error (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
+        "| scenario | method | crack px (% of terrain) | holes px | filler / leaks px | coverage (%) | mean / p99 / max error (px) | without the filler: p99 / max (px) | > 1 px (%) | frame ms median / p95 / max | peak counted / held / limit of database (MiB) | flat tiles at coarsest | triangles used / needed | result |"
     );
     let _ = writeln!(
         s,
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
     );
     for r in &report.runs {
         if let Some(why) = &r.failure {
             let _ = writeln!(
                 s,
-                "| {} | {} | | | | | | | | | | **failed**: {} |",
+                "| {} | {} | | | | | | | | | | | | **failed**: {} |",
                 r.scenario,
                 r.method,
                 why.replace('|', "/")
@@ -865,16 +898,24 @@ pub fn markdown(report: &StabilityReport) -> String {
         let pct = 100.0 * r.crack_pixels as f64 / (r.reference_terrain_pixels as f64).max(1.0);
         let _ = writeln!(
             s,
-            "| {} | {} | {} ({:.2}%) | {} | {:.2}{} | {:.2} / {:.1} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} of {:.1} {} | {} | {} / {} | {} |",
+            "| {} | {} | {} ({:.2}%) | {} | {} | {:.2}{} | {:.2} / {:.1} / {:.1} | {} | {:.2} | {:.1} / {:.1} / {:.1} | {:.1} / {:.1} / {:.1} of {:.1} {} | {} | {} / {} | {} |",
             r.scenario,
             r.method,
             r.crack_pixels,
             pct,
             r.hole_pixels,
+            if r.method.contains('/') && !r.method.ends_with("/none") {
+                format!("{} / {}", r.filler_pixels, r.leak_pixels)
+            } else {
+                "-".to_string()
+            },
             r.coverage_pct,
             if r.whole_reference { "*" } else { "" },
             r.mean_error_px,
+            r.p99_error_px,
             r.max_error_px,
+            r.unfilled_error_px
+                .map_or("-".to_string(), |(p99, max)| format!("{p99:.1} / {max:.1}")),
             r.above_threshold_pct,
             r.frame_ms_median,
             r.frame_ms_p95,
@@ -922,7 +963,7 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
     std::fs::create_dir_all(&images).map_err(write_err(&images))?;
     let mut md = markdown(report);
     md.push_str(
-        "\nPictures: the reference (left), then each method's measured frame; in red, pixels showing the background where the reference shows terrain (cracks, and silhouettes lowered by a coarser surface).\n\n",
+        "\nPictures: the reference (left), then each method's measured frame; in red, pixels showing the background where the reference shows terrain (cracks, and silhouettes lowered by a coarser surface); with a crack filler, its pixels in green where they fill a crack and in magenta where they leak (show where the mesh has no crack).\n\n",
     );
     let mut scenarios: Vec<&str> = report.runs.iter().map(|r| r.scenario.as_str()).collect();
     scenarios.dedup();
@@ -964,12 +1005,12 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
     let md_path = out.join("stability.md");
     std::fs::write(&md_path, &md).map_err(write_err(&md_path))?;
     let mut csv = String::from(
-        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed,coverage_pct,mean_error_px,whole_reference\n",
+        "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed,coverage_pct,mean_error_px,whole_reference,p99_error_px,filler_pixels,leak_pixels\n",
     );
     for r in &report.runs {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3},{:.3},{}",
+            "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{},{}",
             r.scenario,
             r.method,
             r.failure.as_deref().unwrap_or("").replace([',', '\n'], ";"),
@@ -991,7 +1032,10 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
             r.triangles.1,
             r.coverage_pct,
             r.mean_error_px,
-            r.whole_reference
+            r.whole_reference,
+            r.p99_error_px,
+            r.filler_pixels,
+            r.leak_pixels
         );
     }
     let csv_path = out.join("stability.csv");

@@ -1,8 +1,10 @@
 //! The crack fillers of the strip-mask method (the strip-mask paper's section 5.4): skirts
-//! (a vertical band down from every kept border sample) and the planar shadow (a textured
-//! quad under each tile, its corners projected from the viewpoint onto a plane below it).
-//! Their geometry is drawn through the tile pipeline: the shader places the indices past a
-//! tile's samples (`terrain_shaders::skirt_base`, `terrain_shaders::shadow_base`).
+//! (a vertical band down from every kept border sample), the paper's planar shadow (a
+//! textured quad under each tile, its corners projected from the viewpoint onto a plane
+//! below it) and our default, the planar shadow cut to the bands where cracks can open
+//! ([`band_strip`]). Their geometry is drawn through the tile pipeline: the shader places the
+//! indices past a tile's samples (`terrain_shaders::skirt_base`,
+//! `terrain_shaders::shadow_base`, `terrain_shaders::band_base`).
 
 use terrain_shared::mask;
 
@@ -16,11 +18,21 @@ pub enum CrackFiller {
     None,
     /// Vertical bands along each tile's border down below the tile (the paper's filleting).
     Skirts,
-    /// A textured quad under each tile, its corners projected from the viewpoint onto a
-    /// plane below the tile (the paper's method). It shows wherever the quad is not hidden,
-    /// not only in cracks: past skylines and in front of lower tiles too.
+    /// The planar shadow only where a crack can open: a band along each side whose
+    /// neighbour draws it through other samples, from the side projected onto a plane at
+    /// the crack's bottom to the side's foot on that plane.
     #[default]
     PlanarShadow,
+    /// The paper's planar shadow: a textured quad under each tile, its corners projected
+    /// onto a plane a tenth of a tile's side below the tile. It also shows past the
+    /// terrain's border, and through a crack it shows a point far below the surface.
+    PlanarShadowPaper,
+    /// Not a filler: skirts deep under every side that has a drawn neighbour, drawn by the
+    /// evaluation to find the pixels a crack opens ([`crate::eval::frame::measure`]). A
+    /// side whose neighbour draws the same edge hides its skirt under the neighbour's
+    /// surface, so the skirts show exactly through the cracks.
+    #[value(skip)]
+    CrackProbe,
 }
 
 impl CrackFiller {
@@ -29,6 +41,8 @@ impl CrackFiller {
             CrackFiller::None => "none",
             CrackFiller::Skirts => "skirts",
             CrackFiller::PlanarShadow => "planar-shadow",
+            CrackFiller::PlanarShadowPaper => "planar-shadow-paper",
+            CrackFiller::CrackProbe => "crack-probe",
         }
     }
 }
@@ -52,6 +66,90 @@ pub fn shadow_corner(corner: glam::DVec3, plane: f64) -> glam::DVec3 {
     }
     let t = -plane / (-corner.y).max(-plane / f64::from(SHADOW_MAX_STRETCH));
     corner * t
+}
+
+/// Sample (column, row) at position `k` along side `side` (north, east, south, west) of a
+/// tile of `tile_size` samples a side, counted west to east or north to south: the order
+/// of `terrain_shaders::band_base`'s indices.
+pub fn side_sample(tile_size: u32, side: usize, k: u32) -> (u32, u32) {
+    let last = tile_size - 1;
+    match side {
+        0 => (k, 0),
+        1 => (last, k),
+        2 => (k, last),
+        _ => (0, k),
+    }
+}
+
+/// What a tile's side faces where a crack can open, for the planar shadow's band along it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Across {
+    /// A tile of the same pyramid level drawn at mask `0`: the two tiles draw the side as
+    /// polylines through the shared samples their masks keep, and the crack lies between.
+    Mask(u32),
+    /// Tiles of another pyramid level (a seam), sampled on another grid.
+    Seam,
+}
+
+/// Positions along a side (0..`tile_size`) where the band of a tile drawn at mask `level`
+/// has vertices: the samples either polyline bends at (its own mask's and, across a mask
+/// change, the neighbour's), or its own mask's across a seam.
+pub fn band_samples(tile_size: u32, level: u32, across: Across) -> Vec<u32> {
+    let mut kept = mask::kept_indices(tile_size, level);
+    if let Across::Mask(theirs) = across {
+        kept.extend(mask::kept_indices(tile_size, theirs));
+        kept.sort_unstable();
+        kept.dedup();
+    }
+    kept
+}
+
+/// Whether a side drawn at masks `level` and `neighbour` (tiles of one level) can open a
+/// crack: whether the two keep different samples along it.
+pub fn masks_differ(tile_size: u32, level: u32, neighbour: u32) -> bool {
+    mask::kept_indices(tile_size, level) != mask::kept_indices(tile_size, neighbour)
+}
+
+/// The planar shadow's bands of a tile drawn at mask `level` along the sides that face
+/// `sides[s]` (north, east, south, west; `None`: no band), as one triangle strip. A band
+/// hangs only from a side whose neighbour draws it through other samples (another mask, or
+/// another level of the pyramid): not from the terrain's border, nor from a side drawn the
+/// same on both sides. On screen it covers what a skirt down to the crack's bottom would,
+/// so it fills the crack, but it lies on the plane, behind the surfaces in front. along
+/// each side, a quad between consecutive [`band_samples`] `k`, each a sample's point on the
+/// tile's polyline projected from the viewpoint onto the plane at the crack's bottom there
+/// (index `band_base + s * n + k`) and its foot on that plane (`band_base + 4n + s * n + k`,
+/// `n` = `tile_size`). The shader places both (`terrain.wgsl`, `shadow_band`). Sides are
+/// joined by repeated indices.
+pub fn band_strip(tile_size: u32, level: u32, sides: [Option<Across>; 4]) -> Vec<u32> {
+    let n = tile_size;
+    let base = terrain_shaders::band_base(n);
+    let mut strip: Vec<u32> = Vec::new();
+    for (side, across) in sides.iter().enumerate() {
+        let Some(across) = *across else { continue };
+        let top = |k: u32| base + side as u32 * n + k;
+        let foot = |k: u32| base + 4 * n + side as u32 * n + k;
+        let samples = band_samples(n, level, across);
+        if let Some(&previous) = strip.last() {
+            strip.push(previous);
+            strip.push(top(samples[0]));
+        }
+        for &k in &samples {
+            strip.push(top(k));
+            strip.push(foot(k));
+        }
+    }
+    strip
+}
+
+/// Triangles [`band_strip`] draws (joins not counted): two per pair of consecutive band
+/// samples and side.
+pub fn band_triangles(tile_size: u32, level: u32, sides: [Option<Across>; 4]) -> u32 {
+    sides
+        .iter()
+        .flatten()
+        .map(|&across| 2 * (band_samples(tile_size, level, across).len() as u32 - 1))
+        .sum()
 }
 
 /// The skirts of mask `level` as one triangle strip: along each edge of the tile, a
@@ -136,6 +234,74 @@ mod tests {
         assert!((grazing.length() / 1000.0 - f64::from(SHADOW_MAX_STRETCH)).abs() < 1e-6);
         // Camera below the plane: laid on the plane under the corner.
         assert_eq!(shadow_corner(corner, 10.0), DVec3::new(300.0, 10.0, -800.0));
+    }
+
+    #[test]
+    fn bands_run_along_the_sides_asked_for_through_every_sample_either_mask_keeps() {
+        let n = 17;
+        let base = terrain_shaders::band_base(n);
+        for (level, sides) in [
+            (0, [Some(Across::Mask(3)), None, None, None]),
+            (3, [None, Some(Across::Mask(0)), Some(Across::Seam), None]),
+            (2, [Some(Across::Mask(4)); 4]),
+            (5, [None, None, None, Some(Across::Seam)]),
+        ] {
+            let strip = band_strip(n, level, sides);
+            for (side, across) in sides.iter().enumerate() {
+                let s = side as u32;
+                // The tops and feet of this side, as positions along it.
+                let tops: Vec<u32> = strip
+                    .iter()
+                    .filter(|&&i| i >= base + s * n && i < base + (s + 1) * n)
+                    .map(|&i| i - base - s * n)
+                    .collect();
+                let feet: Vec<u32> = strip
+                    .iter()
+                    .filter(|&&i| i >= base + (4 + s) * n && i < base + (5 + s) * n)
+                    .map(|&i| i - base - (4 + s) * n)
+                    .collect();
+                let mut unique = tops.clone();
+                unique.dedup();
+                match across {
+                    None => assert!(tops.is_empty() && feet.is_empty(), "side {side}"),
+                    Some(across) => {
+                        let mut expected = mask::kept_indices(n, level);
+                        if let Across::Mask(theirs) = across {
+                            expected.extend(mask::kept_indices(n, *theirs));
+                        }
+                        expected.sort_unstable();
+                        expected.dedup();
+                        assert_eq!(unique, expected, "level {level} side {side}");
+                        let mut unique_feet = feet.clone();
+                        unique_feet.dedup();
+                        assert_eq!(unique_feet, expected, "a foot under every top");
+                    }
+                }
+            }
+            assert!(strip.iter().all(|&i| i >= base && i < base + 8 * n));
+            let drawn = strip
+                .windows(3)
+                .filter(|t| t[0] != t[1] && t[1] != t[2] && t[0] != t[2])
+                .count() as u32;
+            assert_eq!(drawn, band_triangles(n, level, sides), "level {level}");
+        }
+        assert!(band_strip(n, 0, [None; 4]).is_empty());
+    }
+
+    #[test]
+    fn masks_differ_unless_they_keep_the_same_border_samples() {
+        assert!(!masks_differ(17, 3, 3));
+        assert!(masks_differ(17, 0, 1));
+        // A 6-sample side: levels 2 and 3 keep [0, 3, 5] and [0, 4, 5].
+        assert!(masks_differ(6, 2, 3));
+        // Past the last level every mask keeps the two corners only.
+        assert!(!masks_differ(6, 4, 9));
+    }
+
+    #[test]
+    fn the_shader_caps_the_bands_stretch_as_the_corners() {
+        let line = format!("const SHADOW_MAX_STRETCH: f32 = {SHADOW_MAX_STRETCH:.1};");
+        assert!(terrain_shaders::TERRAIN.contains(&line), "{line}");
     }
 
     #[test]

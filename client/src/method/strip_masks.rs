@@ -4,7 +4,7 @@
 //! As the reference of the accuracy measures it ignores the budget and draws every visible
 //! tile at mask 0, with no filler.
 
-use super::fillers::{self, CrackFiller};
+use super::fillers::{self, Across, CrackFiller};
 use super::{LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
 use crate::lod::plan::{self, Candidate, LodSettings};
 use crate::lod::strips::MaskSet;
@@ -12,7 +12,7 @@ use crate::render::{Frame, IndexSet, TileExtras};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
-use terrain_shared::TileId;
+use terrain_shared::{TileId, mask};
 
 /// The strip-mask method. See the module documentation.
 #[derive(Debug)]
@@ -25,8 +25,13 @@ pub struct StripMasks {
     strips: HashMap<u32, IndexSet>,
     /// The skirts of each mask level drawn with skirts so far.
     skirts: HashMap<u32, IndexSet>,
-    /// The planar shadow's four corners (`terrain_shaders::shadow_base`), made when first
-    /// drawn.
+    /// The planar shadow's bands ([`fillers::band_strip`]) by mask level and what each side
+    /// faces, and the crack probe's (bands unprojected, down to the skirts' bottom) by mask
+    /// level and shared sides, made as frames need them.
+    bands: HashMap<(u32, [Option<Across>; 4]), IndexSet>,
+    probes: HashMap<(u32, [bool; 4]), IndexSet>,
+    /// The paper's planar shadow's four corners (`terrain_shaders::shadow_base`), made when
+    /// first drawn.
     quad: Option<IndexSet>,
     /// Frames drawn, and the last frame each mask level was drawn in: index sets unused
     /// for [`KEEP_UNUSED_FRAMES`] are dropped.
@@ -48,6 +53,8 @@ impl StripMasks {
             reference: config.kind == MethodKind::Reference,
             strips: HashMap::new(),
             skirts: HashMap::new(),
+            bands: HashMap::new(),
+            probes: HashMap::new(),
             quad: None,
             frame: 0,
             last_used: HashMap::new(),
@@ -56,14 +63,17 @@ impl StripMasks {
         method
     }
 
-    /// Where the planar shadow puts tile `id`'s corners this frame, and the plane below it
-    /// (also the skirts' bottom).
+    /// What tile `id`, drawn at mask `level`, gives the shader this frame: the plane below it
+    /// (the skirts' bottom, the crack probe's too) and, for the paper's planar shadow, its
+    /// corners projected onto that plane; for the banded planar shadow, what each side faces
+    /// (`terrain.wgsl`, `shadow_band`).
     fn extras(
         frame: &Frame<'_>,
         layout: &plan::Layout,
         filler: CrackFiller,
-        id: TileId,
+        (id, level): (TileId, u32),
         min_m: f64,
+        sides: &Sides,
     ) -> TileExtras {
         // The plane's depth is a tenth of a level-0 tile's side at every level: a coarser
         // tile spans more, but the cracks along its sides are no deeper for it.
@@ -73,7 +83,26 @@ impl StripMasks {
             floor_m: floor as f32,
             ..TileExtras::default()
         };
-        if filler != CrackFiller::PlanarShadow {
+        if filler == CrackFiller::PlanarShadow {
+            for (side, band) in sides.band.iter().enumerate() {
+                let (across, plane) = match band {
+                    Some(Band::Mask(theirs)) => (*theirs as f32, floor),
+                    Some(Band::Seam { depth }) => (-1.0, *depth),
+                    None => (-1.0, floor),
+                };
+                extras.points[0][side] = plane as f32;
+                extras.points[1][side] = across;
+            }
+            extras.points[2][0] = level as f32;
+            return extras;
+        }
+        if filler == CrackFiller::CrackProbe {
+            // The probe: every shared side, down to the skirts' bottom (`shadow_band`).
+            extras.points[1] = [-1.0; 4];
+            extras.points[2] = [level as f32, 1.0, 0.0, 0.0];
+            return extras;
+        }
+        if filler != CrackFiller::PlanarShadowPaper {
             return extras;
         }
         let Some(heights) = frame.tiles().heights(id) else {
@@ -123,22 +152,64 @@ impl StripMasks {
         let used = &self.last_used;
         self.strips.retain(|level, _| used.contains_key(level));
         self.skirts.retain(|level, _| used.contains_key(level));
-        for d in draws {
+        self.bands.retain(|(level, _), _| used.contains_key(level));
+        self.probes.retain(|(level, _), _| used.contains_key(level));
+        let sides = match filler {
+            CrackFiller::PlanarShadow | CrackFiller::CrackProbe => {
+                sides_of(frame, layout, tiles, draws)
+            }
+            _ => vec![Sides::default(); draws.len()],
+        };
+        // Per draw, the filler's index set, if it draws one: the bands' or the probe's key.
+        let mut band_key = vec![None; draws.len()];
+        let mut probe_key = vec![None; draws.len()];
+        for (k, d) in draws.iter().enumerate() {
             let masks = &self.masks;
             self.strips.entry(d.level).or_insert_with(|| {
                 IndexSet::new(&gpu, &masks.build(d.level), masks.triangle_count(d.level))
             });
-            if filler == CrackFiller::Skirts {
-                self.skirts.entry(d.level).or_insert_with(|| {
-                    IndexSet::new(
-                        &gpu,
-                        &fillers::skirt_strip(n, d.level),
-                        fillers::skirt_triangles(n, d.level),
-                    )
-                });
+            match filler {
+                CrackFiller::Skirts => {
+                    self.skirts.entry(d.level).or_insert_with(|| {
+                        IndexSet::new(
+                            &gpu,
+                            &fillers::skirt_strip(n, d.level),
+                            fillers::skirt_triangles(n, d.level),
+                        )
+                    });
+                }
+                CrackFiller::PlanarShadow => {
+                    let across = sides[k].band.map(|b| b.map(Band::across));
+                    if across.iter().any(Option::is_some) {
+                        self.bands.entry((d.level, across)).or_insert_with(|| {
+                            IndexSet::new(
+                                &gpu,
+                                &fillers::band_strip(n, d.level, across),
+                                fillers::band_triangles(n, d.level, across),
+                            )
+                        });
+                        band_key[k] = Some((d.level, across));
+                    }
+                }
+                CrackFiller::CrackProbe => {
+                    let on = sides[k].shared;
+                    if on.iter().any(|&on| on) {
+                        // Along the tile's own polyline, whatever lies across.
+                        let along = on.map(|on| on.then_some(Across::Seam));
+                        self.probes.entry((d.level, on)).or_insert_with(|| {
+                            IndexSet::new(
+                                &gpu,
+                                &fillers::band_strip(n, d.level, along),
+                                fillers::band_triangles(n, d.level, along),
+                            )
+                        });
+                        probe_key[k] = Some((d.level, on));
+                    }
+                }
+                CrackFiller::None | CrackFiller::PlanarShadowPaper => {}
             }
         }
-        if filler == CrackFiller::PlanarShadow && self.quad.is_none() {
+        if filler == CrackFiller::PlanarShadowPaper && self.quad.is_none() {
             let corner = terrain_shaders::shadow_base(n);
             self.quad = Some(IndexSet::new(
                 &gpu,
@@ -149,16 +220,24 @@ impl StripMasks {
         let min_m: HashMap<TileId, f64> = tiles.iter().map(|t| (t.id, t.min_m)).collect();
         let tiles: Vec<(TileId, TileExtras)> = draws
             .iter()
-            .map(|d| {
+            .zip(&sides)
+            .map(|(d, sides)| {
                 let min_m = min_m.get(&d.id).copied().unwrap_or(0.0);
-                (d.id, Self::extras(frame, layout, filler, d.id, min_m))
+                (
+                    d.id,
+                    Self::extras(frame, layout, filler, (d.id, d.level), min_m, sides),
+                )
             })
             .collect();
         let slots = frame.prepare_tiles(&tiles);
         let mut level_of = vec![0; tiles.len()];
-        for (d, slot) in draws.iter().zip(&slots) {
+        let mut band_of = vec![None; tiles.len()];
+        let mut probe_of = vec![None; tiles.len()];
+        for (k, (d, slot)) in draws.iter().zip(&slots).enumerate() {
             if let Some(slot) = *slot {
                 level_of[slot] = d.level;
+                band_of[slot] = band_key[k];
+                probe_of[slot] = probe_key[k];
             }
         }
         let order = frame.draw_order();
@@ -175,17 +254,201 @@ impl StripMasks {
                 pass.stats_mut().filler_triangles += u64::from(skirt.triangles);
             }
         }
-        if let (CrackFiller::PlanarShadow, Some(quad)) = (filler, &self.quad) {
-            // After every surface, so the depth test hides the shadows where tiles cover
-            // them. A shadow reaches past its tile, so past the terrain's edge too.
-            pass.clip_everything();
-            for &slot in &order {
-                pass.bind_tile(slot);
-                pass.draw(quad);
-                pass.stats_mut().filler_triangles += u64::from(quad.triangles);
+        match (filler, &self.quad) {
+            (CrackFiller::PlanarShadow, _) => {
+                // After every surface, so that the early depth test rejects the bands the
+                // surfaces in front hide. A band hangs from a shared side, so it is clipped
+                // at the terrain's edge only with tiles that reach past it (padded).
+                for &slot in &order {
+                    if let Some(key) = band_of[slot] {
+                        pass.bind_tile(slot);
+                        let band = &self.bands[&key];
+                        pass.draw(band);
+                        pass.stats_mut().filler_triangles += u64::from(band.triangles);
+                    }
+                }
             }
+            (CrackFiller::CrackProbe, _) => {
+                for &slot in &order {
+                    if let Some(key) = probe_of[slot] {
+                        pass.bind_tile(slot);
+                        let probe = &self.probes[&key];
+                        pass.draw(probe);
+                        pass.stats_mut().filler_triangles += u64::from(probe.triangles);
+                    }
+                }
+            }
+            (CrackFiller::PlanarShadowPaper, Some(quad)) => {
+                // After every surface, so the depth test hides the shadows where tiles
+                // cover them. A shadow reaches past its tile, so past the terrain's edge too.
+                pass.clip_everything();
+                for &slot in &order {
+                    pass.bind_tile(slot);
+                    pass.draw(quad);
+                    pass.stats_mut().filler_triangles += u64::from(quad.triangles);
+                }
+            }
+            _ => {}
         }
     }
+}
+
+/// What lies across each side (north, east, south, west) of a drawn tile this frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Sides {
+    /// A drawn tile: the side is shared (the crack probe's skirts hang there).
+    pub shared: [bool; 4],
+    /// Where a crack can open, the planar shadow's band. `None` where none can: no
+    /// neighbour drawn (the terrain's border, or a tile not drawn), or one of the same level
+    /// drawing the side through the same samples.
+    pub band: [Option<Band>; 4],
+}
+
+/// The planar shadow's band along a side where a crack can open.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Band {
+    /// A tile of the same pyramid level drawn at this mask: the crack lies between the two
+    /// polylines through the shared samples, so its bottom at each sample is the lower of
+    /// the two there, which the shader computes (`terrain.wgsl`, `shadow_band`).
+    Mask(u32),
+    /// A seam: tiles of another pyramid level, sampled on another grid. The crack lies
+    /// between this tile's polyline and theirs, so it reaches no lower than this tile's
+    /// polyline less the largest gap between the two along the side ([`seam_depth`]): the
+    /// band's plane at each sample, that far below it.
+    Seam { depth: f64 },
+}
+
+impl Band {
+    /// What the side faces, for the band's index set.
+    pub fn across(self) -> Across {
+        match self {
+            Band::Mask(theirs) => Across::Mask(theirs),
+            Band::Seam { .. } => Across::Seam,
+        }
+    }
+}
+
+/// [`Sides`] of every draw of `draws` (mask levels of `tiles`, resident in `frame`).
+pub fn sides_of(
+    frame: &Frame<'_>,
+    layout: &plan::Layout,
+    tiles: &[Candidate<'_>],
+    draws: &[plan::Draw],
+) -> Vec<Sides> {
+    let level_of: HashMap<TileId, u32> = draws.iter().map(|d| (d.id, d.level)).collect();
+    let candidate: HashMap<TileId, &Candidate<'_>> = tiles.iter().map(|t| (t.id, t)).collect();
+    let n = layout.tile_size;
+    draws
+        .iter()
+        .map(|d| {
+            let mut sides = Sides::default();
+            if !candidate.contains_key(&d.id) || frame.tiles().heights(d.id).is_none() {
+                return sides;
+            }
+            for (side, (dx, dy)) in [(0i64, -1i64), (1, 0), (0, 1), (-1, 0)]
+                .into_iter()
+                .enumerate()
+            {
+                let next = (
+                    u32::try_from(i64::from(d.id.x) + dx),
+                    u32::try_from(i64::from(d.id.y) + dy),
+                );
+                let neighbour = match next {
+                    (Ok(x), Ok(y)) => level_of.get(&TileId::at(d.id.level, x, y)).copied(),
+                    _ => None,
+                };
+                if let Some(theirs) = neighbour {
+                    sides.shared[side] = true;
+                    if fillers::masks_differ(n, d.level, theirs) {
+                        sides.band[side] = Some(Band::Mask(theirs));
+                    }
+                } else if candidate[&d.id].seams[side]
+                    && let Some(depth) = seam_depth(frame, layout, draws, d, side)
+                {
+                    sides.shared[side] = true;
+                    sides.band[side] = Some(Band::Seam { depth });
+                }
+            }
+            sides
+        })
+        .collect()
+}
+
+/// The deepest crack side `side` of `draw` can open against the drawn tiles of other
+/// pyramid levels across it (a seam): the largest vertical gap, within the side's span,
+/// between this tile's polyline and theirs (each through the border samples its mask keeps).
+/// Both are linear between their vertices, so the gap is largest at a vertex of either or at
+/// an end of a neighbour's span. `None` when no such tile is drawn with its samples
+/// resident.
+pub fn seam_depth(
+    frame: &Frame<'_>,
+    layout: &plan::Layout,
+    draws: &[plan::Draw],
+    draw: &plan::Draw,
+    side: usize,
+) -> Option<f64> {
+    let n = layout.tile_size;
+    // Side `side` of a tile as (the coordinate across it, the span along it), in metres.
+    let line = |id: TileId, side: usize| {
+        let [x0, y0] = layout.tile_origin_m(id);
+        let [ex, ey] = layout.tile_extent_m_at(id.level);
+        match side {
+            0 => (y0, x0, x0 + ex),
+            1 => (x0 + ex, y0, y0 + ey),
+            2 => (y0 + ey, x0, x0 + ex),
+            _ => (x0, y0, y0 + ey),
+        }
+    };
+    // The polyline `id` draws along its side `side`: (position along it, metres).
+    let polyline = |id: TileId, level: u32, side: usize| -> Option<Vec<(f64, f64)>> {
+        let heights = frame.tiles().heights(id)?;
+        let (_, start, end) = line(id, side);
+        let step = (end - start) / f64::from(n - 1);
+        Some(
+            mask::kept_indices(n, level)
+                .into_iter()
+                .map(|k| {
+                    let (column, row) = fillers::side_sample(n, side, k);
+                    (
+                        start + f64::from(k) * step,
+                        heights.metres(column as usize, row as usize),
+                    )
+                })
+                .collect(),
+        )
+    };
+    let at = |line: &[(f64, f64)], x: f64| -> f64 {
+        let k = line.partition_point(|v| v.0 < x).clamp(1, line.len() - 1);
+        let ((a, ha), (b, hb)) = (line[k - 1], line[k]);
+        ha + (hb - ha) * ((x - a) / (b - a)).clamp(0.0, 1.0)
+    };
+    let (across, from, to) = line(draw.id, side);
+    let tolerance = 1e-6 * (to - from);
+    let ours = polyline(draw.id, draw.level, side)?;
+    let mut depth: Option<f64> = None;
+    for other in draws.iter().filter(|o| o.id.level != draw.id.level) {
+        let (their_across, their_from, their_to) = line(other.id, (side + 2) % 4);
+        if (their_across - across).abs() > tolerance
+            || their_to <= from + tolerance
+            || their_from >= to - tolerance
+        {
+            continue;
+        }
+        let Some(theirs) = polyline(other.id, other.level, (side + 2) % 4) else {
+            continue;
+        };
+        let (lo, hi) = (from.max(their_from), to.min(their_to));
+        let gap = ours
+            .iter()
+            .chain(&theirs)
+            .map(|v| v.0)
+            .filter(|&x| x > lo && x < hi)
+            .chain([lo, hi])
+            .map(|x| (at(&ours, x) - at(&theirs, x)).abs())
+            .fold(0.0, f64::max);
+        depth = Some(depth.unwrap_or(0.0).max(gap));
+    }
+    depth
 }
 
 impl LodMethod for StripMasks {
@@ -251,6 +514,8 @@ impl LodMethod for StripMasks {
                 .strips
                 .values()
                 .chain(self.skirts.values())
+                .chain(self.bands.values())
+                .chain(self.probes.values())
                 .chain(&self.quad)
                 .map(IndexSet::bytes)
                 .sum(),
