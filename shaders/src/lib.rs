@@ -150,7 +150,8 @@ pub struct FrameUniform {
     pub view_proj: [[f32; 4]; 4],
     /// Unit vector towards the light, render space; `w` unused.
     pub light_dir: [f32; 4],
-    /// `x`: ambient share of the light.
+    /// `x`: ambient share of the light; `y`: a pixel's height per metre of distance along
+    /// the view axis (the planar shadow's bands reach that much past a crack's bottom).
     pub params: [f32; 4],
     /// The camera relative to its anchor sample: east, height, south (metres).
     pub camera: [f32; 4],

@@ -15,7 +15,8 @@ struct Frame {
     view_proj: mat4x4<f32>,
     // Unit vector towards the light, render space.
     light_dir: vec4<f32>,
-    // x: ambient share of the light, in [0, 1].
+    // x: ambient share of the light, in [0, 1]; y: a pixel's height per metre of distance
+    // along the view axis.
     params: vec4<f32>,
     // The camera relative to its anchor sample: (east m, height m, south m). Positions are
     // (sample index relative to the anchor) * spacing - this, so two tiles compute a
@@ -190,10 +191,6 @@ fn shadow_corner(corner: u32) -> Varyings {
     return out;
 }
 
-// Largest stretch of a band's projection, as the paper's corners (`SHADOW_MAX_STRETCH` of
-// the strip-mask fillers).
-const SHADOW_MAX_STRETCH: f32 = 64.0;
-
 // Height at position k (0..n) of a side whose samples are `side_index(k)`, on the polyline
 // through the samples a mask keeping every `step`-th one (and the last) keeps: what a tile
 // drawn at mask step - 1 draws there.
@@ -222,16 +219,21 @@ fn side_index(side: u32, k: u32, n: u32) -> u32 {
     return k * n;
 }
 
+// How far a band reaches past the seams it meets, in pixels (`shadow_band`); the crack
+// probe reaches twice as far.
+const SLIVER_PX: f32 = 0.015625;
+
 // The planar shadow cut to bands along the sides where a crack can open (the strip-mask
 // method's `band_strip`). Vertex j < 4n is position k = j % n of side s = j / n: the point
-// of the tile's own polyline there (mask point2.x) projected from the viewpoint onto the
-// horizontal plane at the crack's bottom there; j >= 4n is that point's foot on the plane.
-// The crack's bottom: the lower of the two polylines at k when the neighbour is a tile of
-// this level drawn at mask point1[s] (>= 0); along a seam (point1[s] < 0), the polyline
-// less point0[s], the largest gap between it and the other level's along the side. On
-// screen each band covers what a skirt hanging from the polyline down to the crack's bottom
-// would, which holds the crack; in depth it lies on the plane, behind the surfaces in
-// front. Textured and lit like the side's sample, as skirts are.
+// of the tile's own polyline there (mask point2.x), pushed back in depth along the ray from
+// the viewpoint towards the horizontal plane at the crack's bottom there; j >= 4n is that
+// point's foot on the plane. The crack's bottom: the lower of the two polylines at k when
+// the neighbour is a tile of this level drawn at mask point1[s] (>= 0); along a seam
+// (point1[s] < 0), the polyline less point0[s], the largest gap between it and the other
+// level's along the side. On screen each band covers what a skirt hanging from the
+// polyline down to the crack's bottom would, which holds the crack; in depth it lies
+// behind the side, so behind the surfaces in front. Textured and lit like the side's
+// sample, as skirts are.
 fn shadow_band(j: u32) -> Varyings {
     let n = u32(tile.spacing.z);
     let e = j % (4u * n);
@@ -240,11 +242,13 @@ fn shadow_band(j: u32) -> Varyings {
     let i = side_index(side, k, n);
     let column = i % n;
     let row = i / n;
-    let own = polyline_at(side, k, u32(tile.point2.x) + 1u, n);
+    let step = u32(tile.point2.x) + 1u;
+    let own = polyline_at(side, k, step, n);
     var floor = own - tile.point0[side];
     let across = tile.point1[side];
     if across >= 0.0 {
-        floor = min(own, polyline_at(side, k, u32(across) + 1u, n));
+        let theirs = u32(across) + 1u;
+        floor = min(own, polyline_at(side, k, theirs, n));
     }
     // The evaluation's crack probe (point2.y = 1): a skirt from the polyline straight down
     // to the skirts' bottom, not projected.
@@ -252,21 +256,42 @@ fn shadow_band(j: u32) -> Varyings {
     if probe {
         floor = tile.spacing.w;
     }
+    // Between the bends of either polyline the band meets the surfaces at T-junctions, where
+    // the rasteriser may leave a pixel on neither side: the band's top is lifted and its
+    // foot lowered by a sliver of a pixel (`SLIVER_PX` of a pixel's footprint at the
+    // point), which closes them; the surfaces in front still hide the overlap. The probe's
+    // top is lifted twice as far, so that every pixel the band covers lies in the probe.
+    let sliver = SLIVER_PX * frame.params.y * (frame.view_proj * vec4<f32>(position_of(column, row, own), 1.0)).w;
+    if !probe && across >= 0.0 {
+        floor -= sliver;
+    }
     var out = place(column, row, floor);
     out.normal = normal_at(column, row, n);
     if j < 4u * n {
-        let p = position_of(column, row, own);
-        let plane = floor - frame.camera.y;
-        var q = vec3<f32>(p.x, plane, p.z);
+        var p = position_of(column, row, own);
         if probe {
-            q = p;
-        } else if plane < 0.0 {
-            // On the ray from the camera through the point, where it meets the plane; the
-            // stretch capped near grazing angles. With the camera below the plane there is
-            // nothing to project from: the point's foot (an empty band).
-            q = p * (-plane / max(-p.y, -plane / SHADOW_MAX_STRETCH));
+            p.y += 2.0 * sliver;
+        } else if across >= 0.0 {
+            p.y += sliver;
         }
-        out.clip = frame.view_proj * vec4<f32>(q, 1.0);
+        let plane = floor - frame.camera.y;
+        // On screen, the side's point itself (the probe's, and the surface's edge, to the
+        // bit where it is a vertex of both); in depth, pushed back along the ray from the
+        // camera onto the plane, but no farther past the point than a pixel's footprint
+        // there: a point farther behind stands for terrain away from the crack (near
+        // grazing angles the plane lies far behind), and its error shows through the
+        // crack.
+        out.clip = frame.view_proj * vec4<f32>(p, 1.0);
+        if !probe {
+            if plane < 0.0 {
+                let reach = 1.0 + frame.params.y;
+                let back = frame.view_proj * vec4<f32>(p * (-plane / max(-p.y, -plane / reach)), 1.0);
+                out.clip.z = back.z / back.w * out.clip.w;
+            } else {
+                // The camera below the plane: nothing to project from, an empty band.
+                out.clip = frame.view_proj * vec4<f32>(p.x, plane, p.z, 1.0);
+            }
+        }
         // Clipped at the terrain's edge by the side's own position, not the projected one:
         // a band hangs from a side inside the terrain wherever its plane point lies.
         out.position = p;

@@ -256,6 +256,98 @@ fn the_accuracy_sweep_over_jacksboro_writes_its_charts_and_error_falls_with_the_
     }
 }
 
+/// Over the jacksboro sweep's cameras, per budget: the default planar shadow leaves no hole,
+/// shows nowhere the crack probe finds no crack (at most a tenth of the paper's quad's
+/// leaks), and its maximum and p99 screen-space error stay within 1.2 times those of the
+/// same frames without a filler; the paper's quad, drawn alongside, errs by far more.
+#[test]
+fn the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep_and_shows_nowhere_else() {
+    let Some(_) =
+        golden::gpu("accuracy::the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    let budgets = vec![1000, 10_000, 100_000, 1_000_000];
+    let args = AccuracyArgs {
+        budgets: budgets.clone(),
+        variants: terrain_client::eval::Variants {
+            methods: vec![MethodKind::StripMasks],
+            fillers: vec![
+                CrackFiller::None,
+                CrackFiller::PlanarShadow,
+                CrackFiller::PlanarShadowPaper,
+            ],
+        },
+        repeats: 1,
+        popping_frames: 0,
+        ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
+    };
+    let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
+    // Per filler and budget: the largest max and p99 error over the cameras, the holes
+    // and leaks summed, and the crack pixels the cameras saw without a filler.
+    let totals = |filler: CrackFiller, budget: u32| {
+        let rows: Vec<_> = report
+            .rows
+            .iter()
+            .filter(|r| r.config.filler == filler && r.config.knob == Knob::Budget(budget))
+            .map(|r| &r.measured.measures)
+            .collect();
+        assert_eq!(rows.len(), args.cameras as usize, "{filler:?} {budget}");
+        (
+            rows.iter().map(|m| m.error.max_px).fold(0.0, f64::max),
+            rows.iter().map(|m| m.error.p99_px).fold(0.0, f64::max),
+            rows.iter().map(|m| m.hole_pixels).sum::<u64>(),
+            rows.iter().map(|m| m.leak_pixels).sum::<u64>(),
+            rows.iter().map(|m| m.crack_pixels).sum::<u64>(),
+        )
+    };
+    let mut cracks = 0;
+    for &budget in &budgets {
+        let none = totals(CrackFiller::None, budget);
+        let ours = totals(CrackFiller::PlanarShadow, budget);
+        let paper = totals(CrackFiller::PlanarShadowPaper, budget);
+        eprintln!(
+            "budget {budget}: none max {:.3} p99 {:.3} cracks {}; planar-shadow max {:.3} p99 {:.3} holes {} leaks {}; paper max {:.3} p99 {:.3} holes {} leaks {}",
+            none.0,
+            none.1,
+            none.4,
+            ours.0,
+            ours.1,
+            ours.2,
+            ours.3,
+            paper.0,
+            paper.1,
+            paper.2,
+            paper.3
+        );
+        cracks += none.4;
+        assert_eq!(ours.2, 0, "budget {budget}: holes");
+        assert!(
+            ours.3 * 10 <= paper.3,
+            "budget {budget}: leaks {} against the paper's {}",
+            ours.3,
+            paper.3
+        );
+        assert!(
+            ours.0 <= 1.2 * none.0,
+            "budget {budget}: max {} against {} without",
+            ours.0,
+            none.0
+        );
+        assert!(
+            ours.1 <= 1.2 * none.1,
+            "budget {budget}: p99 {} against {} without",
+            ours.1,
+            none.1
+        );
+    }
+    // The sweep has cracks to fill.
+    assert!(cracks > 1000, "{cracks} crack pixels without a filler");
+}
+
 #[test]
 fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_the_budget() {
     let Some(png) = kit_file(

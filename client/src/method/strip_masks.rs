@@ -231,13 +231,16 @@ impl StripMasks {
             .collect();
         let slots = frame.prepare_tiles(&tiles);
         let mut level_of = vec![0; tiles.len()];
-        let mut band_of = vec![None; tiles.len()];
-        let mut probe_of = vec![None; tiles.len()];
+        // Per slot, what is drawn after every surface: the tile's bands or its probe.
+        let mut late_of: Vec<Option<&IndexSet>> = vec![None; tiles.len()];
         for (k, (d, slot)) in draws.iter().zip(&slots).enumerate() {
             if let Some(slot) = *slot {
                 level_of[slot] = d.level;
-                band_of[slot] = band_key[k];
-                probe_of[slot] = probe_key[k];
+                late_of[slot] = match (band_key[k], probe_key[k]) {
+                    (Some(key), _) => Some(&self.bands[&key]),
+                    (None, Some(key)) => Some(&self.probes[&key]),
+                    (None, None) => None,
+                };
             }
         }
         let order = frame.draw_order();
@@ -255,26 +258,15 @@ impl StripMasks {
             }
         }
         match (filler, &self.quad) {
-            (CrackFiller::PlanarShadow, _) => {
+            (CrackFiller::PlanarShadow | CrackFiller::CrackProbe, _) => {
                 // After every surface, so that the early depth test rejects the bands the
                 // surfaces in front hide. A band hangs from a shared side, so it is clipped
                 // at the terrain's edge only with tiles that reach past it (padded).
                 for &slot in &order {
-                    if let Some(key) = band_of[slot] {
+                    if let Some(set) = late_of[slot] {
                         pass.bind_tile(slot);
-                        let band = &self.bands[&key];
-                        pass.draw(band);
-                        pass.stats_mut().filler_triangles += u64::from(band.triangles);
-                    }
-                }
-            }
-            (CrackFiller::CrackProbe, _) => {
-                for &slot in &order {
-                    if let Some(key) = probe_of[slot] {
-                        pass.bind_tile(slot);
-                        let probe = &self.probes[&key];
-                        pass.draw(probe);
-                        pass.stats_mut().filler_triangles += u64::from(probe.triangles);
+                        pass.draw(set);
+                        pass.stats_mut().filler_triangles += u64::from(set.triangles);
                     }
                 }
             }

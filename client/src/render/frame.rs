@@ -401,7 +401,13 @@ impl Renderer {
         let frame = FrameUniform {
             view_proj: camera.view_proj_f32(aspect).to_cols_array_2d(),
             light_dir: [light.x as f32, light.y as f32, light.z as f32, 0.0],
-            params: [AMBIENT, 0.0, 0.0, 0.0],
+            // y: a pixel's height per metre of distance on the view axis.
+            params: [
+                AMBIENT,
+                (2.0 * (camera.fov_y / 2.0).tan() / f64::from(size.height.max(1))) as f32,
+                0.0,
+                0.0,
+            ],
             camera: [
                 (p[0] - anchor[0] * spacing[0]) as f32,
                 p[2] as f32,
