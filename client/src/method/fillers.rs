@@ -19,8 +19,8 @@ pub enum CrackFiller {
     /// Vertical bands along each tile's border down below the tile (the paper's filleting).
     Skirts,
     /// The planar shadow only where a crack can open: a band along each side whose
-    /// neighbour draws it through other samples, from the side projected onto a plane at
-    /// the crack's bottom to the side's foot on that plane.
+    /// neighbour draws it through other samples, from the side down to the crack's bottom,
+    /// pushed back in depth towards the plane there (at most a pixel's footprint).
     #[default]
     PlanarShadow,
     /// The paper's planar shadow: a textured quad under each tile, its corners projected
@@ -30,7 +30,9 @@ pub enum CrackFiller {
     /// Not a filler: skirts deep under every side that has a drawn neighbour, drawn by the
     /// evaluation to find the pixels a crack opens ([`crate::eval::frame::measure`]). A
     /// side whose neighbour draws the same edge hides its skirt under the neighbour's
-    /// surface, so the skirts show exactly through the cracks.
+    /// surface, so the skirts show exactly through the cracks (their tops reach a
+    /// thirty-second of a pixel above the side, twice the planar shadow's sliver, so that
+    /// a pixel the shadow's sliver covers counts as the crack's).
     #[value(skip)]
     CrackProbe,
 }
