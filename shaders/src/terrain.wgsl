@@ -261,27 +261,28 @@ fn shadow_band(j: u32) -> Varyings {
     // foot lowered by a sliver of a pixel (`SLIVER_PX` of a pixel's footprint at the
     // point), which closes them; the surfaces in front still hide the overlap. The probe's
     // top is lifted twice as far, so that every pixel the band covers lies in the probe.
-    let sliver = SLIVER_PX * frame.params.y * (frame.view_proj * vec4<f32>(position_of(column, row, own), 1.0)).w;
-    if !probe && across >= 0.0 {
+    var p = position_of(column, row, own);
+    let top = frame.view_proj * vec4<f32>(p, 1.0);
+    let sliver = SLIVER_PX * frame.params.y * top.w;
+    var lift = 0.0;
+    if probe {
+        lift = 2.0 * sliver;
+    } else if across >= 0.0 {
+        lift = sliver;
         floor -= sliver;
     }
     var out = place(column, row, floor);
     out.normal = normal_at(column, row, n);
     if j < 4u * n {
-        var p = position_of(column, row, own);
-        if probe {
-            p.y += 2.0 * sliver;
-        } else if across >= 0.0 {
-            p.y += sliver;
-        }
+        p.y += lift;
         let plane = floor - frame.camera.y;
-        // On screen, the side's point itself (the probe's, and the surface's edge, to the
-        // bit where it is a vertex of both); in depth, pushed back along the ray from the
-        // camera onto the plane, but no farther past the point than a pixel's footprint
-        // there: a point farther behind stands for terrain away from the crack (near
-        // grazing angles the plane lies far behind), and its error shows through the
-        // crack.
-        out.clip = frame.view_proj * vec4<f32>(p, 1.0);
+        // On screen, the side's point itself, lifted by the sliver (the surface's edge to
+        // the bit where nothing is lifted, along a seam between levels); in depth, pushed
+        // back along the ray from the camera onto the plane, but no farther past the point
+        // than a pixel's footprint there: a point farther behind stands for terrain away
+        // from the crack (near grazing angles the plane lies far behind), and its error
+        // shows through the crack.
+        out.clip = top + frame.view_proj[1] * lift;
         if !probe {
             if plane < 0.0 {
                 let reach = 1.0 + frame.params.y;

@@ -256,20 +256,11 @@ fn the_accuracy_sweep_over_jacksboro_writes_its_charts_and_error_falls_with_the_
     }
 }
 
-/// Over the jacksboro sweep's cameras, per budget: the default planar shadow leaves no hole,
-/// shows nowhere the crack probe finds no crack (at most a tenth of the paper's quad's
-/// leaks), and its maximum and p99 screen-space error stay within 1.2 times those of the
-/// same frames without a filler; the paper's quad, drawn alongside, errs by far more.
-#[test]
-fn the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep_and_shows_nowhere_else() {
-    let Some(_) =
-        golden::gpu("accuracy::the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep")
-    else {
-        return;
-    };
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_jacksboro(tmp.path());
-    let server = TestServer::start(&db.out);
+/// Over a sweep's cameras, per budget: the default planar shadow leaves no hole, shows
+/// nowhere the crack probe finds no crack (at most a tenth of the paper's quad's leaks),
+/// and its maximum and p99 screen-space error stay within 1.2 times those of the same
+/// frames without a filler; the paper's quad, drawn alongside, errs by far more.
+fn check_planar_shadow_sweep(server: &TestServer, out: &Path) {
     let budgets = vec![1000, 10_000, 100_000, 1_000_000];
     let args = AccuracyArgs {
         budgets: budgets.clone(),
@@ -283,7 +274,7 @@ fn the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep_and_shows_nowhere_
         },
         repeats: 1,
         popping_frames: 0,
-        ..AccuracyArgs::new(server.base_url(), tmp.path().join("accuracy"))
+        ..AccuracyArgs::new(server.base_url(), out.to_path_buf())
     };
     let report = runtime().block_on(accuracy::run(&args)).expect("sweep");
     // Per filler and budget: the largest max and p99 error over the cameras, the holes
@@ -346,6 +337,38 @@ fn the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep_and_shows_nowhere_
     }
     // The sweep has cracks to fill.
     assert!(cracks > 1000, "{cracks} crack pixels without a filler");
+}
+
+#[test]
+fn the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep_and_shows_nowhere_else() {
+    let Some(_) =
+        golden::gpu("accuracy::the_planar_shadow_fills_every_crack_of_the_jacksboro_sweep")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_jacksboro(tmp.path());
+    let server = TestServer::start(&db.out);
+    check_planar_shadow_sweep(&server, &tmp.path().join("accuracy"));
+}
+
+#[test]
+fn the_planar_shadow_fills_every_crack_of_the_puget_sound_sweep_and_shows_nowhere_else() {
+    let Some(png) = kit_file(
+        "planar shadow over the puget sweep",
+        "puget_sound_1k/ps_height_1k.png",
+    ) else {
+        return;
+    };
+    let Some(_) =
+        golden::gpu("accuracy::the_planar_shadow_fills_every_crack_of_the_puget_sound_sweep")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = build_db(&png, tmp.path());
+    let server = TestServer::start(&db);
+    check_planar_shadow_sweep(&server, &tmp.path().join("accuracy"));
 }
 
 #[test]
