@@ -411,16 +411,17 @@ pub struct FrameRateSummary {
     pub target_fps: Option<f64>,
     /// Frames after the first second of wall-clock time.
     pub frames: u64,
-    /// Median obtained frame rate over them, frame by frame (1 / frame time).
+    /// Median over them of the frame rate over the last second ([`windowed_fps`]): with two
+    /// frames in flight, one frame's own time is not its cost.
     pub median_fps: f64,
-    /// Share of them whose own frame rate (1 / frame time) is within 10% of the target
-    /// (`None` with a fixed budget).
-    pub within_10_percent: Option<f64>,
     /// Share of them at which the frame rate over the last second ([`windowed_fps`]) is
-    /// within 10% of the target.
+    /// within 10% of the target (`None` without a target).
     pub windowed_within_10_percent: Option<f64>,
     /// Lowest and highest frame rate over the last second, after the first second.
     pub windowed_range: (f64, f64),
+    /// The frame-rate controller's prediction error ([`prediction_errors`]): median and
+    /// 90th percentile, as fractions; `None` without a target.
+    pub prediction_error: Option<(f64, f64)>,
     /// Triangles drawn per second of frame time, whole flight.
     pub triangles_per_s: f64,
     pub mean_triangles: f64,
@@ -439,13 +440,10 @@ impl FrameRateSummary {
         if settled.is_empty() {
             return None;
         }
-        let mut fps: Vec<f64> = settled.iter().map(|r| 1e3 / r.frame_ms.max(1e-6)).collect();
-        fps.sort_by(f64::total_cmp);
         let target = settled[0].target_fps;
-        let within = target.map(|t| {
-            fps.iter().filter(|&&f| (f - t).abs() <= 0.1 * t).count() as f64 / fps.len() as f64
-        });
         let windows = windowed_fps(records);
+        let mut fps: Vec<f64> = windows.iter().map(|&(_, f)| f).collect();
+        fps.sort_by(f64::total_cmp);
         let windowed_within = target.map(|t| {
             windows
                 .iter()
@@ -456,6 +454,14 @@ impl FrameRateSummary {
         let windowed_range = windows.iter().fold((f64::MAX, 0.0f64), |(lo, hi), (_, f)| {
             (lo.min(*f), hi.max(*f))
         });
+        let mut errors = prediction_errors(records);
+        errors.sort_by(f64::total_cmp);
+        let prediction_error = (target.is_some() && !errors.is_empty()).then(|| {
+            (
+                errors[errors.len() / 2],
+                errors[(errors.len() * 9 / 10).min(errors.len() - 1)],
+            )
+        });
         let triangles: u64 = rendered
             .iter()
             .map(|r| r.triangles + r.filler_triangles)
@@ -464,15 +470,38 @@ impl FrameRateSummary {
         Some(FrameRateSummary {
             target_fps: target,
             frames: settled.len() as u64,
-            median_fps: fps[fps.len() / 2],
-            within_10_percent: within,
+            median_fps: fps.get(fps.len() / 2).copied().unwrap_or(0.0),
             windowed_within_10_percent: windowed_within,
             windowed_range,
+            prediction_error,
             triangles_per_s: triangles as f64 / seconds.max(1e-9),
             mean_triangles: rendered.iter().map(|r| r.triangles as f64).sum::<f64>()
                 / rendered.len() as f64,
         })
     }
+}
+
+/// The frame-rate controller's relative error, `|predicted - measured| / measured`, over
+/// each run of [`crate::render::frame::FRAMES_IN_FLIGHT`] consecutive frames after the first
+/// second that all carry a prediction: the controller measures frames in such runs (a
+/// frame's own time with frames in flight is not its cost), so its prediction is judged on
+/// them too.
+pub fn prediction_errors(records: &[FrameRecord]) -> Vec<f64> {
+    let run = crate::render::frame::FRAMES_IN_FLIGHT as usize;
+    let pairs: Vec<(f64, f64)> = records
+        .iter()
+        .filter(|r| r.wall_s >= 1.0)
+        .filter_map(|r| r.render.as_ref())
+        .filter_map(|r| r.predicted_ms.map(|p| (p, r.frame_ms)))
+        .collect();
+    pairs
+        .chunks_exact(run)
+        .filter_map(|c| {
+            let predicted: f64 = c.iter().map(|p| p.0).sum();
+            let measured: f64 = c.iter().map(|p| p.1).sum();
+            (measured > 0.0).then(|| (predicted - measured).abs() / measured)
+        })
+        .collect()
 }
 
 /// What the flight ended with.
@@ -484,8 +513,10 @@ pub struct FlightSummary {
     pub wall_s: f64,
     pub memory_limit_bytes: u64,
     pub peak_resident_bytes: u64,
-    /// Largest overshoot of the limit, in bytes (0 if never over).
+    /// Largest overshoot of the limit at a frame's end, in bytes (0 if never over).
     pub peak_overshoot_bytes: u64,
+    /// Frames at whose end the resident bytes were over the limit.
+    pub frames_over_limit: u64,
     pub final_complete_belts: u32,
     pub tiles_fetched: u64,
     pub bytes_downloaded: u64,
@@ -504,6 +535,14 @@ pub struct FlightSummary {
     pub limit_below_one_tile: Option<u64>,
     /// Peak resident set size of this process (VmHWM), when the OS reports it.
     pub peak_rss_bytes: Option<u64>,
+    /// The program's heap at its peak ([`crate::process::peak_heap_bytes`]).
+    pub peak_heap_bytes: u64,
+    /// wgpu's allocator report at the frame with the most GPU memory allocated; `None`
+    /// without rendering or where the backend gives none.
+    pub peak_gpu: Option<crate::process::GpuReport>,
+    /// Why no target frame rate applies, when one was asked for and the method shares no
+    /// triangle budget.
+    pub no_target: Option<String>,
     /// The adapter, when the flight rendered.
     pub adapter: Option<String>,
     pub frame_rate: Option<FrameRateSummary>,
@@ -521,12 +560,21 @@ impl fmt::Display for FlightSummary {
             "flew {} frames ({:.1} s of flight in {:.1} s) over {}",
             self.frames, self.duration_s, self.wall_s, self.dataset
         )?;
+        let over = if self.frames_over_limit == 0 {
+            "never over it".to_string()
+        } else {
+            format!(
+                "OVER it at the end of {} of {} frames, by {} bytes at most",
+                self.frames_over_limit, self.frames, self.peak_overshoot_bytes
+            )
+        };
         writeln!(
             f,
-            "  memory    peak {:.2} MiB of tiles against a limit of {:.2} MiB (peak overshoot {:.2} MiB)",
+            "  memory    peak {:.2} MiB ({} bytes) of terrain against a limit of {:.2} MiB ({} bytes): {over}",
             mib(self.peak_resident_bytes),
+            self.peak_resident_bytes,
             mib(self.memory_limit_bytes),
-            mib(self.peak_overshoot_bytes)
+            self.memory_limit_bytes,
         )?;
         writeln!(
             f,
@@ -571,24 +619,47 @@ impl fmt::Display for FlightSummary {
                 r.mean_triangles,
                 r.triangles_per_s / 1e6
             )?;
-            match (
-                r.target_fps,
-                r.within_10_percent,
-                r.windowed_within_10_percent,
-            ) {
-                (Some(t), Some(w), Some(ww)) => writeln!(
-                    f,
-                    "\n            target {t} fps: frame rate over the last second within 10% of it at {:.0}% of frames (range {:.0}-{:.0}); frame by frame {:.0}%",
-                    100.0 * ww,
-                    r.windowed_range.0,
-                    r.windowed_range.1,
-                    100.0 * w
-                )?,
-                _ => writeln!(f, " (fixed budget)")?,
+            match (r.target_fps, r.windowed_within_10_percent) {
+                (Some(t), Some(ww)) => {
+                    write!(
+                        f,
+                        "\n            target {t} fps: frame rate over the last second within 10% of it at {:.0}% of frames (range {:.0}-{:.0})",
+                        100.0 * ww,
+                        r.windowed_range.0,
+                        r.windowed_range.1,
+                    )?;
+                    match r.prediction_error {
+                        Some((median, p90)) => writeln!(
+                            f,
+                            "; predicted frame time off by {:.0}% (median), {:.0}% (90th percentile)",
+                            100.0 * median,
+                            100.0 * p90
+                        )?,
+                        None => writeln!(f)?,
+                    }
+                }
+                _ => match &self.no_target {
+                    Some(why) => writeln!(f, " ({why})")?,
+                    None => writeln!(f, " (fixed budget)")?,
+                },
             }
         }
-        if let Some(rss) = self.peak_rss_bytes {
-            writeln!(f, "  process   peak RSS {:.1} MiB", mib(rss))?;
+        write!(
+            f,
+            "  process   heap peak {:.1} MiB",
+            mib(self.peak_heap_bytes)
+        )?;
+        if let Some(gpu) = self.peak_gpu {
+            write!(
+                f,
+                "; GPU {:.1} MiB allocated at most, {:.1} MiB of it the terrain's (the rest: render targets, pipelines and per-frame buffers)",
+                mib(gpu.allocated),
+                mib(gpu.terrain)
+            )?;
+        }
+        match self.peak_rss_bytes {
+            Some(rss) => writeln!(f, "; RSS peak {:.1} MiB", mib(rss))?,
+            None => writeln!(f)?,
         }
         write!(f, "  wrote     {}", self.csv.display())?;
         for chart in &self.charts {
@@ -748,6 +819,10 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     let centre = [manifest.extent_m[0] / 2.0, manifest.extent_m[1] / 2.0];
     let start = path.position_at(0.0);
     let mut yaw = (centre[1] - start[1]).atan2(centre[0] - start[0]);
+    // Frames follow each other without a pause (no vsync offscreen): a frame's cost, as the
+    // frame-rate controller measures it, runs from the end of the one before it's draw, so
+    // that the bookkeeping between draws (the CSV row, a frame PNG) is counted too.
+    let mut previous_draw_end: Option<Instant> = None;
     for frame in 0..frames {
         if target.is_some() {
             // Rendering sets the pace; let the runtime's tasks run between frames.
@@ -755,7 +830,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         } else {
             ticker.tick().await;
         }
-        let frame_started = Instant::now();
+        let update_started = Instant::now();
+        let frame_started = previous_draw_end.unwrap_or(update_started);
         let time_s = frame as f64 / args.fps;
         let position = path.position_at(time_s);
         let update = match scene.update(&mut fetcher, frame, position) {
@@ -798,10 +874,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                 }
             }
         };
-        let update_ms = frame_started.elapsed().as_secs_f64() * 1e3;
+        let update_ms = update_started.elapsed().as_secs_f64() * 1e3;
         yaw = heading(&path, time_s, yaw);
         let camera = Camera::new(position, yaw, args.render.pitch_deg.to_radians());
         let drawn = target.and_then(|t| scene.draw(&t.view, &camera, frame_started));
+        previous_draw_end = Some(Instant::now());
         let render_record = drawn.map(|d| RenderRecord {
             visible_tiles: d.plan.draws.len() as u32,
             triangles: d.stats.triangles,
@@ -813,12 +890,9 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             lod_ms: d.lod_ms,
             cpu_ms: update_ms + d.lod_ms + d.stats.encode_ms,
             gpu_ms: d.stats.gpu_ms,
-            frame_ms: frame_started.elapsed().as_secs_f64() * 1e3,
-            target_fps: args
-                .render
-                .fixed_budget
-                .is_none()
-                .then_some(args.render.target_fps),
+            frame_ms: d.frame_ms,
+            predicted_ms: d.predicted_ms,
+            target_fps: d.target_fps,
         });
         if let (Some(t), Some((gpu, _, _))) = (target, &render)
             && args.frame_every > 0
@@ -846,6 +920,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             resident_bytes: scene.resident_bytes(),
             memory_limit_bytes: scene.memory_limit(),
             gpu_bytes: scene.gpu_bytes(),
+            heap_bytes: crate::process::heap_bytes(),
+            gpu_allocated: scene
+                .gpu()
+                .and_then(|gpu| crate::process::GpuReport::of(&gpu.device)),
+            rss_bytes: crate::process::rss_bytes(),
             bytes_downloaded: stats.bytes_downloaded,
             in_flight: scene.in_flight(),
             retries: retries(&stats, &scene),
@@ -921,6 +1000,16 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
             .map(|r| r.resident_bytes.saturating_sub(r.memory_limit_bytes))
             .max()
             .unwrap_or(0),
+        frames_over_limit: records
+            .iter()
+            .filter(|r| r.resident_bytes > r.memory_limit_bytes)
+            .count() as u64,
+        peak_heap_bytes: crate::process::peak_heap_bytes(),
+        peak_gpu: records
+            .iter()
+            .filter_map(|r| r.gpu_allocated)
+            .max_by_key(|g| g.allocated),
+        no_target: no_target(args),
         final_complete_belts: last.as_ref().map_or(0, |r| r.complete_belts),
         tiles_fetched: scene.tiles_fetched,
         bytes_downloaded: stats.bytes_downloaded,
@@ -930,7 +1019,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         unavailable: scene.unavailable.clone(),
         content_changes,
         limit_below_one_tile,
-        peak_rss_bytes: peak_rss_bytes(),
+        peak_rss_bytes: crate::process::peak_rss_bytes(),
         adapter,
         frame_rate: FrameRateSummary::of(&records),
         frames_written,
@@ -980,11 +1069,23 @@ async fn reload_content(
     }
 }
 
-/// Peak resident set size of this process, from /proc/self/status (Linux).
-pub fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    Some(line.split_whitespace().nth(1)?.parse::<u64>().ok()? * 1024)
+/// Why `--target-fps` does not apply to the flight's method, when it does not: only strip
+/// masks share a triangle budget out; the other methods draw what their error threshold or
+/// grid sets.
+fn no_target(args: &FlightArgs) -> Option<String> {
+    let method = args.render.method;
+    (!args.no_render && args.render.fixed_budget.is_none() && method != MethodKind::StripMasks)
+        .then(|| {
+            format!(
+                "--method {} shares no triangle budget: --target-fps does not apply, its {} sets what it draws",
+                method.name(),
+                if method.is_projected_grid() {
+                    "grid"
+                } else {
+                    "error threshold"
+                }
+            )
+        })
 }
 
 #[cfg(test)]
@@ -1014,6 +1115,9 @@ mod tests {
             resident_bytes: 0,
             memory_limit_bytes: 0,
             gpu_bytes: 0,
+            heap_bytes: 0,
+            gpu_allocated: None,
+            rss_bytes: None,
             bytes_downloaded: 0,
             in_flight: 0,
             retries: 0,
@@ -1035,6 +1139,7 @@ mod tests {
             cpu_ms: 1.0,
             gpu_ms: None,
             frame_ms: 2.0,
+            predicted_ms: Some(1.5),
             target_fps: Some(60.0),
         });
         let row = record.csv_row();

@@ -41,6 +41,7 @@ pub mod method;
 pub mod overview;
 pub mod page;
 pub mod path;
+pub mod process;
 pub mod record;
 pub mod render;
 pub mod report;

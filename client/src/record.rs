@@ -2,8 +2,11 @@
 //! the charts draw.
 
 /// Columns of `flight.csv`, one row per frame. The render columns are empty with
-/// `--no-render`; `gpu_ms` is empty where the adapter has no timestamp queries.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,gpu_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,fps,target_fps";
+/// `--no-render`; `gpu_ms` is empty where the adapter has no timestamp queries, the
+/// `gpu_allocated` columns where the backend gives no allocator report, `rss_bytes` where
+/// the OS reports no resident set, `predicted_ms` and `target_fps` where no target frame rate
+/// applies.
+pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,gpu_bytes,heap_bytes,gpu_allocated_bytes,gpu_allocated_terrain_bytes,rss_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,predicted_ms,fps,target_fps";
 
 /// What a rendered frame adds to its record.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,9 +29,16 @@ pub struct RenderRecord {
     pub cpu_ms: f64,
     /// GPU time of the render pass (timestamp queries), when the adapter has them.
     pub gpu_ms: Option<f64>,
-    /// Whole frame, start to GPU completion (frame PNGs not included).
+    /// The frame's wall time, from its start to the end of its draw: its paging, its
+    /// recording and its wait for the frame before it (two frames are in flight; frame PNGs
+    /// not included). A frame that finds the one before it done is short and the next one
+    /// long, so frame rates are read over a second ([`windowed_fps`]).
     pub frame_ms: f64,
-    /// Frame rate the controller aims for; `None` with a fixed budget.
+    /// What the frame-rate controller expected `frame_ms` to be, from the rate it measured
+    /// before this frame; `None` where no target applies.
+    pub predicted_ms: Option<f64>,
+    /// Frame rate the controller aims for; `None` with a fixed budget, or with a method
+    /// that shares no triangle budget.
     pub target_fps: Option<f64>,
 }
 
@@ -55,6 +65,14 @@ pub struct FrameRecord {
     /// Bytes of the GPU allocations held for the terrain ([`crate::scene::Scene::gpu_bytes`]),
     /// part of `resident_bytes`.
     pub gpu_bytes: u64,
+    /// The whole program's heap now ([`crate::process::heap_bytes`]): the terrain's CPU
+    /// bytes and everything else the program allocated.
+    pub heap_bytes: u64,
+    /// wgpu's allocator report ([`crate::process::GpuReport`]): every GPU allocation, and
+    /// those of the terrain; `None` without rendering or where the backend gives none.
+    pub gpu_allocated: Option<crate::process::GpuReport>,
+    /// The process's resident set now, when the OS reports it.
+    pub rss_bytes: Option<u64>,
     /// Bytes of response bodies received so far (retries included).
     pub bytes_downloaded: u64,
     pub in_flight: u64,
@@ -69,9 +87,9 @@ pub struct FrameRecord {
 impl FrameRecord {
     pub fn csv_row(&self) -> String {
         let render = match &self.render {
-            None => ",,,,,,,,,,,,".to_string(),
+            None => ",,,,,,,,,,,,,".to_string(),
             Some(r) => format!(
-                "{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{:.2},{}",
+                "{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{},{:.2},{}",
                 r.visible_tiles,
                 r.triangles,
                 r.triangles_needed,
@@ -87,12 +105,13 @@ impl FrameRecord {
                 r.cpu_ms,
                 r.gpu_ms.map_or(String::new(), |g| format!("{g:.3}")),
                 r.frame_ms,
+                r.predicted_ms.map_or(String::new(), |p| format!("{p:.3}")),
                 1e3 / r.frame_ms.max(1e-6),
                 r.target_fps.map_or(String::new(), |t| format!("{t}")),
             ),
         };
         format!(
-            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.frame,
             self.time_s,
             self.wall_s,
@@ -109,6 +128,12 @@ impl FrameRecord {
             self.resident_bytes,
             self.memory_limit_bytes,
             self.gpu_bytes,
+            self.heap_bytes,
+            self.gpu_allocated
+                .map_or(String::new(), |g| g.allocated.to_string()),
+            self.gpu_allocated
+                .map_or(String::new(), |g| g.terrain.to_string()),
+            self.rss_bytes.map_or(String::new(), |r| r.to_string()),
             self.bytes_downloaded,
             self.in_flight,
             self.retries,

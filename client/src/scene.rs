@@ -18,7 +18,7 @@
 //! the limit whatever arrives.
 
 use crate::fetcher::{FailureKind, FetchEvent, Fetcher, Want};
-use crate::lod::budget::{BudgetMode, FrameRateController};
+use crate::lod::budget::{BudgetMode, FrameCost, FrameRateController};
 use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::memory::TileBytes;
 use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, MethodKind};
@@ -159,6 +159,16 @@ pub struct DrawReport {
     pub triangles_needed: u64,
     /// The method that drew, e.g. `strip-masks/planar-shadow`.
     pub method: String,
+    /// The frame's wall time, from the `frame_started` given to [`Scene::draw`] to the end
+    /// of its draw (its wait for the frame before it included): what the frame-rate
+    /// controller measures.
+    pub frame_ms: f64,
+    /// What the frame-rate controller expected the frame to take, at the rate it had
+    /// measured before it (`None` before its first measurement, or when no target applies).
+    pub predicted_ms: Option<f64>,
+    /// The frame rate the controller aims for: `None` with a fixed budget, or with a method
+    /// that shares no triangle budget ([`method::LodMethod::uses_budget`]).
+    pub target_fps: Option<f64>,
 }
 
 /// The bytes a scene keeps for its terrain's geometry ([`Scene::geometry_memory`]): what the
@@ -364,7 +374,10 @@ impl Scene {
                 renderer,
                 method,
                 data_pending: HashSet::new(),
-                controller: FrameRateController::new(config.budget),
+                controller: FrameRateController::new(
+                    config.budget,
+                    crate::render::frame::FRAMES_IN_FLIGHT as usize,
+                ),
                 config,
                 wait_for_gpu: false,
                 allocations: Default::default(),
@@ -657,7 +670,10 @@ impl Scene {
             r.method.configure(&config.method_config());
         }
         if config.budget != r.config.budget {
-            r.controller = FrameRateController::new(config.budget);
+            r.controller = FrameRateController::new(
+                config.budget,
+                crate::render::frame::FRAMES_IN_FLIGHT as usize,
+            );
         }
         r.config = config;
         match method {
@@ -1229,8 +1245,10 @@ impl Scene {
     }
 
     /// Plans and renders a frame seen from `camera` into `target`, then feeds its time to
-    /// the frame-rate controller. `frame_started` is when the frame began (its update
-    /// included), so the controller sees the whole frame. `None` when not rendering.
+    /// the frame-rate controller. `frame_started` is when the frame's work began, so that
+    /// the controller sees the whole frame: for frames drawn back to back (a flight), the
+    /// end of the draw before it; after a wait that is no work of the frame's (a window's
+    /// vsync), the end of that wait. `None` when not rendering.
     pub fn draw(
         &mut self,
         target: &wgpu::TextureView,
@@ -1334,8 +1352,27 @@ impl Scene {
         let r = self.rendering.as_mut()?;
         let draw_ms = started.elapsed().as_secs_f64() * 1e3;
         let frame_s = frame_started.elapsed().as_secs_f64();
-        r.controller
-            .next_budget(u32::try_from(stats.triangles).unwrap_or(u32::MAX), frame_s);
+        // Only a method that shares the budget out adapts to it; the others (GeoMipMaps,
+        // the grids, the patches, the reference) are set by their error threshold or grid.
+        let target_fps = if r.method.uses_budget() {
+            r.controller.target_fps()
+        } else {
+            None
+        };
+        let predicted_ms = target_fps
+            .and(r.controller.predicted_seconds(stats.triangles))
+            .map(|s| s * 1e3);
+        if r.method.uses_budget() {
+            r.controller.next_budget(FrameCost {
+                triangles: stats.triangles,
+                wanted: if r.config.lod.cap_at_needed {
+                    plan.triangles_needed
+                } else {
+                    u64::MAX
+                },
+                seconds: frame_s,
+            });
+        }
         Some(DrawReport {
             triangles_needed: plan.triangles_needed,
             method: r.method.name(),
@@ -1343,6 +1380,9 @@ impl Scene {
             stats,
             lod_ms,
             draw_ms,
+            frame_ms: frame_s * 1e3,
+            predicted_ms,
+            target_fps,
         })
     }
 

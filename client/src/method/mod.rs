@@ -160,6 +160,13 @@ pub trait LodMethod: std::fmt::Debug + Send {
         false
     }
 
+    /// Whether it shares [`MethodInput::budget`] out, so that the frame-rate controller's
+    /// budget sets what it draws (strip masks); the others draw what their error threshold
+    /// or grid sets, and no target frame rate applies to them.
+    fn uses_budget(&self) -> bool {
+        false
+    }
+
     /// Whether it wants [`MethodInput::resident`]: every resident tile, not only the cut.
     fn needs_every_resident_tile(&self) -> bool {
         false

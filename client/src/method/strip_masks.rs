@@ -470,6 +470,10 @@ impl LodMethod for StripMasks {
         }
     }
 
+    fn uses_budget(&self) -> bool {
+        !self.reference
+    }
+
     fn draw(&mut self, input: &MethodInput<'_>, frame: &mut Frame<'_>) -> MethodOutput {
         let started = Instant::now();
         let budget = if self.reference {
