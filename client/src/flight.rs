@@ -530,9 +530,6 @@ pub struct FlightSummary {
     /// Times the server's content changed under the flight (its database was rebuilt), and
     /// what that did to the resident tiles.
     pub content_changes: Vec<ContentChange>,
-    /// The largest tile's bytes, when the memory limit is below it: that tile alone
-    /// exceeds the limit whenever it is current.
-    pub limit_below_one_tile: Option<u64>,
     /// Peak resident set size of this process (VmHWM), when the OS reports it.
     pub peak_rss_bytes: Option<u64>,
     /// The program's heap at its peak ([`crate::process::peak_heap_bytes`]).
@@ -590,14 +587,6 @@ impl fmt::Display for FlightSummary {
             self.retries,
             self.failures
         )?;
-        if let Some(tile_bytes) = self.limit_below_one_tile {
-            writeln!(
-                f,
-                "  warning   the limit of {:.2} MiB is below one tile ({:.2} MiB): the current tile alone exceeds it",
-                mib(self.memory_limit_bytes),
-                mib(tile_bytes)
-            )?;
-        }
         for change in &self.content_changes {
             writeln!(f, "  content   {change}")?;
         }
@@ -747,14 +736,10 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         let path = path.to_path_buf();
         move |source| FlightError::Write { path, source }
     };
-    std::fs::create_dir_all(&args.out).map_err(write_err(&args.out))?;
     let frames_dir = args.out.join("frames");
     let render = match render_config {
         Some(config) => {
             let gpu = Gpu::headless()?;
-            if args.frame_every > 0 {
-                std::fs::create_dir_all(&frames_dir).map_err(write_err(&frames_dir))?;
-            }
             let (w, h) = args.render.size;
             let target = Offscreen::new(&gpu, w, h);
             Some((gpu, target, config))
@@ -795,18 +780,14 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     );
     args.stream.configure(&mut scene);
     let mut fetcher = connection.fetcher;
-    let limit_below_one_tile = scene
-        .largest_tile()
-        .filter(|&(_, bytes)| bytes > budget.limit_bytes())
-        .map(|(id, bytes)| {
-            tracing::warn!(
-                "the memory limit of {} bytes ({:.0}% of --memory) is below one tile: tile {id} \
-                 holds {bytes} bytes, so the current tile alone will exceed the limit",
-                budget.limit_bytes(),
-                budget.limit_percent
-            );
-            bytes
-        });
+    let (w, h) = args.render.size;
+    scene.set_viewport([w, h]);
+    budget.check(scene.least_limit(), &what_needs(args))?;
+    // Refused or not, nothing is written before here.
+    std::fs::create_dir_all(&args.out).map_err(write_err(&args.out))?;
+    if render.is_some() && args.frame_every > 0 {
+        std::fs::create_dir_all(&frames_dir).map_err(write_err(&frames_dir))?;
+    }
     let mut content_changes = Vec::new();
     let mut last_failure = None;
     // A failure that stops the flight; the frames flown so far are still written.
@@ -849,10 +830,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                                 rows: manifest.grid(0).rows,
                                 memory_limit: budget.limit_bytes(),
                                 nearest_when_outside: !args.no_nearest_when_outside,
-                                current_over_limit: true,
+                                current_over_limit: false,
                             };
                             scene = Scene::new(manifest, pager, scene_render());
                             args.stream.configure(&mut scene);
+                            scene.set_viewport([w, h]);
                         }
                         content_changes.push(change);
                         match scene.update(&mut fetcher, frame, position) {
@@ -1018,7 +1000,6 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         failures: stats.failures,
         unavailable: scene.unavailable.clone(),
         content_changes,
-        limit_below_one_tile,
         peak_rss_bytes: crate::process::peak_rss_bytes(),
         adapter,
         frame_rate: FrameRateSummary::of(&records),
@@ -1069,6 +1050,24 @@ async fn reload_content(
     }
 }
 
+/// What a flight's least memory limit is for, for its refusal: the method and frame size,
+/// or paging alone.
+fn what_needs(args: &FlightArgs) -> String {
+    if args.no_render {
+        return "paging (--no-render)".to_string();
+    }
+    let (w, h) = args.render.size;
+    format!(
+        "--method {} at {w}x{h}{}",
+        args.render.method.name(),
+        if args.stream.single_level {
+            ", one level"
+        } else {
+            ""
+        }
+    )
+}
+
 /// Why `--target-fps` does not apply to the flight's method, when it does not: only strip
 /// masks share a triangle budget out; the other methods draw what their error threshold or
 /// grid sets.
@@ -1077,12 +1076,12 @@ fn no_target(args: &FlightArgs) -> Option<String> {
     (!args.no_render && args.render.fixed_budget.is_none() && method != MethodKind::StripMasks)
         .then(|| {
             format!(
-                "--method {} shares no triangle budget: --target-fps does not apply, its {} sets what it draws",
+                "--method {} shares no triangle budget: --target-fps does not apply, what it draws is set by its {}",
                 method.name(),
-                if method.is_projected_grid() {
-                    "grid"
-                } else {
-                    "error threshold"
+                match method {
+                    MethodKind::Pgm | MethodKind::ProjectiveGrid => "grid",
+                    MethodKind::Reference => "full resolution of every visible tile",
+                    _ => "error threshold",
                 }
             )
         })

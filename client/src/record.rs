@@ -6,7 +6,7 @@
 /// `gpu_allocated` columns where the backend gives no allocator report, `rss_bytes` where
 /// the OS reports no resident set, `predicted_ms` and `target_fps` where no target frame rate
 /// applies.
-pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,gpu_bytes,heap_bytes,gpu_allocated_bytes,gpu_allocated_terrain_bytes,rss_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,predicted_ms,fps,target_fps";
+pub const CSV_HEADER: &str = "frame,time_s,wall_s,x_m,y_m,z_m,ground_m,current_x,current_y,farthest_complete_belt,complete_belts,resident_tiles,resident_bytes,memory_limit_bytes,gpu_bytes,heap_bytes,gpu_allocated_bytes,gpu_allocated_terrain_bytes,gpu_reserved_bytes,rss_bytes,bytes_downloaded,in_flight,retries,evicted_unused_bytes,texture_budget_bytes,visible_tiles,triangles,triangles_needed,filler_triangles,draw_calls,global_budget,mask_levels,lod_ms,cpu_ms,gpu_ms,frame_ms,predicted_ms,fps,target_fps";
 
 /// What a rendered frame adds to its record.
 #[derive(Debug, Clone, PartialEq)]
@@ -111,7 +111,7 @@ impl FrameRecord {
             ),
         };
         format!(
-            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{:.4},{:.4},{:.1},{:.1},{:.1},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             self.frame,
             self.time_s,
             self.wall_s,
@@ -133,6 +133,8 @@ impl FrameRecord {
                 .map_or(String::new(), |g| g.allocated.to_string()),
             self.gpu_allocated
                 .map_or(String::new(), |g| g.terrain.to_string()),
+            self.gpu_allocated
+                .map_or(String::new(), |g| g.reserved.to_string()),
             self.rss_bytes.map_or(String::new(), |r| r.to_string()),
             self.bytes_downloaded,
             self.in_flight,

@@ -13,14 +13,26 @@
 //! arrived.
 //!
 //! **Memory.** A tile's bytes are its decoded heights and encoded texture levels (CPU) plus,
-//! when rendering, its GPU samples and texture. The pager admits a belt only if it fits at
-//! the coarsest texture; finer levels are paid from what is left, so the total stays under
-//! the limit whatever arrives.
+//! when rendering, its GPU samples and texture and what the method holds for it. What the
+//! method may hold for no tile in particular ([`LodMethod::reserved_bytes`]) comes off the
+//! limit first; the pager admits a belt, the current tile's too, only if it fits at the
+//! coarsest texture; finer levels are paid from what is left; what a frame's draw made past
+//! the reservation comes off at its end ([`Scene::draw`]). The invariant
+//! ([`crate::memory::MEMORY_INVARIANT`]):
+//!
+//! At the end of every frame, the bytes the client holds for the terrain (every resident
+//! tile's heights, textures and GPU copies, and all the drawing method holds, CPU and GPU)
+//! are at most the memory limit, `--limit-percent` (90 by default) of `--memory`. There is
+//! no exception: a limit too small for what the method reserves plus the coarsest level of
+//! the pyramid held whole (with one level, its largest tile) is refused at start with the
+//! least `--memory` that would do. The limit does not cover the program, its render targets
+//! and pipelines, or the graphics driver's own memory; a flight reports them beside it
+//! (heap, GPU allocations, resident set).
 
 use crate::fetcher::{FailureKind, FetchEvent, Fetcher, Want};
 use crate::lod::budget::{BudgetMode, FrameCost, FrameRateController};
 use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
-use crate::memory::TileBytes;
+use crate::memory::{LeastLimit, TileBytes};
 use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, MethodKind};
 use crate::page::{self, Decision, PagerConfig, PagerView};
 use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
@@ -253,6 +265,10 @@ struct Rendering {
     /// Per tile, the extra bytes of each texture level ([`extra_costs`]), from its tile
     /// blob (empty while not resident).
     texture_costs: Vec<Vec<u64>>,
+    /// Pixels of the frames it draws: what the method's reservation depends on
+    /// ([`LodMethod::reserved_bytes`]); set by [`Scene::set_viewport`], or by a draw into a
+    /// target of another size.
+    viewport: [u32; 2],
 }
 
 /// A tile whose requests failed: when it may be asked for again.
@@ -384,6 +400,7 @@ impl Scene {
                 texture_target: vec![0; count],
                 importance: vec![0.0; count],
                 texture_costs: vec![Vec::new(); count],
+                viewport: [1, 1],
             };
             r.set_texture_blocks(&manifest);
             r
@@ -523,6 +540,40 @@ impl Scene {
             r.renderer.tiles.remove_tile(id);
             r.method.tile_evicted(id);
             r.data_pending.retain(|(tile, _)| *tile != id);
+        }
+    }
+
+    /// Frames will be `size` pixels (width, height): what the method's reservation is
+    /// worked out for ([`LodMethod::reserved_bytes`]; a draw into a target of another size
+    /// sets it too). Nothing happens without rendering.
+    pub fn set_viewport(&mut self, size: [u32; 2]) {
+        if let Some(r) = &mut self.rendering {
+            r.viewport = size;
+        }
+    }
+
+    /// Makes `limit` the memory limit from the next frame on.
+    pub fn set_memory_limit(&mut self, limit: u64) {
+        self.pager.memory_limit = limit;
+    }
+
+    /// The least memory limit under which this scene draws anything and holds its limit:
+    /// what the method reserves for frames of the viewport ([`Scene::set_viewport`]) and the
+    /// coarsest level used, held whole (with one level, the largest tile: the current
+    /// tile must fit). A flight, a window or a benchmark refuses a smaller limit at start.
+    pub fn least_limit(&self) -> LeastLimit {
+        let coarsest = self.levels_used.saturating_sub(1);
+        let start = self.manifest.level_offset(coarsest);
+        let level = &self.expected_bytes
+            [start..start + self.manifest.levels[coarsest as usize].tiles.len()];
+        LeastLimit {
+            method_bytes: self.reserve(),
+            tiles_bytes: if self.levels_used > 1 {
+                level.iter().sum()
+            } else {
+                level.iter().copied().max().unwrap_or(0)
+            },
+            whole_level: self.levels_used > 1,
         }
     }
 
@@ -836,9 +887,9 @@ impl Scene {
         for (flag, tile) in self.in_flight.iter_mut().zip(&self.tiles) {
             *flag &= tile.is_none();
         }
-        // What the method holds for no tile in particular comes off the tiles' share, and
-        // what is left is shared between the levels.
-        let limit = self.pager.memory_limit.saturating_sub(self.shared_bytes());
+        // What the method holds, or may hold, for no tile in particular comes off the
+        // tiles' share, and what is left is shared between the levels.
+        let limit = self.pager.memory_limit.saturating_sub(self.reserve());
         let ranges: Vec<std::ops::Range<usize>> = (0..self.levels_used)
             .map(|k| {
                 let start = self.manifest.level_offset(k);
@@ -856,15 +907,16 @@ impl Scene {
         for (k, range) in ranges.into_iter().enumerate() {
             let level = k as u32;
             let grid = self.manifest.grid(level);
-            // The pager fetches the current tile even alone over its share (the paper's
-            // rule). With levels only the coarsest level used does: a finer level whose
-            // share holds not even that tile waits while cached belts make room, or the
-            // levels together would overspend the limit by a tile each.
+            // The paper's pager fetches the current tile even when it alone takes the
+            // resident bytes over the limit. Here no level does: a current tile that does
+            // not fit waits while cached belts are dropped to make room, so the limit holds
+            // on every frame. A limit too small for the coarsest level used, which is held
+            // whole, is refused at start ([`Scene::least_limit`]).
             let pager = PagerConfig {
                 columns: grid.columns,
                 rows: grid.rows,
                 memory_limit: shares[k],
-                current_over_limit: level + 1 == self.levels_used,
+                current_over_limit: false,
                 ..self.pager
             };
             let extent = self.layout.tile_extent_m_at(level);
@@ -939,11 +991,14 @@ impl Scene {
         })
     }
 
-    /// Bytes the method holds for no tile in particular.
-    fn shared_bytes(&self) -> u64 {
-        self.rendering
-            .as_ref()
-            .map_or(0, |r| r.method.shared_bytes().total())
+    /// Bytes kept for what the method holds for no tile in particular: what it may reach
+    /// ([`LodMethod::reserved_bytes`]) or what it holds, whichever is more.
+    fn reserve(&self) -> u64 {
+        self.rendering.as_ref().map_or(0, |r| {
+            r.method
+                .reserved_bytes(r.viewport)
+                .max(r.method.shared_bytes().total())
+        })
     }
 
     /// Asks the fetcher for the data the method wants of resident tiles, once each.
@@ -1129,7 +1184,10 @@ impl Scene {
             .filter(|(f, _)| **f)
             .map(|(_, b)| b)
             .sum();
-        let shared = r.method.shared_bytes().total();
+        let shared = r
+            .method
+            .reserved_bytes(r.viewport)
+            .max(r.method.shared_bytes().total());
         let budget = self
             .pager
             .memory_limit
@@ -1258,6 +1316,7 @@ impl Scene {
         let r = self.rendering.as_mut()?;
         let started = Instant::now();
         let size = target.texture().size();
+        r.viewport = [size.width, size.height];
         let levels_drawn = if r.method.full_resolution_only() {
             1
         } else {
@@ -1313,19 +1372,48 @@ impl Scene {
         } else {
             Vec::new()
         };
+        let room = self
+            .pager
+            .memory_limit
+            .saturating_sub(self.resident_bytes())
+            + self.sheddable_texture_bytes();
+        let r = self.rendering.as_mut()?;
         let input = MethodInput {
             layout: &self.layout,
             tiles: &candidates,
             resident: &resident,
             budget: r.controller.budget(),
+            room,
         };
         let mut frame = r.renderer.begin_frame(target, camera);
         let out = r.method.draw(&input, &mut frame);
         let mut stats = frame.finish();
+        let (plan, lod_ms) = (out.plan, out.lod_ms);
+        r.importance.fill(0.0);
+        let mut drawn = vec![false; self.tiles.len()];
+        for (id, importance) in out.importance {
+            if let Some(i) = self.manifest.index(id) {
+                r.importance[i] = importance;
+                drawn[i] = true;
+            }
+        }
+        for d in &plan.draws {
+            if let Some(i) = self.manifest.index(d.id) {
+                drawn[i] = true;
+            }
+        }
+        // What the method holds per tile changed (its own data meshed since): counted again.
+        if r.method.bytes_changed() {
+            self.recount();
+        }
+        // A method's index sets and buffers grow as frames need them: what they took past
+        // the limit comes off at once, so that the limit holds at the frame's end.
+        stats.squeezed_tiles = self.enforce_limit(&drawn, camera.position);
         // A frame that made, replaced or dropped GPU allocations of the terrain waits for
         // its completion: what it dropped is still used by the frames in flight, and is
         // freed only once they finish, so the memory limit holds at every frame's end.
         // The others (a steady view) do not wait.
+        let r = self.rendering.as_mut()?;
         let allocations = (r.renderer.tiles.allocation_epoch(), r.method.gpu_bytes());
         let changed = allocations != r.allocations;
         r.allocations = allocations;
@@ -1335,21 +1423,6 @@ impl Scene {
                 Err(e) => tracing::warn!(error = %e, "the frame did not finish"),
             }
         }
-        let (plan, lod_ms) = (out.plan, out.lod_ms);
-        r.importance.fill(0.0);
-        for (id, importance) in out.importance {
-            if let Some(i) = self.manifest.index(id) {
-                r.importance[i] = importance;
-            }
-        }
-        // What the method holds per tile changed (its own data meshed since): counted again.
-        if r.method.bytes_changed() {
-            self.recount();
-        }
-        // A method's index sets and buffers grow as frames need them: what they took past
-        // the limit comes off the textures at once.
-        self.shed_textures();
-        let r = self.rendering.as_mut()?;
         let draw_ms = started.elapsed().as_secs_f64() * 1e3;
         let frame_s = frame_started.elapsed().as_secs_f64();
         // Only a method that shares the budget out adapts to it; the others (GeoMipMaps,
@@ -1384,6 +1457,86 @@ impl Scene {
             predicted_ms,
             target_fps,
         })
+    }
+
+    /// Brings what the scene holds back under its limit at a frame's end, when the
+    /// method's index sets grew past its reservation during the draw: first what the method
+    /// holds and the frame did not use ([`LodMethod::trim`]), then finer texture levels,
+    /// least important tiles first, then resident tiles the frame did not draw, then tiles
+    /// it drew, least important and farthest from `eye` first; never a tile of the coarsest
+    /// level used, which is held whole. Returns the tiles dropped (0 unless the method's
+    /// working set outgrew what the pager left it); the pager sees the room they leave
+    /// taken by the method on the next frame, and does not fetch them again into it.
+    fn enforce_limit(&mut self, drawn: &[bool], eye: [f64; 3]) -> u32 {
+        let limit = self.pager.memory_limit;
+        if self.resident_bytes() <= limit {
+            return 0;
+        }
+        let over = self.resident_bytes().saturating_sub(limit);
+        if let Some(r) = &mut self.rendering {
+            r.method.trim(over);
+        }
+        self.shed_textures();
+        let mut squeezed = 0;
+        if self.resident_bytes() > limit {
+            let coarsest = self.levels_used.saturating_sub(1);
+            let mut order: Vec<usize> = (0..self.tiles.len())
+                .filter(|&i| self.tiles[i].is_some() && self.manifest.id_at(i).level < coarsest)
+                .collect();
+            let importance = |i: usize| {
+                self.rendering
+                    .as_ref()
+                    .map_or(0.0, |r| r.importance.get(i).copied().unwrap_or(0.0))
+            };
+            let distance = |i: usize| {
+                let id = self.manifest.id_at(i);
+                let [x0, y0] = self.layout.tile_origin_m(id);
+                let [w, h] = self.layout.tile_extent_m_at(id.level);
+                (x0 + w / 2.0 - eye[0]).hypot(y0 + h / 2.0 - eye[1])
+            };
+            order.sort_by(|&a, &b| {
+                drawn[a]
+                    .cmp(&drawn[b])
+                    .then(importance(a).total_cmp(&importance(b)))
+                    .then(distance(b).total_cmp(&distance(a)))
+            });
+            for i in order {
+                if self.resident_bytes() <= limit {
+                    break;
+                }
+                let id = self.manifest.id_at(i);
+                self.drop_tile(id);
+                squeezed += 1;
+            }
+            if squeezed > 0 {
+                tracing::debug!(
+                    tiles = squeezed,
+                    "the method's index sets outgrew its reservation: tiles dropped to keep the limit"
+                );
+            }
+        }
+        squeezed
+    }
+
+    /// Bytes that dropping every resident tile's finer texture levels would free (what
+    /// [`Scene::shed_textures`] can give back): their encoded bytes, and their GPU texture
+    /// past the coarsest level.
+    fn sheddable_texture_bytes(&self) -> u64 {
+        let Some(r) = &self.rendering else {
+            return 0;
+        };
+        let copies = r.renderer.tiles.texture_copies();
+        let coarsest =
+            copies * coarsest_rgba_bytes(&self.manifest) + r.renderer.tiles.sample_buffer_bytes();
+        self.tiles
+            .iter()
+            .flatten()
+            .filter(|t| t.textures.len() > 1)
+            .map(|t| {
+                t.textures[1..].iter().map(|b| b.len() as u64).sum::<u64>()
+                    + t.bytes.gpu.saturating_sub(coarsest)
+            })
+            .sum()
     }
 
     /// Drops finer texture levels, least important tiles first, while the scene holds more

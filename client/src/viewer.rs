@@ -15,7 +15,7 @@
 
 use crate::fetch::FetchError;
 use crate::flight::{FlightError, RenderArgs, StreamArgs};
-use crate::memory::MemoryError;
+use crate::memory::{MemoryBudget, MemoryError};
 use crate::render::{Camera, Gpu, GpuError};
 use crate::scene::{Connection, DrawReport, RenderConfig, Scene, SceneError};
 use std::f64::consts::{FRAC_PI_2, TAU};
@@ -443,7 +443,7 @@ pub fn run(args: &ViewArgs) -> Result<(), ViewError> {
     let mut app = App {
         manifest,
         connection,
-        memory_limit: budget.limit_bytes(),
+        budget,
         stream: args.stream.clone(),
         render_config,
         window_size: args.render.size,
@@ -483,7 +483,7 @@ impl View {
     fn open(
         event_loop: &ActiveEventLoop,
         connection: &Connection,
-        memory_limit: u64,
+        budget: MemoryBudget,
         stream: &crate::flight::StreamArgs,
         render: RenderConfig,
         size: (u32, u32),
@@ -534,9 +534,22 @@ impl View {
             height = config.height,
             "window open"
         );
-        let mut scene =
-            connection.scene(memory_limit, true, Some((gpu.clone(), view_format, render)));
+        let mut scene = connection.scene(
+            budget.limit_bytes(),
+            true,
+            Some((gpu.clone(), view_format, render)),
+        );
         stream.configure(&mut scene);
+        scene.set_viewport([config.width, config.height]);
+        budget.check(
+            scene.least_limit(),
+            &format!(
+                "--method {} in a window of {}x{}",
+                render.method.name(),
+                config.width,
+                config.height
+            ),
+        )?;
         Ok(View {
             window,
             surface,
@@ -612,7 +625,7 @@ struct App {
     manifest: Arc<Manifest>,
     /// The manifest and the fetcher streaming its tiles.
     connection: Connection,
-    memory_limit: u64,
+    budget: MemoryBudget,
     /// How the scene pages the levels (`--single-level`, `--level-policy`).
     stream: crate::flight::StreamArgs,
     render_config: RenderConfig,
@@ -733,7 +746,7 @@ impl ApplicationHandler for App {
         match View::open(
             event_loop,
             &self.connection,
-            self.memory_limit,
+            self.budget,
             &self.stream,
             self.render_config,
             self.window_size,

@@ -1,7 +1,7 @@
 //! The `terrain-client` release binary as a person or a script runs it, against a real
 //! server: what it prints on stdout and stderr, and its exit status, when its reader goes
 //! away, when a file cannot be read or written, when a tile keeps failing and when the
-//! memory limit cannot hold one tile.
+//! memory limit cannot hold what the client needs.
 
 use std::ffi::OsString;
 use std::path::Path;
@@ -142,26 +142,40 @@ fn a_failing_tile_is_warned_about_with_the_cause_of_its_failure() {
 }
 
 #[test]
-fn a_memory_limit_below_one_tile_is_warned_about_once_and_reported() {
+fn a_memory_limit_below_what_the_client_needs_is_refused_at_start_with_the_budget_that_would_do() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let flight = still_flight(tmp.path());
     let output = run(fly_command(
         server.base_url(),
-        &tmp.path().join("flight"),
-        &still_flight(tmp.path()),
+        &tmp.path().join("refused"),
+        &flight,
         &["--memory", "1KiB"],
     ));
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    // The limit (90% of 1 KiB), what it cannot hold and why, and the budget that would do.
+    for part in [
+        "921 bytes",
+        "cannot hold what paging (--no-render) needs",
+        "for the coarsest level of the pyramid, which it holds whole",
+        "give --memory ",
+    ] {
+        assert!(stderr.contains(part), "{part:?} in {stderr}");
+    }
+    assert!(!tmp.path().join("refused").exists(), "nothing written");
+    let least = stderr
+        .split("give --memory ")
+        .nth(1)
+        .and_then(|rest| rest.split_whitespace().next())
+        .expect("a budget");
+    let output = run(fly_command(
+        server.base_url(),
+        &tmp.path().join("flown"),
+        &flight,
+        &["--memory", least],
+    ));
     let (stdout, stderr) = (text(&output.stdout), text(&output.stderr));
-    assert_eq!(output.status.code(), Some(0), "{stderr}");
-    assert_eq!(stderr.matches("below one tile").count(), 1, "{stderr}");
-    let warning = stderr
-        .lines()
-        .find(|line| line.contains("below one tile"))
-        .expect("warning");
-    // The limit (90% of 1 KiB) and the tile's bytes are named.
-    assert!(
-        warning.contains("921 bytes") && warning.contains("holds "),
-        "{warning}"
-    );
-    assert!(stdout.contains("below one tile"), "{stdout}");
+    assert_eq!(output.status.code(), Some(0), "--memory {least}: {stderr}");
+    assert!(stdout.contains("never over it"), "{stdout}");
 }

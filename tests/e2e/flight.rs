@@ -144,12 +144,12 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_pyramid() {
 }
 
 #[test]
-fn a_tight_budget_keeps_resident_bytes_under_the_limit_but_for_the_current_tile_on_every_frame() {
+fn a_tight_budget_keeps_resident_bytes_under_the_limit_on_every_frame() {
     tight_budget_flight(false);
 }
 
 #[test]
-fn a_single_level_flight_on_a_tight_budget_exceeds_the_limit_by_the_current_tile_at_most() {
+fn a_single_level_flight_on_a_tight_budget_keeps_resident_bytes_under_the_limit_on_every_frame() {
     tight_budget_flight(true);
 }
 
@@ -168,13 +168,9 @@ fn tight_budget_flight(single_level: bool) {
     flight.stream.single_level = single_level;
     let summary = runtime().block_on(fly(&flight)).expect("flight");
     let rows = read_csv(&summary.csv);
-    // The pager knows each tile's bytes from the manifest and starts a belt only if it fits;
-    // only the current tile is fetched regardless, so it is the most the limit is exceeded by.
-    let slack = manifest
-        .tiles()
-        .map(|(id, _)| tile_bytes(&manifest, id))
-        .max()
-        .unwrap_or(0);
+    // The pager knows each tile's bytes from the manifest and starts a belt, the current
+    // tile's included, only if it fits: not a byte over.
+    assert_eq!(summary.frames_over_limit, 0, "{summary}");
     let mut evicted_at_some_point = false;
     let mut previous_resident = 0;
     for row in &rows {
@@ -183,8 +179,8 @@ fn tight_budget_flight(single_level: bool) {
             number(row, "memory_limit_bytes"),
         );
         assert!(
-            resident <= limit + slack,
-            "frame {}: {resident} bytes against a limit of {limit} + {slack}",
+            resident <= limit,
+            "frame {}: {resident} bytes against a limit of {limit}",
             row["frame"]
         );
         evicted_at_some_point |= resident < previous_resident;

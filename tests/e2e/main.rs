@@ -11,6 +11,7 @@ mod grids;
 mod hostile;
 mod http;
 mod levels;
+mod memory;
 mod methods;
 mod patches;
 mod render;

@@ -147,8 +147,10 @@ impl<'a> Painter<'a> {
         let tiles = candidates(self.terrain, &minima);
         let layout = layout(&self.terrain.manifest);
         let mut frame = self.renderer.begin_frame(&target.view, camera);
+        let mut draws = draws.to_vec();
+        // No memory limit here: every index set has room.
         self.method
-            .draw_levels(&mut frame, &layout, &tiles, draws, filler);
+            .draw_levels(&mut frame, &layout, &tiles, &mut draws, filler, u64::MAX);
         frame.finish();
         target.read(self.gpu).expect("read back")
     }

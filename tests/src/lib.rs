@@ -4,6 +4,7 @@ pub mod data;
 pub mod golden;
 pub mod proxy;
 pub mod server;
+pub mod stamp;
 pub mod synthetic;
 
 /// A scene's connection to the server at `base_url` with the default fetcher, made on

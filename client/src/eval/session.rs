@@ -136,12 +136,12 @@ impl Session {
         let manifest = Arc::clone(&connection.manifest);
         let gpu = Gpu::headless()?;
         let target = Offscreen::new(&gpu, size.0, size.1);
-        let limit = match memory_limit {
-            Some(limit) => limit,
+        let whole = match memory_limit {
+            Some(_) => 0,
             None => whole_database_bytes_from(server, &manifest).await? / 10 * 11 + (1 << 20),
         };
         let mut scene = connection.scene(
-            limit,
+            memory_limit.unwrap_or(whole),
             true,
             Some((
                 gpu.clone(),
@@ -149,6 +149,21 @@ impl Session {
                 config,
             )),
         );
+        scene.set_viewport([size.0, size.1]);
+        let least = scene.least_limit();
+        match memory_limit {
+            // The whole database, and what the method reserves beside it.
+            None => scene.set_memory_limit(whole + least.method_bytes),
+            Some(limit) => crate::memory::MemoryBudget {
+                budget_bytes: limit,
+                limit_percent: 100.0,
+                source: crate::memory::BudgetSource::Given,
+            }
+            .check(
+                least,
+                &format!("--method {} at {}x{}", config.method.name(), size.0, size.1),
+            )?,
+        }
         scene.keep_depth(true);
         // Measured frames: each one's time runs to its completion on the GPU.
         scene.wait_for_each_frame(true);

@@ -325,6 +325,10 @@ pub struct RunResult {
     pub closes_cracks: bool,
     /// Why it failed: an error or a panic.
     pub failure: Option<String>,
+    /// Why the run was refused at start: its memory limit cannot hold what the method needs
+    /// to draw anything and keep the limit ([`crate::memory::LimitTooSmall`]). Not a
+    /// failure: the limit is kept by not starting.
+    pub refused: Option<String>,
     pub picture: Option<image::RgbaImage>,
     pub reference: Option<image::RgbaImage>,
 }
@@ -347,7 +351,7 @@ impl RunResult {
     /// [`ALTITUDE_HOLES_SHARE`] when the method closes cracks. `None` when it meets all
     /// three, or is not such a run.
     pub fn altitude_shortfall(&self) -> Option<String> {
-        if !self.whole_reference || self.failure.is_some() {
+        if !self.whole_reference || self.failure.is_some() || self.refused.is_some() {
             return None;
         }
         let mut short = Vec::new();
@@ -464,6 +468,13 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
                         report.adapter = adapter;
                         r
                     }
+                    Ok(Err(FlightError::Memory(crate::memory::MemoryError::TooSmall(why)))) => {
+                        RunResult {
+                            refused: Some(why.to_string()),
+                            failure: None,
+                            ..failed(&label, method, filler, String::new())
+                        }
+                    }
                     Ok(Err(e)) => failed(&label, method, filler, format!("error: {e}")),
                     Err(e) if e.is_panic() => {
                         let panic = e.into_panic();
@@ -545,6 +556,7 @@ fn failed(label: &str, method: MethodKind, filler: CrackFiller, why: String) -> 
         whole_reference: false,
         closes_cracks: false,
         failure: Some(why),
+        refused: None,
         picture: None,
         reference: None,
     }
@@ -833,6 +845,7 @@ async fn run_one(
             whole_reference: altitude,
             closes_cracks: !method.uses_filler() || filler != CrackFiller::None,
             failure: None,
+            refused: None,
             picture: Some(marked(
                 &measured.capture,
                 &reference,
@@ -889,6 +902,16 @@ pub fn markdown(report: &StabilityReport) -> String {
             let _ = writeln!(
                 s,
                 "| {} | {} | | | | | | | | | | | | **failed**: {} |",
+                r.scenario,
+                r.method,
+                why.replace('|', "/")
+            );
+            continue;
+        }
+        if let Some(why) = &r.refused {
+            let _ = writeln!(
+                s,
+                "| {} | {} | | | | | | | | | | | | refused at start: {} |",
                 r.scenario,
                 r.method,
                 why.replace('|', "/")
@@ -1013,7 +1036,11 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
             "{},{},{},{},{},{},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{},{},{},{},{},{},{:.3},{:.3},{},{:.3},{},{}",
             r.scenario,
             r.method,
-            r.failure.as_deref().unwrap_or("").replace([',', '\n'], ";"),
+            r.failure
+                .clone()
+                .or_else(|| r.refused.as_ref().map(|why| format!("refused: {why}")))
+                .unwrap_or_default()
+                .replace([',', '\n'], ";"),
             r.crack_pixels,
             r.hole_pixels,
             r.reference_terrain_pixels,

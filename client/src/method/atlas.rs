@@ -28,9 +28,13 @@ use terrain_shared::{Manifest, TileId};
 /// Largest side of a colour slot, texels: a tile's texture above it is copied from the mip
 /// that fits.
 pub const MAX_COLOUR_SIDE: u32 = 256;
-/// Slots the atlas grows and shrinks by: it holds at most this many more than its tiles
-/// need before giving them back (each resize copies every tile in again).
-pub const CAPACITY_STEP: u32 = 4;
+/// Slots the atlas grows and shrinks by: it grows to a multiple of this and gives slots
+/// back once it holds twice this many more than its tiles need (each resize copies every
+/// tile in again), so it holds at most `2 * CAPACITY_STEP - 1` slots no tile uses: what
+/// [`Atlas::reserved_bytes`] keeps room for. 2 keeps that to three slots (about 660 KiB
+/// for tiles of 129^2 samples with 128^2 textures) while a square growing by belts of 8 or
+/// more tiles still resizes once a belt.
+pub const CAPACITY_STEP: u32 = 2;
 /// Most slots an atlas holds, whatever the adapter allows.
 pub const MAX_SLOTS: u32 = 4096;
 
@@ -189,9 +193,12 @@ pub fn slot_bytes_for(manifest: &Manifest) -> u64 {
 }
 
 fn slot_bytes(layout: &SlotLayout, colour_side: u32) -> u64 {
-    u64::from(layout.floats) * 4
-        + size_of::<SlotInfo>() as u64
-        + mip_chain_bytes(colour_side, colour_side, colour_side.trailing_zeros() + 1)
+    u64::from(layout.floats) * 4 + size_of::<SlotInfo>() as u64 + colour_slot_bytes(colour_side)
+}
+
+/// GPU bytes of one colour slot of `side` texels with its mips.
+fn colour_slot_bytes(side: u32) -> u64 {
+    mip_chain_bytes(side, side, side.trailing_zeros() + 1)
 }
 
 /// The order in which resident tiles get slots: by ring around the viewpoint at their own
@@ -238,6 +245,8 @@ pub struct Atlas {
     pub colour_side: u32,
     colour_mips: u32,
     colour_per_row: u32,
+    /// The most colour slots a row of the colour atlas holds (the adapter's texture side).
+    per_row_max: u32,
     capacity: u32,
     max_capacity: u32,
     heights: wgpu::Buffer,
@@ -282,6 +291,7 @@ impl Atlas {
         });
         Atlas {
             colour_mips: colour_side.trailing_zeros() + 1,
+            per_row_max: (limits.max_texture_dimension_2d / colour_side).max(1),
             layout,
             colour_side,
             colour_per_row,
@@ -322,6 +332,34 @@ impl Atlas {
     /// GPU bytes of one slot: heights, its info and its colour mips.
     pub fn slot_bytes(&self) -> u64 {
         slot_bytes(&self.layout, self.colour_side)
+    }
+
+    /// What each resident tile is charged: a slot, and its share of the colour slots a
+    /// colour atlas of several rows leaves unused at the end of its last row (fewer than
+    /// one a row, [`allocate`]).
+    pub fn tile_charge(&self) -> u64 {
+        self.slot_bytes()
+            + colour_slot_bytes(self.colour_side).div_ceil(u64::from(self.per_row_max))
+    }
+
+    /// The most the atlas holds beyond what its tiles are charged ([`Atlas::tile_charge`]):
+    /// the table that finds each tile's slot (GPU and CPU), the slots no tile uses (at most
+    /// `2 * CAPACITY_STEP - 1`, one at least), and one colour slot of a last row's rounding.
+    pub fn reserved_bytes(&self) -> u64 {
+        2 * 4 * self.table_cpu.len() as u64
+            + u64::from(2 * CAPACITY_STEP - 1) * self.slot_bytes()
+            + colour_slot_bytes(self.colour_side)
+    }
+
+    /// Bytes of the table on the CPU (its copy on the GPU is in [`Atlas::bytes`]).
+    pub fn table_cpu_bytes(&self) -> u64 {
+        4 * self.table_cpu.len() as u64
+    }
+
+    /// What the atlas holds beyond what its tiles with slots are charged, CPU table included.
+    pub fn unused_bytes(&self) -> u64 {
+        (self.bytes() + 4 * self.table_cpu.len() as u64)
+            .saturating_sub(self.slots.len() as u64 * self.tile_charge())
     }
 
     /// Every GPU byte the atlas holds.
@@ -527,9 +565,10 @@ fn allocate(
         mapped_at_creation: false,
     });
     let max_side = gpu.device.limits().max_texture_dimension_2d;
-    let per_row_max = (max_side / colour_side).max(1);
-    let per_row = slots.min(per_row_max).min(max_capacity.max(1));
-    let rows = slots.div_ceil(per_row);
+    let per_row_max = (max_side / colour_side).max(1).min(max_capacity.max(1));
+    // Rows as full as each other: the last one lacks fewer slots than there are rows.
+    let rows = slots.div_ceil(per_row_max);
+    let per_row = slots.div_ceil(rows);
     let colour = gpu.device.create_texture(&wgpu::TextureDescriptor {
         label: Some("terrain/grid colour atlas"),
         size: wgpu::Extent3d {

@@ -75,17 +75,45 @@ pub struct GeoMipMaps {
     /// so seams add at most 4 x levels small sets rather than multiplying the stitches.
     index_sets: HashMap<SetKey, (IndexSet, u64)>,
     frame: u64,
+    /// GPU bytes of the coarsest level's unstitched set: what [`LodMethod::reserved_bytes`]
+    /// keeps room for besides the tables.
+    coarsest_set_bytes: u64,
 }
 
 impl GeoMipMaps {
     pub fn new(config: &MethodConfig, with: &Build<'_>) -> GeoMipMaps {
+        let n = with.manifest.tile_size;
+        let coarsest = levels::level_count(n) - 1;
+        let (indices, _) = SetKey::Stitch(Stitch::new(coarsest, [None; 4])).indices(n);
+        let coarsest_set_bytes = 4 * (indices.len() as u64).max(1);
         GeoMipMaps {
             lod: config.lod,
-            masks: MaskSet::new(with.manifest.tile_size),
+            masks: MaskSet::new(n),
             error_minima: HashMap::new(),
             index_sets: HashMap::new(),
             frame: 0,
+            coarsest_set_bytes,
         }
+    }
+}
+
+impl GeoMipMaps {
+    /// Whether set `key` is held, or can be made within `room` (taking its bytes out of it),
+    /// dropping sets no frame drew lately to make room if need be.
+    fn affordable(&mut self, key: SetKey, n: u32, room: &mut u64) -> bool {
+        if self.index_sets.contains_key(&key) {
+            return true;
+        }
+        let (indices, _) = key.indices(n);
+        let bytes = 4 * (indices.len() as u64).max(1);
+        if *room < bytes {
+            *room += self.trim(bytes - *room);
+        }
+        if *room < bytes {
+            return false;
+        }
+        *room -= bytes;
+        true
     }
 }
 
@@ -141,6 +169,10 @@ impl LodMethod for GeoMipMaps {
         self.index_sets
             .retain(|_, (_, used)| now - *used <= super::strip_masks::KEEP_UNUSED_FRAMES);
         let mut stitches = Vec::with_capacity(ranked.visible.len());
+        let coarsest = levels::level_count(n) - 1;
+        let reserved = SetKey::Stitch(Stitch::new(coarsest, [None; 4]));
+        let mut room = input.room;
+        let mut degraded = 0;
         let mut extras = Vec::with_capacity(ranked.visible.len());
         for (&i, &importance) in ranked.visible.iter().zip(&ranked.importances) {
             let tile = &input.tiles[i];
@@ -157,17 +189,45 @@ impl LodMethod for GeoMipMaps {
                     .flatten()
             };
             let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
+            // Each set the tile needs, made if the limit has room for it; without room, the
+            // unstitched set of its level (cracks may show along the stitched sides), else
+            // the coarsest level's, which the reservation holds; a skirt without room is
+            // left out.
+            let mut keys = Vec::with_capacity(5);
+            let mut drawn_level = level;
             for key in sets_of(stitch, tile.seams) {
+                let usable = match key {
+                    SetKey::Stitch(_) => [
+                        key,
+                        SetKey::Stitch(Stitch::new(level, [None; 4])),
+                        SetKey::Stitch(Stitch::new(coarsest, [None; 4])),
+                    ]
+                    .into_iter()
+                    .find(|&k| k == reserved || self.affordable(k, n, &mut room)),
+                    SetKey::Skirt { .. } => Some(key).filter(|&k| self.affordable(k, n, &mut room)),
+                };
+                let Some(key) = usable else {
+                    degraded += 1;
+                    continue;
+                };
+                if let SetKey::Stitch(s) = key {
+                    degraded += u32::from(s != stitch);
+                    drawn_level = s.level;
+                }
                 let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
                     let (indices, triangles) = key.indices(n);
                     (IndexSet::new(&gpu, &indices, triangles), now)
                 });
                 *used = now;
                 plan.triangles += u64::from(set.triangles);
+                keys.push(key);
             }
-            plan.draws.push(plan::Draw { id, level });
+            plan.draws.push(plan::Draw {
+                id,
+                level: drawn_level,
+            });
             plan.importances.push(importance);
-            stitches.push((stitch, tile.seams));
+            stitches.push(keys);
             // Skirts reach below the tile's lowest point by a tenth of a level-0 tile and
             // twice its own distance from full resolution: the two edges of a seam lie
             // within their tiles' errors of the true surface, which is above that point.
@@ -187,25 +247,26 @@ impl LodMethod for GeoMipMaps {
             .map(|(d, extras)| (d.id, extras))
             .collect();
         let slots = frame.prepare_tiles(&tiles);
-        let mut stitch_of = vec![None; tiles.len()];
-        for (stitch, slot) in stitches.iter().zip(&slots) {
+        let mut keys_of: Vec<&[SetKey]> = vec![&[]; tiles.len()];
+        for (keys, slot) in stitches.iter().zip(&slots) {
             if let Some(slot) = *slot {
-                stitch_of[slot] = Some(*stitch);
+                keys_of[slot] = keys;
             }
         }
         let order = frame.draw_order();
         let mut pass = frame.last_pass();
         for slot in order {
-            let Some((stitch, skirts)) = stitch_of[slot] else {
+            if keys_of[slot].is_empty() {
                 continue;
-            };
+            }
             pass.bind_tile(slot);
-            for key in sets_of(stitch, skirts) {
-                let set = &self.index_sets[&key].0;
+            for key in keys_of[slot] {
+                let set = &self.index_sets[key].0;
                 pass.draw(set);
                 pass.stats_mut().triangles += u64::from(set.triangles);
             }
         }
+        pass.stats_mut().degraded_draws += degraded;
         drop(pass);
         MethodOutput::of_plan(plan, lod_ms)
     }
@@ -233,6 +294,36 @@ impl LodMethod for GeoMipMaps {
             cpu: self.masks.bytes(),
             gpu: self.index_sets.values().map(|(set, _)| set.bytes()).sum(),
         }
+    }
+
+    /// The coarsest level's unstitched set, with which every tile can be drawn; the others
+    /// are made as frames need them, when the limit has room.
+    fn reserved_bytes(&self, _viewport: [u32; 2]) -> u64 {
+        self.masks.bytes() + self.coarsest_set_bytes
+    }
+
+    /// Sets the last frame did not draw (nor this one, while it draws), least recently
+    /// drawn first.
+    fn trim(&mut self, bytes: u64) -> u64 {
+        let now = self.frame;
+        let mut stale: Vec<(u64, SetKey)> = self
+            .index_sets
+            .iter()
+            .filter(|(_, (_, last))| *last < now)
+            .map(|(key, (_, last))| (*last, *key))
+            .collect();
+        stale.sort_by_key(|(last, _)| *last);
+        let mut freed = 0;
+        for (_, key) in stale {
+            if freed >= bytes {
+                break;
+            }
+            freed += self
+                .index_sets
+                .remove(&key)
+                .map_or(0, |(set, _)| set.bytes());
+        }
+        freed
     }
 }
 

@@ -47,6 +47,11 @@ pub struct MethodInput<'a> {
     pub resident: &'a [(TileId, f32)],
     /// The frame's triangle budget: the frame-rate controller's, or a fixed one.
     pub budget: u32,
+    /// Bytes the method may add this frame (index sets, buffers) and the memory limit still
+    /// hold at the frame's end: what the limit leaves, and the finer texture levels that
+    /// will be dropped for it. What it holds and the frame does not use it may drop to make
+    /// more ([`LodMethod::trim`]). Past that it draws with what it has, coarser.
+    pub room: u64,
 }
 
 /// What a method drew.
@@ -226,6 +231,25 @@ pub trait LodMethod: std::fmt::Debug + Send {
     /// Bytes it holds for no tile in particular (index sets, grids, pipelines' buffers).
     fn shared_bytes(&self) -> MethodBytes {
         MethodBytes::default()
+    }
+
+    /// What [`LodMethod::shared_bytes`] may reach for frames of `viewport` pixels, as far as
+    /// the method can tell before it draws: the buffers it makes whatever it draws (a
+    /// grid, an error buffer of the viewport's size), the slack its buffers grow by, and an
+    /// allowance for the index sets it makes as frames need them. The scene keeps this
+    /// much of the limit (or what the method holds, if more) before any tile gets a byte,
+    /// and refuses a limit that cannot hold it with the coarsest level
+    /// (`Scene::least_limit`). Index sets past the allowance come off the tiles at the
+    /// frame's end: [`LodMethod::trim`] first.
+    fn reserved_bytes(&self, _viewport: [u32; 2]) -> u64 {
+        self.shared_bytes().total()
+    }
+
+    /// Drops what it holds for no tile in particular and the last frame did not use (index
+    /// sets made for earlier frames), least recently used first, until `bytes` are freed or
+    /// nothing such is left; returns the bytes freed. What the last frame drew with stays.
+    fn trim(&mut self, _bytes: u64) -> u64 {
+        0
     }
 
     /// Of [`LodMethod::tile_bytes`] over the resident tiles and [`LodMethod::shared_bytes`],

@@ -168,8 +168,9 @@ impl ProjectedGrid {
                 wgpu::BindGroupLayoutEntry {
                     binding: 0,
                     visibility: both,
+                    // Storage, not uniform: see `grid` in grid.wgsl (a leak on lavapipe).
                     ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
                         has_dynamic_offset: false,
                         min_binding_size: wgpu::BufferSize::new(size_of::<GridUniform>() as u64),
                     },
@@ -312,7 +313,7 @@ impl ProjectedGrid {
         let uniform = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("terrain/grid uniform"),
             size: size_of::<GridUniform>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let counters = device.create_buffer(&wgpu::BufferDescriptor {
@@ -391,6 +392,25 @@ impl ProjectedGrid {
             }
         }
         out
+    }
+
+    /// GPU bytes of what it holds besides the atlas.
+    fn own_gpu_bytes(&self) -> u64 {
+        let error = self.error.as_ref().map_or(0, |e| {
+            2 * u64::from(e.texture.width()) * u64::from(e.texture.height())
+        });
+        self.indices
+            .as_ref()
+            .map_or(0, |(set, _)| set.buffer.size())
+            + self.uniform.size()
+            + self.counters.size()
+            + self.readback.size()
+            + error
+    }
+
+    /// Bytes of the atlas's table on the CPU.
+    fn atlas_table_cpu_bytes(&self) -> u64 {
+        self.atlas.table_cpu_bytes()
     }
 
     fn ensure_error_buffer(&mut self, gpu: &Gpu, viewport: [u32; 2]) {
@@ -775,32 +795,49 @@ impl LodMethod for ProjectedGrid {
     /// A slot per resident tile, whether or not it holds one yet: tiles get their slots at
     /// the next frame, after the scene has counted them.
     fn tile_bytes(&self, _id: TileId) -> u64 {
-        self.atlas.slot_bytes()
+        self.atlas.tile_charge()
     }
 
     fn expected_tile_bytes(&self, _tile: &TileRecord) -> u64 {
-        self.atlas.slot_bytes()
+        self.atlas.tile_charge()
     }
 
+    /// The grid, its buffers, the error buffer and what the atlas holds past its tiles'
+    /// slots (the table, slots no tile uses).
     fn shared_bytes(&self) -> MethodBytes {
-        let held = self.atlas.len() as u64 * self.atlas.slot_bytes();
-        let error = self.error.as_ref().map_or(0, |e| {
-            2 * u64::from(e.texture.width()) * u64::from(e.texture.height())
-        });
-        let gpu = self.atlas.bytes().saturating_sub(held)
+        let gpu = self.own_gpu_bytes()
             + self
-                .indices
-                .as_ref()
-                .map_or(0, |(set, _)| set.buffer.size())
+                .atlas
+                .unused_bytes()
+                .saturating_sub(self.atlas_table_cpu_bytes());
+        MethodBytes {
+            cpu: self.atlas_table_cpu_bytes(),
+            gpu,
+        }
+    }
+
+    /// The buffers it makes whatever it draws (the grid's indices for `--grid`, its
+    /// uniform, counters and their read-back, the error buffer of a frame of `viewport`
+    /// pixels) and what the atlas holds past its tiles' charges at most.
+    fn reserved_bytes(&self, viewport: [u32; 2]) -> u64 {
+        let [columns, rows] = self.settings.size;
+        let indices = 6 * u64::from(columns.saturating_sub(1)) * u64::from(rows.saturating_sub(1));
+        let index_bytes = if columns * rows <= 1 << 16 { 2 } else { 4 };
+        let error = if self.error_bounded() {
+            2 * u64::from(viewport[0].max(1)) * u64::from(viewport[1].max(1))
+        } else {
+            0
+        };
+        (indices * index_bytes).next_multiple_of(4).max(4)
             + self.uniform.size()
             + self.counters.size()
             + self.readback.size()
-            + error;
-        MethodBytes { cpu: 0, gpu }
+            + error
+            + self.atlas.reserved_bytes()
     }
 
     fn gpu_bytes(&self) -> u64 {
-        self.shared_bytes().gpu + self.atlas.len() as u64 * self.atlas.slot_bytes()
+        self.own_gpu_bytes() + self.atlas.bytes()
     }
 }
 

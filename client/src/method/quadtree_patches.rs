@@ -1153,6 +1153,15 @@ impl LodMethod for QuadtreePatches {
     fn gpu_bytes(&self) -> u64 {
         self.shared_bytes().gpu + self.ready.values().map(Ready::gpu_bytes).sum::<u64>()
     }
+
+    /// The patch index (whether or not it has arrived: the manifest says how many entries
+    /// it has) and the uniforms of the last frame's patches.
+    fn reserved_bytes(&self, _viewport: [u32; 2]) -> u64 {
+        let shared = self.shared_bytes();
+        let index = (self.manifest.tile_count() * 64) as u64;
+        shared.total()
+            + index.saturating_sub(self.index.as_ref().map_or(0, |i| (i.len() * 64) as u64))
+    }
 }
 
 #[cfg(test)]

@@ -28,18 +28,21 @@ pub struct StripMasks {
     /// The planar shadow's bands ([`fillers::band_strip`]) by mask level and what each side
     /// faces, and the crack probe's (bands unprojected, down to the skirts' bottom) by mask
     /// level and shared sides, made as frames need them.
-    bands: HashMap<(u32, [Option<Across>; 4]), IndexSet>,
-    probes: HashMap<(u32, [bool; 4]), IndexSet>,
+    bands: HashMap<BandKey, (IndexSet, u64)>,
+    probes: HashMap<ProbeKey, (IndexSet, u64)>,
     /// The paper's planar shadow's four corners (`terrain_shaders::shadow_base`), made when
     /// first drawn.
     quad: Option<IndexSet>,
-    /// Frames drawn, and the last frame each mask level was drawn in: index sets unused
-    /// for [`KEEP_UNUSED_FRAMES`] are dropped.
+    /// Frames drawn, and the last frame each mask level was drawn in: a level's strip and
+    /// skirts unused for [`KEEP_UNUSED_FRAMES`] are dropped; so is any band or probe (each
+    /// with the frame it was last drawn in).
     frame: u64,
     last_used: HashMap<u32, u64>,
+    /// [`LodMethod::reserved_bytes`], worked out when configured.
+    reserved: u64,
 }
 
-/// Frames an index set is kept after its level was last drawn.
+/// Frames an index set is kept after it (or its level) was last drawn.
 pub const KEEP_UNUSED_FRAMES: u64 = 30;
 
 impl StripMasks {
@@ -58,9 +61,27 @@ impl StripMasks {
             quad: None,
             frame: 0,
             last_used: HashMap::new(),
+            reserved: 0,
         };
         method.configure(config);
         method
+    }
+
+    /// [`LodMethod::reserved_bytes`] for the configured filler: the coarsest level's strip
+    /// (and skirts), or the paper's quad, with which every tile can be drawn; finer strips,
+    /// skirts and bands are made when the limit has room for them.
+    fn compute_reserved(&self) -> u64 {
+        let n = self.masks.tile_size();
+        let coarsest = self.masks.coarsest_level();
+        let index_bytes = |indices: usize| 4 * (indices as u64).max(1);
+        let filler = match self.filler {
+            _ if self.reference => 0,
+            CrackFiller::Skirts => index_bytes(fillers::skirt_strip(n, coarsest).len()),
+            CrackFiller::PlanarShadowPaper => index_bytes(4),
+            CrackFiller::None | CrackFiller::PlanarShadow | CrackFiller::CrackProbe => 0,
+        };
+        let strip = if self.reference { 0 } else { coarsest };
+        self.masks.bytes() + 4 * self.masks.strip_len(strip) as u64 + filler
     }
 
     /// What tile `id`, drawn at mask `level`, gives the shader this frame: the plane below it
@@ -137,23 +158,54 @@ impl StripMasks {
         frame: &mut Frame<'_>,
         layout: &plan::Layout,
         tiles: &[Candidate<'_>],
-        draws: &[plan::Draw],
+        draws: &mut [plan::Draw],
         filler: CrackFiller,
-    ) {
+        mut room: u64,
+    ) -> u32 {
         let gpu = frame.gpu().clone();
         let n = self.masks.tile_size();
         self.frame += 1;
-        for d in draws {
-            self.last_used.insert(d.level, self.frame);
-        }
         let now = self.frame;
+        // The level whose strip the reservation holds: every tile can be drawn with it.
+        let coarsest = if self.reference {
+            0
+        } else {
+            self.masks.coarsest_level()
+        };
+        let mut degraded = 0;
+        // The strips first: a level whose strip the limit has no room for is drawn with the
+        // finest strip held that is coarser, or the coarsest (which the reservation holds).
+        for d in draws.iter_mut() {
+            if !self.strips.contains_key(&d.level) {
+                let bytes = 4 * self.masks.strip_len(d.level) as u64;
+                if d.level != coarsest && !self.make_room(&mut room, bytes) {
+                    let held = self
+                        .strips
+                        .keys()
+                        .copied()
+                        .filter(|&l| l > d.level)
+                        .min()
+                        .unwrap_or(coarsest);
+                    d.level = held;
+                    degraded += 1;
+                }
+                let masks = &self.masks;
+                self.strips.entry(d.level).or_insert_with(|| {
+                    IndexSet::new(&gpu, &masks.build(d.level), masks.triangle_count(d.level))
+                });
+            }
+            self.last_used.insert(d.level, now);
+        }
         self.last_used
             .retain(|_, &mut used| now - used <= KEEP_UNUSED_FRAMES);
         let used = &self.last_used;
         self.strips.retain(|level, _| used.contains_key(level));
         self.skirts.retain(|level, _| used.contains_key(level));
-        self.bands.retain(|(level, _), _| used.contains_key(level));
-        self.probes.retain(|(level, _), _| used.contains_key(level));
+        self.bands
+            .retain(|_, (_, last)| now - *last <= KEEP_UNUSED_FRAMES);
+        self.probes
+            .retain(|_, (_, last)| now - *last <= KEEP_UNUSED_FRAMES);
+        let draws: &[plan::Draw] = draws;
         let sides = match filler {
             CrackFiller::PlanarShadow | CrackFiller::CrackProbe => {
                 sides_of(frame, layout, tiles, draws)
@@ -161,34 +213,49 @@ impl StripMasks {
             _ => vec![Sides::default(); draws.len()],
         };
         // Per draw, the filler's index set, if it draws one: the bands' or the probe's key.
+        // A filler set the limit has no room for is left out (its cracks may show).
         let mut band_key = vec![None; draws.len()];
         let mut probe_key = vec![None; draws.len()];
+        let mut skirted = vec![false; draws.len()];
         for (k, d) in draws.iter().enumerate() {
-            let masks = &self.masks;
-            self.strips.entry(d.level).or_insert_with(|| {
-                IndexSet::new(&gpu, &masks.build(d.level), masks.triangle_count(d.level))
-            });
             match filler {
                 CrackFiller::Skirts => {
-                    self.skirts.entry(d.level).or_insert_with(|| {
-                        IndexSet::new(
-                            &gpu,
-                            &fillers::skirt_strip(n, d.level),
-                            fillers::skirt_triangles(n, d.level),
-                        )
-                    });
+                    if !self.skirts.contains_key(&d.level) {
+                        let strip = fillers::skirt_strip(n, d.level);
+                        if d.level != coarsest
+                            && !self.make_room(&mut room, 4 * (strip.len() as u64).max(1))
+                        {
+                            degraded += 1;
+                            continue;
+                        }
+                        self.skirts.insert(
+                            d.level,
+                            IndexSet::new(&gpu, &strip, fillers::skirt_triangles(n, d.level)),
+                        );
+                    }
+                    skirted[k] = true;
                 }
                 CrackFiller::PlanarShadow => {
                     let across = sides[k].band.map(|b| b.map(Band::across));
                     if across.iter().any(Option::is_some) {
-                        self.bands.entry((d.level, across)).or_insert_with(|| {
-                            IndexSet::new(
+                        let key = (d.level, across);
+                        if !self.bands.contains_key(&key) {
+                            let strip = fillers::band_strip(n, d.level, across);
+                            if !self.make_room(&mut room, 4 * (strip.len() as u64).max(1)) {
+                                degraded += 1;
+                                continue;
+                            }
+                            let set = IndexSet::new(
                                 &gpu,
-                                &fillers::band_strip(n, d.level, across),
+                                &strip,
                                 fillers::band_triangles(n, d.level, across),
-                            )
-                        });
-                        band_key[k] = Some((d.level, across));
+                            );
+                            self.bands.insert(key, (set, now));
+                        }
+                        if let Some((_, last)) = self.bands.get_mut(&key) {
+                            *last = now;
+                        }
+                        band_key[k] = Some(key);
                     }
                 }
                 CrackFiller::CrackProbe => {
@@ -196,14 +263,24 @@ impl StripMasks {
                     if on.iter().any(|&on| on) {
                         // Along the tile's own polyline, whatever lies across.
                         let along = on.map(|on| on.then_some(Across::Seam));
-                        self.probes.entry((d.level, on)).or_insert_with(|| {
-                            IndexSet::new(
+                        let key = (d.level, on);
+                        if !self.probes.contains_key(&key) {
+                            let strip = fillers::band_strip(n, d.level, along);
+                            if !self.make_room(&mut room, 4 * (strip.len() as u64).max(1)) {
+                                degraded += 1;
+                                continue;
+                            }
+                            let set = IndexSet::new(
                                 &gpu,
-                                &fillers::band_strip(n, d.level, along),
+                                &strip,
                                 fillers::band_triangles(n, d.level, along),
-                            )
-                        });
-                        probe_key[k] = Some((d.level, on));
+                            );
+                            self.probes.insert(key, (set, now));
+                        }
+                        if let Some((_, last)) = self.probes.get_mut(&key) {
+                            *last = now;
+                        }
+                        probe_key[k] = Some(key);
                     }
                 }
                 CrackFiller::None | CrackFiller::PlanarShadowPaper => {}
@@ -231,14 +308,16 @@ impl StripMasks {
             .collect();
         let slots = frame.prepare_tiles(&tiles);
         let mut level_of = vec![0; tiles.len()];
+        let mut skirted_of = vec![false; tiles.len()];
         // Per slot, what is drawn after every surface: the tile's bands or its probe.
         let mut late_of: Vec<Option<&IndexSet>> = vec![None; tiles.len()];
         for (k, (d, slot)) in draws.iter().zip(&slots).enumerate() {
             if let Some(slot) = *slot {
                 level_of[slot] = d.level;
+                skirted_of[slot] = skirted[k];
                 late_of[slot] = match (band_key[k], probe_key[k]) {
-                    (Some(key), _) => Some(&self.bands[&key]),
-                    (None, Some(key)) => Some(&self.probes[&key]),
+                    (Some(key), _) => Some(&self.bands[&key].0),
+                    (None, Some(key)) => Some(&self.probes[&key].0),
                     (None, None) => None,
                 };
             }
@@ -251,8 +330,10 @@ impl StripMasks {
             let strip = &self.strips[&level];
             pass.draw(strip);
             pass.stats_mut().triangles += u64::from(strip.triangles);
-            if filler == CrackFiller::Skirts {
-                let skirt = &self.skirts[&level];
+            if filler == CrackFiller::Skirts
+                && skirted_of[slot]
+                && let Some(skirt) = self.skirts.get(&level)
+            {
                 pass.draw(skirt);
                 pass.stats_mut().filler_triangles += u64::from(skirt.triangles);
             }
@@ -282,7 +363,37 @@ impl StripMasks {
             }
             _ => {}
         }
+        drop(pass);
+        frame.stats_mut().degraded_draws += degraded;
+        degraded
     }
+
+    /// Takes `bytes` out of `room` for an index set about to be made, dropping sets the
+    /// frame does not use to make it if need be; `false` (nothing taken) when even that
+    /// leaves too little.
+    fn make_room(&mut self, room: &mut u64, bytes: u64) -> bool {
+        if *room < bytes {
+            *room += self.trim(bytes - *room);
+        }
+        if *room < bytes {
+            return false;
+        }
+        *room -= bytes;
+        true
+    }
+}
+
+/// A tile's bands: its mask level and what each side faces.
+type BandKey = (u32, [Option<Across>; 4]);
+/// A tile's crack probe: its mask level and which sides are shared.
+type ProbeKey = (u32, [bool; 4]);
+
+/// An index set [`LodMethod::trim`] may drop.
+#[derive(Debug, Clone, Copy)]
+enum Stale {
+    Band(BandKey),
+    Probe(ProbeKey),
+    Level(u32),
 }
 
 /// What lies across each side (north, east, south, west) of a drawn tile this frame.
@@ -468,6 +579,7 @@ impl LodMethod for StripMasks {
             self.lod = config.lod;
             self.filler = config.filler;
         }
+        self.reserved = self.compute_reserved();
     }
 
     fn uses_budget(&self) -> bool {
@@ -499,7 +611,21 @@ impl LodMethod for StripMasks {
         }
         let lod_ms = started.elapsed().as_secs_f64() * 1e3;
 
-        self.draw_levels(frame, input.layout, input.tiles, &plan.draws, self.filler);
+        let degraded = self.draw_levels(
+            frame,
+            input.layout,
+            input.tiles,
+            &mut plan.draws,
+            self.filler,
+            input.room,
+        );
+        if degraded > 0 {
+            plan.triangles = plan
+                .draws
+                .iter()
+                .map(|d| u64::from(self.masks.triangle_count(d.level)))
+                .sum();
+        }
         MethodOutput::of_plan(plan, lod_ms)
     }
 
@@ -510,11 +636,64 @@ impl LodMethod for StripMasks {
                 .strips
                 .values()
                 .chain(self.skirts.values())
-                .chain(self.bands.values())
-                .chain(self.probes.values())
+                .chain(self.bands.values().map(|(set, _)| set))
+                .chain(self.probes.values().map(|(set, _)| set))
                 .chain(&self.quad)
                 .map(IndexSet::bytes)
                 .sum(),
         }
+    }
+
+    /// The coarsest strip (the reference's: level 0, which it draws every tile with) and its
+    /// filler's: what every frame can be drawn with.
+    fn reserved_bytes(&self, _viewport: [u32; 2]) -> u64 {
+        self.reserved
+    }
+
+    /// Bands and probes the last frame did not draw, least recently drawn first; then the
+    /// strips and skirts of levels it did not draw.
+    fn trim(&mut self, bytes: u64) -> u64 {
+        let now = self.frame;
+        let mut stale: Vec<(u64, Stale)> = self
+            .bands
+            .iter()
+            .filter(|(_, (_, last))| *last < now)
+            .map(|(key, (_, last))| (*last, Stale::Band(*key)))
+            .chain(
+                self.probes
+                    .iter()
+                    .filter(|(_, (_, last))| *last < now)
+                    .map(|(key, (_, last))| (*last, Stale::Probe(*key))),
+            )
+            .collect();
+        stale.sort_by_key(|(last, _)| *last);
+        let mut levels: Vec<(u64, u32)> = self
+            .last_used
+            .iter()
+            .filter(|(_, last)| **last < now)
+            .map(|(level, last)| (*last, *level))
+            .collect();
+        levels.sort_unstable();
+        stale.extend(
+            levels
+                .into_iter()
+                .map(|(last, level)| (last, Stale::Level(level))),
+        );
+        let mut freed = 0;
+        for (_, item) in stale {
+            if freed >= bytes {
+                break;
+            }
+            freed += match item {
+                Stale::Band(key) => self.bands.remove(&key).map_or(0, |(set, _)| set.bytes()),
+                Stale::Probe(key) => self.probes.remove(&key).map_or(0, |(set, _)| set.bytes()),
+                Stale::Level(level) => {
+                    self.last_used.remove(&level);
+                    self.strips.remove(&level).map_or(0, |set| set.bytes())
+                        + self.skirts.remove(&level).map_or(0, |set| set.bytes())
+                }
+            };
+        }
+        freed
     }
 }

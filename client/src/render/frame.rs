@@ -75,6 +75,13 @@ pub struct RenderStats {
     pub texture_binds: u32,
     /// Tiles whose samples were uploaded to a pooled buffer this frame (they had none).
     pub sample_uploads: u32,
+    /// Resident tiles dropped at the frame's end to keep the memory limit, when the
+    /// method's buffers outgrew what the pager left it (`Scene::draw`).
+    pub squeezed_tiles: u32,
+    /// Tiles drawn coarser than chosen, or without their crack filler or stitching, because
+    /// the memory limit had no room for the index set they needed
+    /// ([`crate::method::MethodInput::room`]).
+    pub degraded_draws: u32,
     /// CPU time of uniforms, command encoding and submission.
     pub encode_ms: f64,
     /// GPU time of the render passes of the latest frame whose timestamps have been read

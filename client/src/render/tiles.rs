@@ -29,6 +29,9 @@ pub const TERRAIN_LABEL: &str = "terrain/";
 /// Labels of the allocations made here.
 pub mod label {
     pub const SAMPLES: &str = "terrain/sample arena";
+    /// The arena while it holds no slot: a 4-byte buffer so that its binding is never
+    /// empty, part of the renderer's fixed cost, not the terrain's.
+    pub const EMPTY_SAMPLES: &str = "empty sample arena";
     pub const TEXTURE: &str = "terrain/tile texture";
     pub const BLOCK: &str = "terrain/map block";
 }
@@ -769,7 +772,11 @@ fn blocks_mut(blocks: &mut Option<Blocks>) -> &mut Blocks {
 /// empty).
 fn arena_buffer(device: &wgpu::Device, slots: u64, slot_bytes: u64) -> wgpu::Buffer {
     device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label::SAMPLES),
+        label: Some(if slots == 0 {
+            label::EMPTY_SAMPLES
+        } else {
+            label::SAMPLES
+        }),
         size: (slots * slot_bytes).max(4),
         usage: wgpu::BufferUsages::STORAGE
             | wgpu::BufferUsages::COPY_DST
