@@ -53,18 +53,15 @@ done
 kill "$server"; wait "$server" 2>/dev/null || true
 
 echo "== frame-rate controller: rendered flights holding a target frame rate"
-"$bin/terrain-server" build tests/fixtures/jacksboro/jacksboro_fault_dem.png --out "$out/db/jacksboro" --force --quiet --no-web
-for dataset in jacksboro puget_sound_1k; do
-  "$bin/terrain-server" serve "$out/db/$dataset" --addr 127.0.0.1:0 >"$out/server.stdout" 2>"$out/server.log" &
-  server=$!
-  url=
-  for _ in $(seq 200); do
-    url=$(sed -n 's/^listening on //p' "$out/server.stdout"); [ -n "$url" ] && break; sleep 0.05
-  done
-  for fps in 30 60; do
-    echo "-- $dataset, target $fps fps"
-    "$bin/terrain-client" fly --server "$url" --memory 16MiB --target-fps "$fps" \
-      --out "$out/fps-$dataset-$fps" --frame-every 0 --quiet
-  done
-  kill "$server"; wait "$server" 2>/dev/null || true
+cargo bench -p terrain-tests --bench controller -- "$out/controller" 2>/dev/null
+echo "== memory per method: the limit, and what the process holds beside it"
+cargo bench -p terrain-tests --bench memory -- "$out/memory" 2>/dev/null
+
+# The generated tables into the documents, stamped with this run's commit, machine and date.
+for table in controller/controller.md controller/controller.csv memory/memory.md memory/memory.csv; do
+  cp "$out/$table" docs/benchmarks/
 done
+cp "$out/controller/jacksboro-60fps-16MiB-planar-shadow/render.png" docs/images/frame-rate-jacksboro-60.png
+cp "$out/controller/jacksboro-30fps-16MiB-planar-shadow/render.png" docs/images/frame-rate-jacksboro-planar-shadow.png
+bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/controller.md
+bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/memory.md

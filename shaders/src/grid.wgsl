@@ -83,10 +83,10 @@ const WARP_LINES: u32 = 33u;
 const UNCOVERED: f32 = 2.0;
 
 @group(0) @binding(0) var<uniform> frame: Frame;
-// A read-only storage buffer, not a uniform one: lavapipe inlines the uniform values that
-// loop bounds depend on and compiles a variant of the shader whenever they change, every
-// frame here, and never frees the old ones (the process grew by 1.8 to 4.3 MB a frame,
-// flight.csv's rss_bytes). Storage is never inlined; the values read are the same.
+// A read-only storage buffer, not a uniform one: with the grid's parameters in a uniform
+// buffer, rewritten every frame, lavapipe made the process grow by 1.8 to 4.3 MB a frame
+// (flight.csv's rss_bytes; heap and GPU allocations flat), and does not from a storage
+// buffer. The values read are the same; see `footprint_of` for the one care they need.
 @group(1) @binding(0) var<storage, read> grid: Grid;
 @group(1) @binding(1) var<storage, read> atlas: array<f32>;
 @group(1) @binding(2) var<storage, read> table: array<u32>;
@@ -414,10 +414,13 @@ fn shade(albedo: vec3<f32>, normal: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(albedo * (ambient + (1.0 - ambient) * lambert), 1.0);
 }
 
-// The footprint of a pixel at render-space `p`, in level-0 samples.
+// The footprint of a pixel at render-space `p`, in level-0 samples. The derivatives are
+// of `p` alone, scaled after: llvmpipe masks storage loads in the helper pixels of a quad
+// (they read 0), so a derivative of anything read from `grid` is noise there.
 fn footprint_of(p: vec3<f32>) -> vec2<f32> {
-    let s = vec2<f32>(p.x, p.z) / grid.spacing.xy;
-    return vec2<f32>(length(dpdx(s)), length(dpdy(s)));
+    let dx = dpdx(vec2<f32>(p.x, p.z)) / grid.spacing.xy;
+    let dy = dpdy(vec2<f32>(p.x, p.z)) / grid.spacing.xy;
+    return vec2<f32>(length(dx), length(dy));
 }
 
 @fragment

@@ -4,6 +4,7 @@ mod accuracy;
 mod browser;
 mod build;
 mod client_cli;
+mod docs;
 mod fetcher;
 mod flight;
 mod fuzz_corpora;

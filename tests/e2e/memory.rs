@@ -341,9 +341,9 @@ fn no_method_makes_the_process_grow_frame_after_frame() {
         let rows = read_csv(&out.join("flight.csv"));
         let rss = |k: usize| number(&rows[k], "rss_bytes");
         // Once every tile is in (nothing in flight, the tiles as at the end) and two seconds
-        // have passed (the method's own data meshed), what grows grows with the frames:
-        // lavapipe compiling a shader a frame, as it did for the grids when their
-        // parameters were a uniform buffer (1.8 to 4.3 MB a frame).
+        // have passed (the method's own data meshed), what grows grows with the frames, as
+        // lavapipe's memory did with the grids while their parameters were a uniform
+        // buffer rewritten every frame (1.8 to 4.3 MB a frame, heap and GPU flat).
         let last = rows.last().expect("frames");
         let settled = rows
             .iter()
