@@ -47,7 +47,9 @@ fn main() {
             "puget_sound_1k".to_string(),
             PathBuf::from(kit).join("puget_sound_1k/ps_height_1k.png"),
         )),
-        None => eprintln!("note: TERRAIN_DATA_DIR is not set: jacksboro only (Puget Sound NOT RUN)"),
+        None => {
+            eprintln!("note: TERRAIN_DATA_DIR is not set: jacksboro only (Puget Sound NOT RUN)")
+        }
     }
     let mut adapter = String::new();
     let mut md = String::new();
@@ -61,15 +63,24 @@ fn main() {
             web: false,
             ..BuildOptions::new(input, out.join("db").join(name))
         };
-        let report = build(&options, &|_, _| {}, &std::sync::atomic::AtomicBool::new(false))
-            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let report = build(
+            &options,
+            &|_, _| {},
+            &std::sync::atomic::AtomicBool::new(false),
+        )
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
         let server = TestServer::start(&report.out);
         for (target, memory, filler) in FLIGHTS {
             let dir = out.join(format!("{name}-{target}fps-{memory}-{filler}"));
             let _ = std::fs::remove_dir_all(&dir);
             let output = Command::new(workspace_binary("terrain-client"))
                 .args(["fly", "--server", server.base_url(), "--memory", memory])
-                .args(["--target-fps", &target.to_string(), "--crack-filler", filler])
+                .args([
+                    "--target-fps",
+                    &target.to_string(),
+                    "--crack-filler",
+                    filler,
+                ])
                 .args(["--frame-every", "0", "--quiet", "--out"])
                 .arg(&dir)
                 .env("RUST_LOG", "warn")
@@ -81,7 +92,10 @@ fn main() {
                 "{name} {target} fps: {}",
                 String::from_utf8_lossy(&output.stderr)
             );
-            if let Some(a) = stdout.lines().find_map(|l| l.trim().strip_prefix("adapter")) {
+            if let Some(a) = stdout
+                .lines()
+                .find_map(|l| l.trim().strip_prefix("adapter"))
+            {
                 adapter = a.trim().to_string();
             }
             let f = measure(&dir.join("flight.csv"), f64::from(target));
@@ -186,7 +200,11 @@ fn measure(csv: &Path, target: f64) -> FrameRate {
         .map(|c| ((c[0].0 + c[1].0) - (c[0].1 + c[1].1)).abs() / (c[0].1 + c[1].1).max(1e-9))
         .collect();
     errors.sort_by(f64::total_cmp);
-    let at = |v: &[f64], q: f64| v.get(((v.len() as f64 * q) as usize).min(v.len().saturating_sub(1))).copied().unwrap_or(0.0);
+    let at = |v: &[f64], q: f64| {
+        v.get(((v.len() as f64 * q) as usize).min(v.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(0.0)
+    };
     FrameRate {
         frames: rows.len(),
         median: at(&sorted, 0.5),
@@ -196,7 +214,10 @@ fn measure(csv: &Path, target: f64) -> FrameRate {
             sorted.last().copied().unwrap_or(0.0),
         ),
         error: (at(&errors, 0.5), at(&errors, 0.9)),
-        triangles: rows.iter().filter_map(|r| number(r, triangles)).sum::<f64>()
+        triangles: rows
+            .iter()
+            .filter_map(|r| number(r, triangles))
+            .sum::<f64>()
             / rows.len().max(1) as f64,
         rss: rows
             .iter()

@@ -570,3 +570,120 @@ fn maplibre_and_cesium_read_an_srtm_geotiff_as_its_source_says() {
         "lon=-121.76&lat=46.60&height=12000&heading=0&pitch=-30",
     );
 }
+
+#[test]
+fn maplibre_at_a_high_dem_edge_draws_the_surface_level_with_it_not_a_wall() {
+    let test = "maplibre_at_a_high_dem_edge_draws_the_surface_level_with_it_not_a_wall";
+    if !browser_ready(test) {
+        return;
+    }
+    let (width, height, codes) = png_codes(&jacksboro());
+    let source = Source {
+        width,
+        height,
+        metres: codes.iter().map(|&c| Some(f64::from(c))).collect(),
+        origin: (-84.41375, 36.73292),
+        step: (0.000_833_333_333_333_333_4, 0.000_833_333_333_333_333_4),
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    build_db(&jacksboro(), &db);
+    let server = serve(&db, tmp.path(), &[]);
+    let base = server.base_url();
+    let max_zoom = fetch_json(&format!("{base}/v1/terrarium.json"))["maxzoom"]
+        .as_u64()
+        .expect("maxzoom") as u32;
+    // The highest of the four edges, by the mean of its samples.
+    let edge_mean = |samples: Vec<(u32, u32)>| {
+        samples
+            .iter()
+            .filter_map(|&(c, r)| source.at(c, r))
+            .sum::<f64>()
+            / samples.len() as f64
+    };
+    let (w, h) = (width - 1, height - 1);
+    let edges: [(&str, Vec<(u32, u32)>); 4] = [
+        ("north", (0..=w).map(|c| (c, 0)).collect()),
+        ("south", (0..=w).map(|c| (c, h)).collect()),
+        ("west", (0..=h).map(|r| (0, r)).collect()),
+        ("east", (0..=h).map(|r| (w, r)).collect()),
+    ];
+    let (side, samples) = edges
+        .into_iter()
+        .max_by(|a, b| edge_mean(a.1.clone()).total_cmp(&edge_mean(b.1.clone())))
+        .expect("four edges");
+    let mean = edge_mean(samples.clone());
+    // Points two samples outside the edge at ten places along its middle half, and the edge
+    // sample each faces.
+    let (dc, dr) = match side {
+        "north" => (0.0, -2.0),
+        "south" => (0.0, 2.0),
+        "west" => (-2.0, 0.0),
+        _ => (2.0, 0.0),
+    };
+    let along: Vec<(u32, u32)> = (0..10)
+        .map(|k| samples[samples.len() / 4 + k * samples.len() / 20])
+        .collect();
+    let points: Vec<(f64, f64)> = along
+        .iter()
+        .map(|&(c, r)| {
+            (
+                source.origin.0 + (f64::from(c) + dc) * source.step.0,
+                source.origin.1 - (f64::from(r) + dr) * source.step.1,
+            )
+        })
+        .collect();
+    let (lon, lat) = source.lon_lat(along[5].0, along[5].1);
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/browser/jacksboro-edge");
+    let _ = std::fs::remove_dir_all(&out);
+    let top = run_page(
+        "maplibre-edge-top",
+        &page(
+            base,
+            &format!(
+                "client=maplibre&texture=0&lon={lon}&lat={lat}&zoom={}",
+                max_zoom + 1
+            ),
+        ),
+        &points,
+        &out,
+    );
+    let pixel_m = 2.0 * std::f64::consts::PI * 6_378_137.0 * lat.to_radians().cos()
+        / (256.0 * f64::from(1u32 << max_zoom));
+    let spacing_m = source.step.1.to_radians() * 6_378_137.0;
+    let radius = pixel_m / spacing_m + 3.0;
+    let mut worst = 0.0f64;
+    for (&(c, r), got) in along.iter().zip(&top.elevations) {
+        let got = got.unwrap_or_else(|| panic!("MapLibre has no elevation off the {side} edge"));
+        let edge = source.at(c, r).expect("data");
+        // Off the terrain the surface stays at the edge's height (within what the samples
+        // near it spread over): before, it fell to 0 m, a wall of the edge's height.
+        let bound = source.spread(c, r, radius) + TERRARIUM_QUANTUM;
+        assert!(
+            (got - edge).abs() <= bound,
+            "two samples off the {side} edge at ({c}, {r}): MapLibre says {got:.1} m, the edge {edge} m (allowed {bound:.1} m)"
+        );
+        worst = worst.max((got - edge).abs());
+    }
+    println!(
+        "the {side} edge (mean {mean:.0} m): off it MapLibre's surface is within {worst:.1} m of the edge's height at 10 places"
+    );
+    // The picture: from over the terrain, low, looking out across the edge (a wall would
+    // stand there, as high as the edge).
+    let bearing = match side {
+        "north" => 0,
+        "south" => 180,
+        "west" => 270,
+        _ => 90,
+    };
+    let pitched = run_page(
+        "maplibre-edge",
+        &page(
+            base,
+            &format!("client=maplibre&lon={lon}&lat={lat}&zoom=11.5&pitch=72&bearing={bearing}"),
+        ),
+        &[],
+        &out,
+    );
+    terrain_tests::golden::compare("browser-jacksboro-maplibre-edge", &pitched.screenshot);
+}

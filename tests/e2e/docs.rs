@@ -46,5 +46,8 @@ fn every_generated_block_is_the_file_it_names() {
             rest = &after[after.find(&end).expect("closed") + end.len()..];
         }
     }
-    assert!(blocks >= 2, "{blocks} generated blocks: the memory and controller tables at least");
+    assert!(
+        blocks >= 2,
+        "{blocks} generated blocks: the memory and controller tables at least"
+    );
 }

@@ -594,3 +594,118 @@ async fn the_viewer_directory_is_the_only_one_served_and_never_left() {
         assert!(status == 404 || status == 400, "{target}: {status}");
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn srtm_voids_filled_at_the_finest_zoom_jump_no_more_than_the_terrain_around_them() {
+    let test =
+        "web::srtm_voids_filled_at_the_finest_zoom_jump_no_more_than_the_terrain_around_them";
+    let Some(tif) = terrain_tests::data::kit_file(test, "srtm_geotiff/mt_rainier_90m.tif") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    let summary = build(&tif, &db, &[]);
+    assert!(summary.contains("filled 9033 no-data samples"), "{summary}");
+    let server = TestServer::start(&db);
+    let base = server.base_url();
+    let tilejson = json(&format!("{base}/v1/terrarium.json")).await;
+    let template = tilejson["tiles"][0].as_str().expect("tile URL").to_string();
+    let z = tilejson["maxzoom"].as_u64().expect("maxzoom") as u32;
+    let bounds: Vec<f64> = tilejson["bounds"]
+        .as_array()
+        .expect("bounds")
+        .iter()
+        .map(|v| v.as_f64().expect("number"))
+        .collect();
+    let (w, h, samples) = terrain_tests::data::geotiff_i16(&tif);
+    let void = |c: i64, r: i64| {
+        c >= 0
+            && r >= 0
+            && c < i64::from(w)
+            && r < i64::from(h)
+            && samples[(r * i64::from(w) + c) as usize] == -32768
+    };
+    // The bounds are the corner samples' places: sample (c, r) of a pixel's centre.
+    let step = (
+        (bounds[2] - bounds[0]) / f64::from(w - 1),
+        (bounds[3] - bounds[1]) / f64::from(h - 1),
+    );
+    let tile = |lon: f64, lat: f64| {
+        let n = f64::from(1u32 << z);
+        let lat = lat.to_radians();
+        (
+            ((lon + 180.0) / 360.0 * n).floor() as u32,
+            ((1.0 - (lat.tan() + 1.0 / lat.cos()).ln() / std::f64::consts::PI) / 2.0 * n).floor()
+                as u32,
+        )
+    };
+    let (x0, y0) = tile(bounds[0], bounds[3]);
+    let (x1, y1) = tile(bounds[2], bounds[1]);
+    // Per pixel pair (east and south neighbours, both on the terrain), the jump between
+    // them, by where the pixels' four nearest samples are.
+    let (mut inside, mut away, mut pairs, mut inside_pairs) = (0.0f64, 0.0f64, 0u64, 0u64);
+    for ty in y0..=y1 {
+        for tx in x0..=x1 {
+            let url = template
+                .replace("{z}", &z.to_string())
+                .replace("{x}", &tx.to_string())
+                .replace("{y}", &ty.to_string());
+            let answer = get(&url).await;
+            assert_eq!(answer.status, 200, "{url}");
+            let image = image::load_from_memory(&answer.body)
+                .expect("PNG")
+                .to_rgb8();
+            let place = |i: u32, j: u32| {
+                let (lon, lat) = pixel_lon_lat(z, tx, ty, i, j);
+                let (c, r) = ((lon - bounds[0]) / step.0, (bounds[3] - lat) / step.1);
+                let on = c >= 0.0 && r >= 0.0 && c <= f64::from(w - 1) && r <= f64::from(h - 1);
+                let support = [
+                    (c.floor(), r.floor()),
+                    (c.ceil(), r.floor()),
+                    (c.floor(), r.ceil()),
+                    (c.ceil(), r.ceil()),
+                ];
+                let voids = support
+                    .iter()
+                    .filter(|&&(c, r)| void(c as i64, r as i64))
+                    .count();
+                (on, voids, terrarium_value(&image.get_pixel(i, j).0))
+            };
+            for j in 0..256 {
+                for i in 0..256 {
+                    let a = place(i, j);
+                    for (ni, nj) in [(i + 1, j), (i, j + 1)] {
+                        if ni == 256 || nj == 256 {
+                            continue;
+                        }
+                        let b = place(ni, nj);
+                        if !(a.0 && b.0) {
+                            continue;
+                        }
+                        let jump = (a.2 - b.2).abs();
+                        pairs += 1;
+                        // Inside: both pixels made of filled samples alone; away: neither
+                        // touching one. (On a void's rim a pixel mixes the two.)
+                        if a.1 == 4 && b.1 == 4 {
+                            inside = inside.max(jump);
+                            inside_pairs += 1;
+                        } else if a.1 == 0 && b.1 == 0 {
+                            away = away.max(jump);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    println!(
+        "zoom {z}: {pairs} neighbouring pixel pairs, {inside_pairs} inside filled voids; the largest jump inside them {inside:.1} m, away from them {away:.1} m"
+    );
+    assert!(
+        inside_pairs > 1000 && away > 0.0,
+        "both kinds of pairs were seen"
+    );
+    assert!(
+        inside <= away,
+        "a filled void jumps {inside:.1} m between neighbouring pixels, the terrain around it at most {away:.1} m"
+    );
+}

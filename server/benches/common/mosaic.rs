@@ -79,3 +79,66 @@ fn decode_to_raw(source: &Path) -> anyhow::Result<(u32, u32, File)> {
     let raw = raw.into_inner().context("cannot write the raw copy")?;
     Ok((width, height, raw))
 }
+
+#[allow(dead_code)] // Used by the build_memory bench, not by the mosaic example.
+/// Writes `source` (a 16-bit greyscale PNG) to `out` with voids punched in it, as SRTM's
+/// radar shadows are: discs of 1 to 25 samples' radius, and a few of 60, scattered by a
+/// fixed sequence until `share` of the samples are voids, each holding `nodata`. Returns the
+/// void samples. Memory: the source decoded whole (2 bytes a sample) and the void mask.
+pub fn write_with_voids(source: &Path, out: &Path, share: f64, nodata: u16) -> anyhow::Result<u64> {
+    let (width, height, mut raw) = decode_to_raw(source)?;
+    let (w, h) = (width as usize, height as usize);
+    let mut voids = vec![false; w * h];
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move |n: usize| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state % n as u64) as usize
+    };
+    let target = (share * (w * h) as f64) as usize;
+    let mut count = 0;
+    let mut disc = 0;
+    while count < target {
+        let r = if disc % 50 == 0 { 60 } else { 1 + next(25) };
+        disc += 1;
+        let (cx, cy) = (next(w), next(h));
+        for y in cy.saturating_sub(r)..(cy + r + 1).min(h) {
+            for x in cx.saturating_sub(r)..(cx + r + 1).min(w) {
+                let (dx, dy) = (x as f64 - cx as f64, y as f64 - cy as f64);
+                if dx.hypot(dy) <= r as f64 && !voids[y * w + x] {
+                    voids[y * w + x] = true;
+                    count += 1;
+                }
+            }
+        }
+    }
+    let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let mut encoder = png::Encoder::new(BufWriter::new(file), width, height);
+    encoder.set_color(png::ColorType::Grayscale);
+    encoder.set_depth(png::BitDepth::Sixteen);
+    encoder.set_compression(png::Compression::Balanced);
+    let mut writer = encoder
+        .write_header()
+        .context("cannot write the PNG header")?;
+    let mut stream = writer
+        .stream_writer()
+        .context("cannot start the PNG data")?;
+    raw.seek(SeekFrom::Start(0))?;
+    let mut row = vec![0u8; 2 * w];
+    for y in 0..h {
+        raw.read_exact(&mut row)
+            .context("cannot read the raw copy back")?;
+        for x in 0..w {
+            if voids[y * w + x] {
+                row[2 * x..2 * x + 2].copy_from_slice(&nodata.to_be_bytes());
+            }
+        }
+        stream
+            .write_all(&row)
+            .with_context(|| format!("cannot write {}", out.display()))?;
+    }
+    stream.finish().context("cannot finish the PNG data")?;
+    writer.finish().context("cannot finish the PNG")?;
+    Ok(count as u64)
+}

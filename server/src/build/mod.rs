@@ -8,13 +8,14 @@
 //!
 //! **Memory.** A build holds a band of tile rows per level, never a whole level, so its
 //! memory grows with the raster's width and not with its height ([`levels`]). The heights
-//! are read twice, row by row ([`input::rows`]): a scan first, for what the first tile
-//! already depends on (a float raster's quantum, the heights' range that computed textures
-//! are tinted over, whether there are voids), then the build. Two things are held whole:
-//! a texture image (decoded once and resampled per tile; its size is the user's choice),
-//! and a raster with voids, because filling a void draws on the whole void, which may span
-//! any number of bands ([`voids`]); a void-free raster always streams. Formats the row
-//! reader does not handle (an interlaced PNG, say) are read whole too.
+//! are read row by row ([`input::rows`]): a scan first, for what the first tile already
+//! depends on (a float raster's quantum, the heights' range that computed textures are
+//! tinted over, whether there are voids), then, with voids, two passes that find and solve
+//! them region by region ([`voids`]: what they hold grows with the largest void, not with
+//! the raster), then the build, which puts the filled codes in place. One thing is held
+//! whole: a texture image (decoded once and resampled per tile; its size is the user's
+//! choice). Formats the row reader does not handle (an interlaced PNG, say) are read whole,
+//! and filled by the same passes over their rows.
 //!
 //! Precedence of metadata: command-line flags, then the file itself (GeoTIFF tags, `.hgt`
 //! name), then a `dataset.json` beside the input, then defaults (with a warning).
@@ -311,11 +312,22 @@ pub enum BuildWarning {
 impl fmt::Display for BuildWarning {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            BuildWarning::FilledVoids(r) => write!(
-                f,
-                "filled {} no-data samples in {} voids (largest: {} samples) from their neighbours",
-                r.samples, r.regions, r.largest_region
-            ),
+            BuildWarning::FilledVoids(r) => {
+                write!(
+                    f,
+                    "filled {} no-data samples in {} voids (largest: {} samples) with the thin-plate membrane of their rims",
+                    r.samples, r.regions, r.largest_region
+                )?;
+                if r.unconverged > 0 {
+                    write!(
+                        f,
+                        "; {} of them stopped at the iteration cap short of {} code steps",
+                        r.unconverged,
+                        voids::TOLERANCE
+                    )?;
+                }
+                Ok(())
+            }
             BuildWarning::OutOfRangeAsNodata { samples } => write!(
                 f,
                 "{samples} float samples no height code holds were taken as no-data (--out-of-range nodata)"
@@ -661,20 +673,50 @@ struct HeightsInput {
 fn open_heights(path: &Path, options: &input::ReadOptions) -> Result<HeightsInput, BuildError> {
     if let Some(reader) = input::rows::open(path, options)? {
         let scan = reader.scan()?;
-        if scan.voids == 0 {
-            return Ok(HeightsInput {
-                width: scan.header.width,
-                height: scan.header.height,
-                quantum_m: scan.quantum_m,
-                offset_m: 0.0,
-                georeference: scan.header.georeference.clone(),
-                spacing_m: scan.header.spacing_m,
-                out_of_range_voids: 0,
-                code_range: scan.code_range,
-                rows: CodeRows::stream(&scan)?,
-                filled: None,
-            });
+        let (width, height) = (scan.header.width, scan.header.height);
+        let mut rows = CodeRows::stream(&scan)?;
+        let mut code_range = scan.code_range;
+        let mut filled = None;
+        if scan.voids > 0 {
+            // Voids are found in one more pass over the rows, solved region by region in
+            // another, and put in place as the build reads them (`voids`): the raster is
+            // never held whole.
+            let mut labeler = voids::Labeler::new();
+            let mut find = CodeRows::stream(&scan)?;
+            while let Some((_, v)) = find.next_row_with_voids()? {
+                labeler.push(v);
+            }
+            let mut solving = CodeRows::stream(&scan)?;
+            // The filled codes wait in an anonymous file of the system's temporary
+            // directory: its errors name that directory.
+            let spill = |source| input::InputError::Io {
+                path: std::env::temp_dir(),
+                source,
+            };
+            let store = voids::Store::file().map_err(spill)?;
+            let fills = voids::solve(labeler.finish(), width, height, store, spill, || {
+                solving
+                    .next_row_with_voids()
+                    .map(|row| row.map(|(c, v)| (c.to_vec(), v.to_vec())))
+            })?;
+            if let Some((low, high)) = fills.code_range() {
+                code_range = (code_range.0.min(low), code_range.1.max(high));
+            }
+            filled = fills.report();
+            rows = rows.with_fills(fills.stream());
         }
+        return Ok(HeightsInput {
+            width,
+            height,
+            quantum_m: scan.quantum_m,
+            offset_m: 0.0,
+            georeference: scan.header.georeference.clone(),
+            spacing_m: scan.header.spacing_m,
+            out_of_range_voids: scan.out_of_range_voids,
+            code_range,
+            rows,
+            filled,
+        });
     }
     let mut raster = input::read_heights(path, options)?;
     let (width, height) = (raster.width, raster.height);

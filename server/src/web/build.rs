@@ -115,6 +115,19 @@ impl Frame {
         self.sample_near(lon, lat, 1e-6)
     }
 
+    /// Level-0 sample coordinates of the point of the raster nearest `(lon, lat)`, on it or
+    /// off it: where a web tile off the terrain takes its height, so that the surface ends
+    /// level with the DEM's edge instead of falling to 0 m (a wall kilometres high at a
+    /// high edge in MapLibre, a floating slab in Cesium).
+    fn sample_clamped(&self, lon: f64, lat: f64) -> Result<(f64, f64), WebError> {
+        let [w, s, e, n] = self.bounds;
+        let (c, r) = self.placement.to_sample(lon.clamp(w, e), lat.clamp(s, n))?;
+        Ok((
+            c.clamp(0.0, self.width - 1.0),
+            r.clamp(0.0, self.height - 1.0),
+        ))
+    }
+
     /// Level-0 sample coordinates of `(lon, lat)` if it lies on the raster or within
     /// `reach` samples of it, clamped onto the raster.
     fn sample_near(&self, lon: f64, lat: f64, reach: f64) -> Result<Option<(f64, f64)>, WebError> {
@@ -153,7 +166,11 @@ fn xyz_tile(frame: &Frame, t: TileXyz, sampler: &mut Sampler) -> Result<Made, We
                     sampler.height(level, c, r)?,
                     Some(sampler.colour(level, c, r)?),
                 ),
-                None => (0.0, None),
+                // Off the terrain: the nearest edge's height, no colour (transparent).
+                None => {
+                    let (c, r) = frame.sample_clamped(lon, lat)?;
+                    (sampler.height(level, c, r)?, None)
+                }
             };
             terr[k * 3..k * 3 + 3].copy_from_slice(&terrarium(h));
             rgb[k * 3..k * 3 + 3].copy_from_slice(&terrain_rgb(h));
@@ -225,9 +242,16 @@ fn mesh_tile(
         for c in 0..side {
             let lon = west + d * f64::from(c) / f64::from(side - 1);
             let lat = north - d * f64::from(r) / f64::from(side - 1);
-            if let Some((col, row)) = frame.sample_near(lon, lat, reach)? {
-                grid[(r * side + c) as usize] = sampler.height(level, col, row)?;
-                any = true;
+            match frame.sample_near(lon, lat, reach)? {
+                Some((col, row)) => {
+                    grid[(r * side + c) as usize] = sampler.height(level, col, row)?;
+                    any = true;
+                }
+                // Off the terrain: the nearest edge's height (see `sample_clamped`).
+                None => {
+                    let (col, row) = frame.sample_clamped(lon, lat)?;
+                    grid[(r * side + c) as usize] = sampler.height(level, col, row)?;
+                }
             }
         }
     }

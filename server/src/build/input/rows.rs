@@ -249,15 +249,25 @@ impl IntScan {
     }
 }
 
+/// A row's codes and which of them are voids.
+pub type RowWithVoids<'a> = (&'a [i32], &'a [bool]);
+
 /// Rows of height codes for the builder: a streamed file converted as its [`Scan`] decided,
-/// or a raster held whole.
+/// or a raster held whole. A streamed file with voids gives them filled, once its fills are
+/// given ([`CodeRows::with_fills`]); before, [`CodeRows::next_row_with_voids`] gives the rows
+/// as the file holds them, voids marked, for the passes that find and solve the voids.
 #[derive(Debug)]
 pub struct CodeRows {
     /// The file, for messages (empty for a raster in memory).
     path: PathBuf,
     source: Source,
     row: Vec<i32>,
+    voids: Vec<bool>,
     next: u32,
+    /// Void samples the scan counted, and those seen so far.
+    expected_voids: usize,
+    seen_voids: usize,
+    fills: Option<crate::build::voids::FillStream>,
 }
 
 #[derive(Debug)]
@@ -276,14 +286,14 @@ enum Source {
 }
 
 impl CodeRows {
-    /// Opens the scanned file again to read its codes. The file must have no voids: the
-    /// builder fills voids on the whole raster ([`crate::build::voids`]).
+    /// Opens the scanned file again to read its codes. A file with voids needs its fills
+    /// ([`CodeRows::with_fills`]) before [`CodeRows::next_row`].
     pub fn stream(scan: &Scan) -> Result<CodeRows, InputError> {
         let changed = || InputError::Changed {
             path: scan.path.clone(),
         };
         let reader = open(&scan.path, &scan.options)?.ok_or_else(changed)?;
-        if reader.header != scan.header || scan.voids > 0 {
+        if reader.header != scan.header {
             return Err(changed());
         }
         Ok(CodeRows {
@@ -294,8 +304,18 @@ impl CodeRows {
                 range: scan.code_range,
             },
             row: Vec::new(),
+            voids: Vec::new(),
             next: 0,
+            expected_voids: scan.voids,
+            seen_voids: 0,
+            fills: None,
         })
+    }
+
+    /// These rows with their voids filled by `fills` (found and solved over the same rows).
+    pub fn with_fills(mut self, fills: crate::build::voids::FillStream) -> CodeRows {
+        self.fills = Some(fills);
+        self
     }
 
     /// The rows of a raster in memory (`codes` row-major, `width` samples a row).
@@ -309,12 +329,52 @@ impl CodeRows {
                 height,
             },
             row: Vec::new(),
+            voids: Vec::new(),
             next: 0,
+            expected_voids: 0,
+            seen_voids: 0,
+            fills: None,
         }
     }
 
-    /// The next row of codes, north first; `None` after the last.
+    /// The next row of codes, north first, voids filled; `None` after the last.
     pub fn next_row(&mut self) -> Result<Option<&[i32]>, InputError> {
+        if matches!(self.source, Source::Memory { .. }) {
+            return self.next_memory_row();
+        }
+        if self.next_stream_row()?.is_none() {
+            return Ok(None);
+        }
+        // Every row goes through the fills, voids or not: they label the rows again as
+        // they pass, and a row left out would join the voids above and below it.
+        match &mut self.fills {
+            Some(fills) => {
+                fills
+                    .apply(&mut self.row, &self.voids)
+                    .map_err(|source| InputError::Io {
+                        path: std::env::temp_dir(),
+                        source,
+                    })?
+            }
+            None if self.voids.iter().any(|&v| v) => {
+                return Err(InputError::Changed {
+                    path: self.path.clone(),
+                });
+            }
+            None => {}
+        }
+        Ok(Some(&self.row))
+    }
+
+    /// The next row as the file holds it, its void samples marked (their codes 0); `None`
+    /// after the last. Streamed files only.
+    pub fn next_row_with_voids(&mut self) -> Result<Option<RowWithVoids<'_>>, InputError> {
+        Ok(self
+            .next_stream_row()?
+            .map(|()| (self.row.as_slice(), self.voids.as_slice())))
+    }
+
+    fn next_memory_row(&mut self) -> Result<Option<&[i32]>, InputError> {
         let y = self.next;
         match &mut self.source {
             Source::Memory {
@@ -328,37 +388,57 @@ impl CodeRows {
                 self.next += 1;
                 Ok(codes.get(y as usize * *width..(y as usize + 1) * *width))
             }
-            Source::Stream {
-                reader,
-                floats,
-                range: (low, high),
-            } => {
-                let Some(raw) = reader.next_raw()? else {
-                    return Ok(None);
-                };
-                self.row.clear();
-                let in_range = |c: i32| (*low..=*high).contains(&c);
-                let converted = match (raw, floats) {
-                    (RawRow::Int(codes, nodata), None) => codes.iter().all(|&c| {
-                        self.row.push(c);
-                        !nodata.is_void(c) && in_range(c)
-                    }),
-                    (RawRow::Float(values, nodata), Some(floats)) => values.iter().all(|&v| {
-                        let code = (!nodata.is_void(v)).then(|| floats.code(v)).flatten();
-                        self.row.push(code.unwrap_or(0));
-                        code.is_some_and(in_range)
-                    }),
-                    _ => false,
-                };
-                if !converted {
-                    return Err(InputError::Changed {
-                        path: self.path.clone(),
-                    });
-                }
-                self.next += 1;
-                Ok(Some(&self.row))
-            }
+            // Only rasters in memory come here (`next_row`).
+            Source::Stream { .. } => Ok(None),
         }
+    }
+
+    /// Reads the next streamed row into `row` and `voids`; `None` after the last.
+    fn next_stream_row(&mut self) -> Result<Option<()>, InputError> {
+        let Source::Stream {
+            reader,
+            floats,
+            range: (low, high),
+        } = &mut self.source
+        else {
+            return Ok(None);
+        };
+        let changed = || InputError::Changed {
+            path: self.path.clone(),
+        };
+        let Some(raw) = reader.next_raw()? else {
+            // Every void the scan counted, no more, no fewer.
+            if self.seen_voids != self.expected_voids {
+                return Err(changed());
+            }
+            return Ok(None);
+        };
+        self.row.clear();
+        self.voids.clear();
+        let in_range = |c: i32| (*low..=*high).contains(&c);
+        let converted = match (raw, floats) {
+            (RawRow::Int(codes, nodata), None) => codes.iter().all(|&c| {
+                let void = nodata.is_void(c);
+                self.row.push(if void { 0 } else { c });
+                self.voids.push(void);
+                void || in_range(c)
+            }),
+            (RawRow::Float(values, nodata), Some(floats)) => values.iter().all(|&v| {
+                // No-data, and a value no code holds (refused by the scan unless made a
+                // void there), are voids.
+                let code = (!nodata.is_void(v)).then(|| floats.code(v)).flatten();
+                self.row.push(code.unwrap_or(0));
+                self.voids.push(code.is_none());
+                code.is_none_or(in_range)
+            }),
+            _ => false,
+        };
+        self.seen_voids += self.voids.iter().filter(|&&v| v).count();
+        if !converted || self.seen_voids > self.expected_voids {
+            return Err(changed());
+        }
+        self.next += 1;
+        Ok(Some(()))
     }
 }
 
