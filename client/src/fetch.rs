@@ -22,8 +22,17 @@ pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// room for a slow link without letting a stuck server hold a request forever.
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
 /// How much of an error response's body goes into [`FetchError::Http`]. The server's
-/// bodies are one short JSON object; anything longer is not meant for a person.
+/// bodies are one short JSON object; anything longer is not meant for a person, and no
+/// more of it is read.
 pub const MAX_ERROR_BODY: usize = 512;
+/// The largest manifest a client takes, unless told otherwise
+/// ([`TileClient::with_max_manifest_bytes`]): about a hundred bytes a tile, so a pyramid of
+/// two million tiles. A longer body (or one that says it will be) is refused as it arrives,
+/// not read to its end.
+pub const MAX_MANIFEST_BYTES: u64 = 256 << 20;
+/// The largest body whose size nothing states (a method's data without an index entry, a
+/// finer texture level fetched unverified), far above any tile's.
+pub const MAX_UNSIZED_BODY: u64 = 64 << 20;
 
 const USER_AGENT: &str = concat!("terrain-client/", env!("CARGO_PKG_VERSION"));
 
@@ -48,6 +57,8 @@ pub struct TileClient {
     /// (`http://host/terrain`) works too.
     base: String,
     http: reqwest::Client,
+    /// The most bytes a manifest may have ([`MAX_MANIFEST_BYTES`] by default).
+    max_manifest_bytes: u64,
 }
 
 /// Why a request did not produce verified content.
@@ -73,6 +84,15 @@ pub enum FetchError {
         url: String,
         status: reqwest::StatusCode,
         body: String,
+    },
+    /// The body is longer than it can be: its size is known (a tile's, from the manifest)
+    /// or capped (the manifest's), and the server said it would send more, or began to.
+    /// Refused without reading the rest, so an endless or oversized body costs no memory.
+    #[error("GET {url}: the body is longer than the {limit} bytes it can be{}", declared.map(|d| format!(" (Content-Length: {d})")).unwrap_or_else(|| " (cut off there)".into()))]
+    TooLarge {
+        url: String,
+        limit: u64,
+        declared: Option<u64>,
     },
     #[error("GET {url}: body has content hash {found}, the manifest says {expected}")]
     HashMismatch {
@@ -165,7 +185,15 @@ impl TileClient {
         Ok(TileClient {
             base: url.as_str().trim_end_matches('/').to_string(),
             http,
+            max_manifest_bytes: MAX_MANIFEST_BYTES,
         })
+    }
+
+    /// This client with manifests of at most `bytes` (a flight caps it at its memory
+    /// budget: a manifest it could not hold is refused as it arrives).
+    pub fn with_max_manifest_bytes(mut self, bytes: u64) -> TileClient {
+        self.max_manifest_bytes = bytes;
+        self
     }
 
     /// The server's base URL, without a trailing slash.
@@ -183,7 +211,7 @@ impl TileClient {
     /// [`FetchError::HashMismatch`], worth fetching again, like a damaged tile.
     pub async fn manifest(&self) -> Result<Manifest, FetchError> {
         let url = self.url(routes::MANIFEST);
-        let (body, etag) = self.get_tagged(&url).await?;
+        let (body, etag) = self.get_tagged(&url, self.max_manifest_bytes).await?;
         // A weak tag (`W/"..."`) names another representation (compressed); only a strong
         // one is the hash of these bytes.
         if let Some(expected) = etag.as_deref().and_then(|tag| tag.strip_prefix('"')) {
@@ -233,15 +261,28 @@ impl TileClient {
         let url = self.url(&routes::texture(&manifest.content_version, id, level));
         match expected {
             Some(blob) => self.get_verified(url, blob).await,
-            None => self.get(&url).await,
+            // Unverified: the coarsest level, whose size the manifest gives.
+            None => {
+                let limit = match level {
+                    0 => record(manifest, id)?.coarsest_texture_bytes,
+                    _ => MAX_UNSIZED_BODY,
+                };
+                self.get(&url, limit).await
+            }
         }
     }
 
     /// Fetches the body at `path` (a route of [`terrain_shared::routes`]), verified against
-    /// `hash` (BLAKE3, first 128 bits, hex) when given.
-    pub async fn blob(&self, path: &str, hash: Option<&str>) -> Result<Bytes, FetchError> {
+    /// `hash` (BLAKE3, first 128 bits, hex) when given, of at most `bytes` bytes when its
+    /// size is known ([`MAX_UNSIZED_BODY`] when not).
+    pub async fn blob(
+        &self,
+        path: &str,
+        hash: Option<&str>,
+        bytes: Option<u64>,
+    ) -> Result<Bytes, FetchError> {
         let url = self.url(path);
-        let body = self.get(&url).await?;
+        let body = self.get(&url, bytes.unwrap_or(MAX_UNSIZED_BODY)).await?;
         if let Some(expected) = hash {
             verify_hash(&url, &body, expected)?;
         }
@@ -249,31 +290,39 @@ impl TileClient {
     }
 
     async fn get_verified(&self, url: String, blob: &Blob) -> Result<Bytes, FetchError> {
-        let body = self.get(&url).await?;
+        let body = self.get(&url, blob.bytes).await?;
         verify_hash(&url, &body, &blob.hash)?;
         Ok(body)
     }
 
-    /// One GET; a 4xx/5xx becomes [`FetchError::Http`] carrying the server's error body.
-    async fn get(&self, url: &str) -> Result<Bytes, FetchError> {
-        self.get_tagged(url).await.map(|(body, _)| body)
+    /// One GET of a body of at most `limit` bytes; a 4xx/5xx becomes [`FetchError::Http`]
+    /// carrying the start of the server's error body.
+    async fn get(&self, url: &str, limit: u64) -> Result<Bytes, FetchError> {
+        self.get_tagged(url, limit).await.map(|(body, _)| body)
     }
 
     /// [`TileClient::get`], with the response's `ETag` when it has one.
     #[tracing::instrument(level = "debug", skip(self), fields(status, bytes, ms))]
-    async fn get_tagged(&self, url: &str) -> Result<(Bytes, Option<String>), FetchError> {
+    async fn get_tagged(
+        &self,
+        url: &str,
+        limit: u64,
+    ) -> Result<(Bytes, Option<String>), FetchError> {
         let start = Instant::now();
         let transport = |source| FetchError::Transport {
             url: url.to_string(),
             source,
         };
-        let response = self.http.get(url).send().await.map_err(transport)?;
+        let mut response = self.http.get(url).send().await.map_err(transport)?;
         let status = response.status();
         let span = tracing::Span::current();
         span.record("status", status.as_u16());
         if status.is_client_error() || status.is_server_error() {
-            // The error body is best effort: the status alone already says what happened.
-            let body = response.bytes().await.unwrap_or_default();
+            // The error body is best effort (the status alone says what happened), and only
+            // its start is read.
+            let body = read_body(&mut response, MAX_ERROR_BODY as u64, true)
+                .await
+                .unwrap_or_default();
             let body = error_body_text(&body);
             tracing::debug!(%status, body, "error response");
             return Err(FetchError::Http {
@@ -287,12 +336,63 @@ impl TileClient {
             .get(reqwest::header::ETAG)
             .and_then(|tag| tag.to_str().ok())
             .map(str::to_string);
-        let body = response.bytes().await.map_err(transport)?;
+        let too_large = |declared| FetchError::TooLarge {
+            url: url.to_string(),
+            limit,
+            declared,
+        };
+        if let Some(declared) = response.content_length().filter(|&d| d > limit) {
+            return Err(too_large(Some(declared)));
+        }
+        let body = read_body(&mut response, limit, false)
+            .await
+            .map_err(|e| match e {
+                BodyError::Transport(source) => transport(source),
+                BodyError::TooLarge => too_large(None),
+            })?;
         span.record("bytes", body.len());
         span.record("ms", start.elapsed().as_millis() as u64);
         tracing::debug!("fetched");
         Ok((body, etag))
     }
+}
+
+/// Why [`read_body`] stopped.
+enum BodyError {
+    Transport(reqwest::Error),
+    TooLarge,
+}
+
+/// Reads `response`'s body a chunk at a time, never holding more than `limit` bytes: past
+/// them it stops, with the bytes so far when `truncate`, else [`BodyError::TooLarge`].
+async fn read_body(
+    response: &mut reqwest::Response,
+    limit: u64,
+    truncate: bool,
+) -> Result<Bytes, BodyError> {
+    let limit = usize::try_from(limit).unwrap_or(usize::MAX);
+    // The stated length when it fits, so a sized body is one allocation; else doubling,
+    // never past the limit, so a body cut off there never held more than `limit` bytes.
+    let stated = response
+        .content_length()
+        .and_then(|n| usize::try_from(n).ok());
+    let mut body = Vec::with_capacity(stated.unwrap_or(0).min(limit));
+    while let Some(chunk) = response.chunk().await.map_err(BodyError::Transport)? {
+        if body.len() + chunk.len() > limit {
+            if truncate {
+                body.extend_from_slice(&chunk[..limit - body.len()]);
+                break;
+            }
+            return Err(BodyError::TooLarge);
+        }
+        let needed = body.len() + chunk.len();
+        if needed > body.capacity() {
+            let grown = needed.max(body.len().saturating_mul(2)).min(limit);
+            body.reserve_exact(grown - body.len());
+        }
+        body.extend_from_slice(&chunk);
+    }
+    Ok(Bytes::from(body))
 }
 
 /// `error` and every cause under it, joined by `: `. Causes whose text the one above

@@ -64,6 +64,9 @@ pub struct FetcherConfig {
     pub backoff_max: Duration,
     /// Bodies of one blob that may fail their hash or decoding before it is reported.
     pub corrupt_attempts: u32,
+    /// The largest manifest taken ([`crate::fetch::MAX_MANIFEST_BYTES`] by default; a
+    /// flight takes no more than its memory budget).
+    pub max_manifest_bytes: u64,
 }
 
 impl Default for FetcherConfig {
@@ -74,6 +77,7 @@ impl Default for FetcherConfig {
             backoff_base: DEFAULT_BACKOFF_BASE,
             backoff_max: DEFAULT_BACKOFF_MAX,
             corrupt_attempts: DEFAULT_CORRUPT_ATTEMPTS,
+            max_manifest_bytes: crate::fetch::MAX_MANIFEST_BYTES,
         }
     }
 }
@@ -270,9 +274,11 @@ impl Fetcher {
         key: u32,
         path: String,
         hash: Option<String>,
+        bytes: Option<u64>,
         priority: u64,
     ) {
-        self.data.insert((id, key), DataSource { path, hash });
+        self.data
+            .insert((id, key), DataSource { path, hash, bytes });
         self.request(id, Want::Data(key), priority);
     }
 
@@ -536,6 +542,7 @@ impl FailureKind {
         }
         match error {
             FetchError::HashMismatch { .. }
+            | FetchError::TooLarge { .. }
             | FetchError::Decode { .. }
             | FetchError::TileBlob { .. }
             | FetchError::Manifest { .. } => FailureKind::Corrupt,
@@ -571,6 +578,7 @@ impl Request {
 struct DataSource {
     path: String,
     hash: Option<String>,
+    bytes: Option<u64>,
 }
 
 /// Queued requests, smallest priority key first, first come first served among equal keys.
@@ -864,8 +872,12 @@ impl Job {
             Want::Data(key) => Part::Data(key),
             _ => Part::Heights,
         };
-        self.counted(part, self.client.blob(&source.path, source.hash.as_deref()))
-            .await
+        self.counted(
+            part,
+            self.client
+                .blob(&source.path, source.hash.as_deref(), source.bytes),
+        )
+        .await
     }
 
     /// Runs one GET of `part`, counting the request and the body.

@@ -718,9 +718,14 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         .then(|| args.render.config())
         .transpose()?;
     let budget = args.stream.budget()?;
+    // A manifest the budget could not hold is refused as it arrives.
+    let fetcher_config = crate::fetcher::FetcherConfig {
+        max_manifest_bytes: budget.budget_bytes.min(crate::fetch::MAX_MANIFEST_BYTES),
+        ..args.stream.fetcher_config()
+    };
     let connection = Scene::connect(
         &args.stream.server,
-        args.stream.fetcher_config(),
+        fetcher_config,
         tokio::runtime::Handle::current(),
     )
     .await?;

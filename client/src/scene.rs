@@ -368,7 +368,8 @@ impl Scene {
         config: crate::fetcher::FetcherConfig,
         runtime: tokio::runtime::Handle,
     ) -> Result<Connection, crate::fetch::FetchError> {
-        let client = crate::fetch::TileClient::new(server)?;
+        let client = crate::fetch::TileClient::new(server)?
+            .with_max_manifest_bytes(config.max_manifest_bytes);
         let manifest = Arc::new(crate::fetcher::fetch_manifest(&client, &config).await?);
         let fetcher = Fetcher::new(client, Arc::clone(&manifest), config, runtime);
         Ok(Connection { manifest, fetcher })
@@ -1015,7 +1016,9 @@ impl Scene {
             }
             // After the tiles of this frame and the textures, in the order asked.
             let priority = (frame << 20) | (1 << 19) | (1 << 18);
-            fetcher.request_data(want.id, want.key, want.path, want.hash, priority);
+            fetcher.request_data(
+                want.id, want.key, want.path, want.hash, want.bytes, priority,
+            );
         }
     }
 

@@ -1,11 +1,14 @@
 //! The `terrain-client` release binary as a person or a script runs it, against a real
 //! server: what it prints on stdout and stderr, and its exit status, when its reader goes
-//! away, when a file cannot be read or written, when a tile keeps failing and when the
-//! memory limit cannot hold what the client needs.
+//! away, when a file cannot be read or written, when a tile keeps failing, when a body has
+//! no end and when the memory limit cannot hold what the client needs.
 
 use std::ffi::OsString;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
+use std::time::Duration;
+use terrain_client::fetch::MAX_MANIFEST_BYTES;
+use terrain_tests::child::{Watched, run_watched};
 use terrain_tests::data::{build_jacksboro, workspace_binary};
 use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
 use terrain_tests::server::TestServer;
@@ -178,4 +181,126 @@ fn a_memory_limit_below_what_the_client_needs_is_refused_at_start_with_the_budge
     let (stdout, stderr) = (text(&output.stdout), text(&output.stderr));
     assert_eq!(output.status.code(), Some(0), "--memory {least}: {stderr}");
     assert!(stdout.contains("never over it"), "{stdout}");
+}
+
+/// `terrain-client fetch` of `server` into `out`.
+fn fetch_command(server: &str, out: &Path) -> Command {
+    let mut command = Command::new(workspace_binary("terrain-client"));
+    command
+        .args(["fetch", "--server", server, "--out"])
+        .arg(out)
+        .env("RUST_LOG", "warn");
+    command
+}
+
+const MIB: u64 = 1 << 20;
+
+/// A server (or a proxy in front of one) that sends a tile or the manifest as a body
+/// without end, or says it will send a gigabyte: `fetch` and `fly --memory 64MiB` cut each
+/// off at the size it can be (the tile's from the manifest; the manifest's a cap, the
+/// memory budget for a flight) and end with a clear error, holding no more than the limit
+/// beyond what the same command holds against an honest server.
+#[test]
+fn an_endless_or_oversized_body_is_cut_off_within_the_memory_limit_with_a_clear_error() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let flight = still_flight(tmp.path());
+    const LIMIT: u64 = 64 * MIB;
+    const TILE: &str = "/levels/0/tiles/1/1/heights";
+    const MANIFEST: &str = "/v1/manifest.json";
+    let deadline = Duration::from_secs(120);
+    let fly = |server: &str, out: &str| {
+        fly_command(
+            server,
+            &tmp.path().join(out),
+            &flight,
+            &["--memory", "64MiB"],
+        )
+    };
+    let fetch = |server: &str, out: &str| fetch_command(server, &tmp.path().join(out));
+    // The fixed cost: each command against the honest server, through a proxy that passes
+    // everything (the same path for the bytes).
+    let honest = FaultyProxy::start(server.addr(), FaultPlan::pass_through());
+    let succeeded = |what: &str, run: &Watched| {
+        assert!(run.killed.is_none(), "{what}: killed, {:?}", run.killed);
+        assert_eq!(
+            run.output.status.code(),
+            Some(0),
+            "{what}: {}",
+            run.stderr()
+        );
+        run.peak_bytes
+    };
+    let fly_fixed = succeeded(
+        "fly",
+        &run_watched(fly(honest.base_url(), "honest-fly"), 4 * LIMIT, deadline),
+    );
+    let fetch_fixed = succeeded(
+        "fetch",
+        &run_watched(
+            fetch(honest.base_url(), "honest-fetch"),
+            4 * LIMIT,
+            deadline,
+        ),
+    );
+    for (fault, path) in [
+        (Fault::Endless, TILE),
+        (Fault::Oversized, TILE),
+        (Fault::Endless, MANIFEST),
+        (Fault::Oversized, MANIFEST),
+    ] {
+        let proxy = FaultyProxy::start(
+            server.addr(),
+            FaultPlan::rotation(&[fault]).only_paths_containing(path),
+        );
+        let what = format!("{fault:?} {path}");
+        // fly: within its limit beyond the fixed cost.
+        let bound = fly_fixed + LIMIT;
+        let run = run_watched(fly(proxy.base_url(), "fly"), bound, deadline);
+        let stderr = run.stderr();
+        assert!(
+            run.killed.is_none(),
+            "fly, {what}: killed, {:?}: {stderr}",
+            run.killed
+        );
+        assert!(
+            run.peak_bytes <= bound,
+            "fly, {what}: {} > {bound} bytes",
+            run.peak_bytes
+        );
+        assert!(
+            stderr.contains("the body is longer than"),
+            "fly, {what}: {stderr}"
+        );
+        // Without the manifest there is no flight; without a tile there is one, warned about.
+        let code = if path == MANIFEST { 1 } else { 0 };
+        assert_eq!(
+            run.output.status.code(),
+            Some(code),
+            "fly, {what}: {stderr}"
+        );
+        // fetch: no memory option; a body holds no more than its size or the manifest's cap.
+        let bound = fetch_fixed + MAX_MANIFEST_BYTES.max(LIMIT);
+        let run = run_watched(fetch(proxy.base_url(), "fetch"), bound, deadline);
+        let stderr = run.stderr();
+        assert!(
+            run.killed.is_none(),
+            "fetch, {what}: killed, {:?}: {stderr}",
+            run.killed
+        );
+        assert_eq!(run.output.status.code(), Some(1), "fetch, {what}: {stderr}");
+        assert!(
+            stderr.contains("the body is longer than"),
+            "fetch, {what}: {stderr}"
+        );
+        if path == TILE {
+            // A tile's body is cut off at the tile's size, a few kilobytes.
+            assert!(
+                run.peak_bytes <= fetch_fixed + 16 * MIB,
+                "fetch, {what}: {} bytes against {fetch_fixed} without the fault",
+                run.peak_bytes
+            );
+        }
+        assert!(proxy.stats().endless > 0, "{what}: the fault was served");
+    }
 }

@@ -418,6 +418,7 @@ impl LodMethod for OwnData {
                     key: 7,
                     path,
                     hash: Some(hash),
+                    bytes: None,
                 }
             })
             .collect()

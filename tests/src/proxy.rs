@@ -27,6 +27,8 @@ use tokio::time::Instant;
 pub const CHUNK_BYTES: usize = 16 * 1024;
 /// Depth of the shaped link's token bucket, in chunks (64 KiB: about 5 ms at 100 Mbit/s).
 pub const BURST_CHUNKS: usize = 4;
+/// The length an [`Fault::Oversized`] response states: far past any tile or manifest.
+pub const OVERSIZED_BYTES: u64 = 1 << 30;
 /// Longest request head read; the tile API's heads are a few hundred bytes.
 const MAX_HEAD_BYTES: usize = 64 * 1024;
 
@@ -46,6 +48,12 @@ pub enum Fault {
     /// A `500 Internal Server Error` with a short JSON body, as an overloaded server or a
     /// gateway in front of it answers; the request never reaches the server.
     ServerError,
+    /// A `200 OK` whose chunked body never ends: zeros, until the client goes away. The
+    /// request never reaches the server.
+    Endless,
+    /// A `200 OK` that says `Content-Length:` [`OVERSIZED_BYTES`] and sends zeros towards
+    /// it, until the client goes away. The request never reaches the server.
+    Oversized,
 }
 
 /// Which responses get which [`Fault`].
@@ -112,6 +120,8 @@ pub struct ProxyStats {
     pub truncated: u64,
     pub reset: u64,
     pub server_errors: u64,
+    /// Endless and oversized bodies begun.
+    pub endless: u64,
     /// Bytes written to clients, heads included.
     pub bytes_sent: u64,
 }
@@ -179,6 +189,7 @@ impl FaultyProxy {
             truncated: load(&counters.truncated),
             reset: load(&counters.reset),
             server_errors: load(&counters.server_errors),
+            endless: load(&counters.endless),
             bytes_sent: load(&counters.bytes_sent),
         }
     }
@@ -226,6 +237,7 @@ struct Counters {
     truncated: AtomicU64,
     reset: AtomicU64,
     server_errors: AtomicU64,
+    endless: AtomicU64,
     bytes_sent: AtomicU64,
 }
 
@@ -277,6 +289,7 @@ impl Shared {
             Fault::Truncate => &self.counters.truncated,
             Fault::Reset => &self.counters.reset,
             Fault::ServerError => &self.counters.server_errors,
+            Fault::Endless | Fault::Oversized => &self.counters.endless,
         };
         counter.fetch_add(1, Ordering::Relaxed);
     }
@@ -366,6 +379,12 @@ async fn proxy_one(
         shared.count(fault);
         return Ok(());
     }
+    if matches!(fault, Fault::Endless | Fault::Oversized) {
+        shared.count(fault);
+        // The client going away ends the body: what it read is all it will.
+        let _ = send_zeros(&mut client, fault == Fault::Endless, &shared).await;
+        return Ok(());
+    }
     if fault == Fault::ServerError {
         shared.count(fault);
         let body = r#"{"error":"internal server error (from the faulty proxy)","status":500}"#;
@@ -389,9 +408,12 @@ async fn proxy_one(
             (Fault::Corrupt, response.len())
         }
         Fault::Truncate => (Fault::Truncate, body_start + body_len / 2),
-        Fault::Pass | Fault::Corrupt | Fault::Reset | Fault::ServerError => {
-            (Fault::Pass, response.len())
-        }
+        Fault::Pass
+        | Fault::Corrupt
+        | Fault::Reset
+        | Fault::ServerError
+        | Fault::Endless
+        | Fault::Oversized => (Fault::Pass, response.len()),
     };
     shared.count(done);
     for chunk in response[..send_len].chunks(CHUNK_BYTES) {
@@ -449,4 +471,37 @@ fn find(haystack: &[u8], needle: &[u8]) -> Option<usize> {
     haystack
         .windows(needle.len())
         .position(|window| window == needle)
+}
+
+/// A `200 OK` of zeros: chunked and endless when `endless`, else [`OVERSIZED_BYTES`] long;
+/// returns once it is all sent or the client is gone.
+async fn send_zeros(client: &mut TcpStream, endless: bool, shared: &Shared) -> std::io::Result<()> {
+    let framing = if endless {
+        "transfer-encoding: chunked".to_string()
+    } else {
+        format!("content-length: {OVERSIZED_BYTES}")
+    };
+    let head = format!(
+        "HTTP/1.1 200 OK\r\ncontent-type: application/octet-stream\r\n{framing}\r\n\
+         connection: close\r\n\r\n"
+    );
+    client.write_all(head.as_bytes()).await?;
+    let zeros = vec![0u8; CHUNK_BYTES];
+    let chunk_head = format!("{:x}\r\n", zeros.len());
+    let mut sent = 0u64;
+    while endless || sent < OVERSIZED_BYTES {
+        if endless {
+            client.write_all(chunk_head.as_bytes()).await?;
+        }
+        client.write_all(&zeros).await?;
+        if endless {
+            client.write_all(b"\r\n").await?;
+        }
+        sent += zeros.len() as u64;
+        shared
+            .counters
+            .bytes_sent
+            .fetch_add(zeros.len() as u64, Ordering::Relaxed);
+    }
+    Ok(())
 }

@@ -200,6 +200,18 @@ async function startMapLibre() {
     paint: { 'hillshade-method': params.get('hillshade') || 'standard', 'hillshade-exaggeration': 0.7, 'hillshade-shadow-color': '#3b3122',
              'hillshade-highlight-color': '#fffdf4', 'hillshade-accent-color': '#5a4b33' },
   });
+  // Off the DEM the tiles hold the nearest edge's height, so the surface ends level with the
+  // edge; a hillshade there would draw the edge's profile drawn out in streaks. Cover it
+  // with the background's colour: what lies outside the bounds is plain ground.
+  if (validBounds(bounds)) {
+    const [w, s, e, n] = bounds;
+    sources.outside = { type: 'geojson', data: { type: 'Feature', properties: {}, geometry: {
+      type: 'Polygon',
+      coordinates: [[[-180, -85.06], [180, -85.06], [180, 85.06], [-180, 85.06], [-180, -85.06]],
+                    [[w, s], [w, n], [e, n], [e, s], [w, s]]] } } };
+    layers.push({ id: 'outside', type: 'fill', source: 'outside',
+                  paint: { 'fill-color': '#d9d5c7', 'fill-antialias': false } });
+  }
   const style = { version: 8, sources, layers, terrain: { source: 'dem', exaggeration: 1 } };
 
   const lon = num('lon'), lat = num('lat');

@@ -86,6 +86,7 @@ pub async fn whole_database_bytes_from(
         .blob(
             &terrain_shared::routes::patch_index(&manifest.content_version),
             Some(&info.index.hash),
+            Some(info.index.bytes),
         )
         .await?;
     let entries = quadtree::decode_index(&bytes, manifest.tile_count())

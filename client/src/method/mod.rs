@@ -108,6 +108,9 @@ pub struct DataWant {
     pub path: String,
     /// The BLAKE3 hash the body must have (first 128 bits, hex), when known.
     pub hash: Option<String>,
+    /// Its size, when known: a longer body is refused as it arrives
+    /// ([`crate::fetch::FetchError::TooLarge`]).
+    pub bytes: Option<u64>,
 }
 
 /// The settings a method is built and configured with; each takes what applies to it.

@@ -760,6 +760,7 @@ impl LodMethod for QuadtreePatches {
                     key: INDEX_KEY,
                     path: routes::patch_index(&cv),
                     hash: Some(info.index.hash.clone()),
+                    bytes: Some(info.index.bytes),
                 });
             }
             return out;
@@ -782,13 +783,14 @@ impl LodMethod for QuadtreePatches {
             let Some(entry) = self.entry(id) else {
                 continue;
             };
-            let hash = entry.hash_hex();
+            let (hash, bytes) = (entry.hash_hex(), u64::from(entry.bytes));
             if self.asked.insert((id, BODY_KEY)) {
                 out.push(DataWant {
                     id,
                     key: BODY_KEY,
                     path: routes::patch(&cv, id),
                     hash: Some(hash),
+                    bytes: Some(bytes),
                 });
             }
         }

@@ -410,7 +410,26 @@ fn culling_magnitude(position: [f64; 3], direction: [f64; 3]) -> f64 {
 /// (ECEF, usually the bounding sphere's centre), per Cesium's horizon culling method
 /// (`EllipsoidalOccluder.computeHorizonCullingPoint`). Where no finite point exists, one far
 /// along the direction ([`FALLBACK_OCCLUSION_MAGNITUDE`]).
-fn horizon_occlusion_point(direction: [f64; 3], positions: &[[f64; 3]]) -> [f64; 3] {
+///
+/// A tile spanning a hemisphere has no finite point along the bounding sphere's centre, and
+/// that centre lies near the Earth's, in no useful direction: there the point is taken far
+/// along `tile_direction` (the tile's centre on the ellipsoid), which is seen from wherever
+/// any of the tile can be. A point far along a wrong direction would hide the tile from
+/// every camera above it (a globe drawn without its level-0 tiles).
+fn horizon_occlusion_point(
+    direction: [f64; 3],
+    tile_direction: [f64; 3],
+    positions: &[[f64; 3]],
+) -> [f64; 3] {
+    let point = occlusion_point_along(direction, positions);
+    if norm(point) < FALLBACK_OCCLUSION_MAGNITUDE {
+        return point;
+    }
+    occlusion_point_along(tile_direction, positions)
+}
+
+/// [`horizon_occlusion_point`] along one direction, or the fallback far along it.
+fn occlusion_point_along(direction: [f64; 3], positions: &[[f64; 3]]) -> [f64; 3] {
     let scaled = to_scaled_space(direction);
     let length = norm(scaled);
     let direction = if length > 0.0 && length.is_finite() {
@@ -638,7 +657,7 @@ pub fn encode(rect: &GeoRect, mesh: &Mesh) -> Vec<u8> {
     } else {
         center
     };
-    let occlusion = horizon_occlusion_point(direction, bound_points);
+    let occlusion = horizon_occlusion_point(direction, center, bound_points);
     let normals = vertex_normals(rect, &served, &positions);
 
     let wide = count > MAX_VERTICES_16_BIT;
@@ -1289,6 +1308,29 @@ mod tests {
         let vt = sub(point, camera);
         let vt_dot_vc = -dot(vt, camera);
         !(vt_dot_vc > vh2 && vt_dot_vc * vt_dot_vc / dot(vt, vt) > vh2)
+    }
+
+    #[test]
+    fn a_half_sphere_tile_above_the_ellipsoid_is_seen_from_above_every_part_of_it() {
+        // Level 0 of the geographic scheme: two tiles, each half the Earth. Heights above
+        // the ellipsoid everywhere (the nearest edge's height off a DEM) leave no finite
+        // horizon point; the one taken must not hide the tile from a camera above it.
+        for (x, heights) in [(0u32, 268.5), (1, 4000.0), (0, 0.0)] {
+            let rect = GeoRect::tile(0, x, 0);
+            let grid = grid(17, |i, j| heights + 50.0 * plane_and_bump(i, j));
+            let tile = round_trip(&rect, &mesh_from_grid(&grid, 17, 0));
+            let point = tile.header.horizon_occlusion_point;
+            for lon in [-170.0, -120.0, -84.25, -30.0, -5.0] {
+                for lat in [-60.0, 0.0, 36.36, 80.0] {
+                    let lon = lon + 180.0 * f64::from(x);
+                    let camera = to_scaled_space(geodetic_to_ecef(lon, lat, 14_000.0));
+                    assert!(
+                        visible(point, camera),
+                        "tile {x} at {heights} m: hidden from above {lon}, {lat} by {point:?}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
