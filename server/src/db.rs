@@ -23,6 +23,7 @@
 use bytes::Bytes;
 use std::fs::File;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use terrain_shared::manifest::{ManifestError, content_hash};
 use terrain_shared::{Blob, Manifest, TileBlob, TileId};
 use thiserror::Error;
@@ -93,6 +94,117 @@ pub struct StoredBlob {
     pub hash: String,
     /// `None` when the hash is not a valid tag (only in a damaged manifest).
     pub etag: Option<axum::http::HeaderValue>,
+    /// Where the bytes lie in their pack: what [`StoredBlob::read`] reads.
+    place: Option<Place>,
+}
+
+/// A blob's pack file (kept open) and its offset there.
+#[derive(Debug, Clone)]
+struct Place {
+    pack: Arc<PackFile>,
+    offset: u64,
+}
+
+/// A pack file held open by an opened database.
+#[derive(Debug)]
+struct PackFile {
+    path: PathBuf,
+    file: File,
+}
+
+/// A pack whose file changed after the database opened (truncated, rewritten in place):
+/// what a request for one of its blobs gets instead of the bytes.
+#[derive(Debug, Error)]
+#[error(
+    "{pack} changed after the server opened it ({reason}); the server must be restarted on a finished database"
+)]
+pub struct PackChanged {
+    pub pack: PathBuf,
+    pub reason: String,
+}
+
+impl StoredBlob {
+    /// The blob's bytes as they are in its pack now, read with a positioned read (never
+    /// through the memory map, whose pages would raise SIGBUS past the end of a file
+    /// truncated behind the server's back) and checked against the blob's hash. A pack cut
+    /// short or rewritten since the database opened is an error, never a dead process or
+    /// the wrong bytes under the right tag.
+    pub fn read(&self) -> Result<Bytes, PackChanged> {
+        let Some(place) = &self.place else {
+            return Ok(self.bytes.clone());
+        };
+        let changed = |reason: String| PackChanged {
+            pack: place.pack.path.clone(),
+            reason,
+        };
+        let mut body = vec![0u8; self.bytes.len()];
+        read_exact_at(&place.pack.file, &mut body, place.offset).map_err(|e| {
+            changed(format!(
+                "{} bytes at offset {} could not be read: {e}",
+                body.len(),
+                place.offset
+            ))
+        })?;
+        let found = content_hash(&body);
+        if found != self.hash {
+            return Err(changed(format!(
+                "the {} bytes at offset {} hash to {found}, not {}",
+                body.len(),
+                place.offset,
+                self.hash
+            )));
+        }
+        Ok(Bytes::from(body))
+    }
+}
+
+/// Reads `buf.len()` bytes at `offset`; an end of file first is `UnexpectedEof`.
+#[cfg(unix)]
+fn read_exact_at(file: &File, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+    std::os::unix::fs::FileExt::read_exact_at(file, buf, offset)
+}
+
+/// Reads `buf.len()` bytes at `offset`; an end of file first is `UnexpectedEof`.
+#[cfg(windows)]
+fn read_exact_at(file: &File, mut buf: &mut [u8], mut offset: u64) -> std::io::Result<()> {
+    while !buf.is_empty() {
+        match std::os::windows::fs::FileExt::seek_read(file, buf, offset)? {
+            0 => return Err(std::io::ErrorKind::UnexpectedEof.into()),
+            n => {
+                buf = &mut buf[n..];
+                offset += n as u64;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A mapped pack, or a range of one, with the open file it maps.
+#[derive(Debug, Clone)]
+struct MappedPack {
+    map: Bytes,
+    file: Arc<PackFile>,
+    /// Offset of `map`'s first byte in the file.
+    base: u64,
+}
+
+impl MappedPack {
+    fn len(&self) -> usize {
+        self.map.len()
+    }
+
+    fn slice(&self, range: impl std::ops::RangeBounds<usize>) -> MappedPack {
+        let start = match range.start_bound() {
+            std::ops::Bound::Included(&n) => n,
+            std::ops::Bound::Excluded(&n) => n + 1,
+            std::ops::Bound::Unbounded => 0,
+        };
+        MappedPack {
+            map: self.map.slice(range),
+            file: Arc::clone(&self.file),
+            base: self.base + start as u64,
+        }
+    }
 }
 
 /// `hash` as a strong entity tag header value.
@@ -370,28 +482,39 @@ fn open_web(
     Ok(entries.into_iter().map(|(e, _)| e).zip(tiles).collect())
 }
 
-/// Maps a pack read-only. An empty file cannot be mapped and needs no map.
+/// Maps a pack read-only, keeping the file open for [`StoredBlob::read`]. An empty file
+/// cannot be mapped and needs no map.
 #[allow(unsafe_code)]
-fn map_file(path: &Path) -> Result<Bytes, DbError> {
+fn map_file(path: &Path) -> Result<MappedPack, DbError> {
     let io = |source| DbError::Io {
         path: path.to_path_buf(),
         source,
     };
     let file = File::open(path).map_err(io)?;
-    if file.metadata().map_err(io)?.len() == 0 {
-        return Ok(Bytes::new());
-    }
-    // SAFETY: the map is read-only and the file belongs to a finished database, which
-    // nothing writes after the builder's rename (module invariant). A file truncated
-    // behind our back by another program would be a bug outside this process's control,
-    // as with any memory-mapped reader.
-    let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
-    Ok(Bytes::from_owner(map))
+    let map = if file.metadata().map_err(io)?.len() == 0 {
+        Bytes::new()
+    } else {
+        // SAFETY: the map is read-only and the file belongs to a finished database, which
+        // nothing writes after the builder's rename (module invariant). It is read only
+        // while the database opens (sizes, hashes, indexes) and by callers in this
+        // process; what is served is read with `StoredBlob::read`, so a file truncated
+        // behind the server's back gives an error response, not a SIGBUS.
+        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+        Bytes::from_owner(map)
+    };
+    Ok(MappedPack {
+        map,
+        file: Arc::new(PackFile {
+            path: path.to_path_buf(),
+            file,
+        }),
+        base: 0,
+    })
 }
 
 /// Cuts a pack into the blobs the manifest lists, in order, checking sizes and hashes.
 fn slice_pack(
-    pack: &Bytes,
+    pack: &MappedPack,
     path: &Path,
     blobs: impl Iterator<Item = (TileId, String, Blob)>,
     verify: Verify,
@@ -408,7 +531,11 @@ fn slice_pack(
     let mut offset = 0usize;
     let mut out = Vec::with_capacity(listed.len());
     for (id, what, blob) in listed {
-        let bytes = pack.slice(offset..offset + blob.bytes as usize);
+        let bytes = pack.map.slice(offset..offset + blob.bytes as usize);
+        let place = Place {
+            pack: Arc::clone(&pack.file),
+            offset: pack.base + offset as u64,
+        };
         offset += blob.bytes as usize;
         if verify == Verify::Hashes {
             let found = content_hash(&bytes);
@@ -426,6 +553,7 @@ fn slice_pack(
             bytes,
             hash: blob.hash.clone(),
             etag: strong_etag(&blob.hash),
+            place: Some(place),
         });
     }
     Ok(out)

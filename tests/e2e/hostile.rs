@@ -212,3 +212,133 @@ fn logs_to_a_file_have_no_colour_codes() {
         "escape codes in a log file: {text:?}"
     );
 }
+
+/// A pack truncated under a running server (`truncate -s 100000 DB/heights.pack`): a tile
+/// past the cut gets a 500 naming the pack over HTTP/1 and HTTP/2 alike, with a line in the
+/// log; the process lives on and serves what is still whole; `/metrics` counts the 500,
+/// not a 200.
+#[test]
+fn a_pack_truncated_under_the_server_answers_an_error_on_http1_and_http2_and_the_server_lives() {
+    use std::io::{BufRead, BufReader};
+    use terrain_shared::routes;
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = terrain_tests::data::build_jacksboro(tmp.path());
+    let manifest = &report.manifest;
+    let log = tmp.path().join("server.log");
+    let mut child =
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .arg("serve")
+            .arg(&report.out)
+            .args(["--addr", "127.0.0.1:0"])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::fs::File::create(&log).expect("log file"))
+            .spawn()
+            .expect("spawns");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("listening line");
+    let base = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("{line}"))
+        .trim_end_matches('/')
+        .to_string();
+
+    // Tiles lie in the pack in manifest order: one wholly before the cut, one past it.
+    const CUT: u64 = 100_000;
+    let mut offset = 0u64;
+    let (mut before, mut after) = (None, None);
+    for (id, tile) in manifest.tiles() {
+        let end = offset + tile.blob().bytes;
+        if end <= CUT {
+            before = Some(id);
+        } else if offset >= CUT && after.is_none() {
+            after = Some(id);
+        }
+        offset = end;
+    }
+    let (before, after) = (
+        before.expect("a tile before the cut"),
+        after.expect("one past it"),
+    );
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(report.out.join("heights.pack"))
+        .expect("pack")
+        .set_len(CUT)
+        .expect("truncate");
+
+    let v = &manifest.content_version;
+    let runtime = tokio::runtime::Runtime::new().expect("runtime");
+    runtime.block_on(async {
+        let http1 = reqwest::Client::builder()
+            .http1_only()
+            .build()
+            .expect("client");
+        let http2 = reqwest::Client::builder()
+            .http2_prior_knowledge()
+            .build()
+            .expect("client");
+        for (client, version) in [
+            (&http1, reqwest::Version::HTTP_11),
+            (&http2, reqwest::Version::HTTP_2),
+        ] {
+            let url = format!("{base}{}", routes::heights(v, after));
+            let response =
+                client.get(&url).send().await.unwrap_or_else(|e| {
+                    panic!("{version:?}: no answer for a tile past the cut: {e}")
+                });
+            assert_eq!(response.version(), version);
+            assert_eq!(response.status(), 500, "{version:?} {url}");
+            let body = response.text().await.expect("error body");
+            assert!(
+                body.contains("heights.pack changed after the server opened it"),
+                "{version:?}: {body}"
+            );
+            let whole = client
+                .get(format!("{base}{}", routes::heights(v, before)))
+                .send()
+                .await
+                .expect("the server lives on");
+            assert_eq!(whole.status(), 200, "{version:?}");
+            let body = whole.bytes().await.expect("body");
+            assert_eq!(
+                body.len() as u64,
+                manifest.tile(before).expect("in grid").blob().bytes
+            );
+        }
+        let metrics = http1
+            .get(format!("{base}/metrics"))
+            .send()
+            .await
+            .expect("metrics")
+            .text()
+            .await
+            .expect("text");
+        let count = |status: &str| -> f64 {
+            metrics
+                .lines()
+                .filter(|l| {
+                    l.starts_with("http_requests_total{")
+                        && l.contains("heights")
+                        && l.contains(&format!("status=\"{status}\""))
+                })
+                .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+                .sum()
+        };
+        assert_eq!(count("500"), 2.0, "{metrics}");
+        assert_eq!(count("200"), 2.0, "{metrics}");
+    });
+    assert!(
+        child.try_wait().expect("status").is_none(),
+        "the server exited"
+    );
+    let _ = child.kill();
+    let _ = child.wait();
+    let text = std::fs::read_to_string(&log).expect("log");
+    assert!(
+        text.contains("heights.pack changed after the server opened it"),
+        "the log says what happened: {text}"
+    );
+}

@@ -13,6 +13,7 @@
 
 use super::AppState;
 use super::error::HttpError;
+use crate::db::StoredBlob;
 use axum::body::Body;
 use axum::extract::rejection::PathRejection;
 use axum::extract::{FromRequestParts, Path, State};
@@ -194,13 +195,7 @@ pub(super) async fn heights(
     state.check_content_version(&path.content_version)?;
     state.check_in_grid(id)?;
     let blob = state.db.heights(id).ok_or_else(|| state.outside_grid(id))?;
-    Ok(entity(
-        &conditional,
-        &blob.bytes,
-        blob.etag.as_ref(),
-        HEIGHTS_CONTENT_TYPE,
-        TILE_CACHE_CONTROL,
-    ))
+    stored_entity(&conditional, blob, HEIGHTS_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
 pub(super) async fn patch(
@@ -215,13 +210,7 @@ pub(super) async fn patch(
     state.check_content_version(&path.content_version)?;
     state.check_in_grid(id)?;
     let blob = state.db.patch(id).ok_or(HttpError::NoPatches)?;
-    Ok(entity(
-        &conditional,
-        &blob.bytes,
-        blob.etag.as_ref(),
-        PATCH_CONTENT_TYPE,
-        TILE_CACHE_CONTROL,
-    ))
+    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
 pub(super) async fn patch_index(
@@ -234,13 +223,7 @@ pub(super) async fn patch_index(
     let Path(path) = path.map_err(malformed_path)?;
     state.check_content_version(&path.content_version)?;
     let blob = state.db.patch_index().ok_or(HttpError::NoPatches)?;
-    Ok(entity(
-        &conditional,
-        &blob.bytes,
-        blob.etag.as_ref(),
-        PATCH_CONTENT_TYPE,
-        TILE_CACHE_CONTROL,
-    ))
+    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
 pub(super) async fn texture(
@@ -265,13 +248,7 @@ pub(super) async fn texture(
             last: manifest.texture.levels.saturating_sub(1),
         })?;
     let content_type = manifest.texture.format.content_type();
-    Ok(entity(
-        &conditional,
-        &blob.bytes,
-        blob.etag.as_ref(),
-        content_type,
-        TILE_CACHE_CONTROL,
-    ))
+    stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL)
 }
 
 /// A level-0 tile URL of the single-level API: checked like any tile URL, then a permanent
@@ -336,6 +313,43 @@ pub(super) fn entity(
     content_type: &'static str,
     cache_control: &'static str,
 ) -> Response {
+    match entity_with(conditional, etag, content_type, cache_control, || {
+        Ok::<_, std::convert::Infallible>(bytes.clone())
+    }) {
+        Ok(response) => response,
+        Err(never) => match never {},
+    }
+}
+
+/// [`entity`] for a blob of the database, read from its pack only when a body is sent
+/// ([`StoredBlob::read`]): a pack changed under the server gives a 500 naming it, and a
+/// line in the log, instead of a dead process or a 200 with an empty body.
+pub(super) fn stored_entity(
+    conditional: &Conditional,
+    blob: &StoredBlob,
+    content_type: &'static str,
+    cache_control: &'static str,
+) -> Result<Response, HttpError> {
+    entity_with(
+        conditional,
+        blob.etag.as_ref(),
+        content_type,
+        cache_control,
+        || blob.read(),
+    )
+    .map_err(|changed| {
+        tracing::error!("{changed}");
+        HttpError::Internal(changed.to_string())
+    })
+}
+
+fn entity_with<E>(
+    conditional: &Conditional,
+    etag: Option<&HeaderValue>,
+    content_type: &'static str,
+    cache_control: &'static str,
+    body: impl FnOnce() -> Result<Bytes, E>,
+) -> Result<Response, E> {
     // The tag was made when the database opened; it is parsed only to answer an
     // `If-None-Match`. A damaged manifest's blob without a valid tag is still served.
     let not_modified = match (etag, &conditional.0) {
@@ -351,7 +365,7 @@ pub(super) fn entity(
         // but carries no body and no Content-Type.
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        let mut response = Response::new(Body::from(bytes.clone()));
+        let mut response = Response::new(Body::from(body()?));
         response
             .headers_mut()
             .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
@@ -365,7 +379,7 @@ pub(super) fn entity(
         header::CACHE_CONTROL,
         HeaderValue::from_static(cache_control),
     );
-    response
+    Ok(response)
 }
 
 const HEIGHTS_SPELLING: &str =

@@ -11,9 +11,7 @@
 
 use super::AppState;
 use super::error::HttpError;
-use super::routes::{
-    Conditional, JSON_CONTENT_TYPE, TILE_CACHE_CONTROL, entity as entity_response,
-};
+use super::routes::{Conditional, JSON_CONTENT_TYPE, TILE_CACHE_CONTROL, stored_entity};
 use crate::web::index::{Entry, Kind};
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, Uri, header};
@@ -251,13 +249,7 @@ pub(super) async fn tile(
         Kind::QuantizedMesh => QUANTIZED_MESH_CONTENT_TYPE,
         _ => "image/png",
     };
-    let mut response = entity_response(
-        &conditional,
-        &blob.bytes,
-        blob.etag.as_ref(),
-        content_type,
-        TILE_CACHE_CONTROL,
-    );
+    let mut response = stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL)?;
     if kind == Kind::QuantizedMesh && response.status() == axum::http::StatusCode::OK {
         response
             .headers_mut()
