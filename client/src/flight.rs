@@ -706,6 +706,10 @@ pub fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
     }
 }
 
+/// The most frames a flight flies: a day at 60 fps, whose records (about 200 bytes a
+/// frame) stay near a gigabyte.
+pub const MAX_FLIGHT_FRAMES: u64 = 5_184_000;
+
 /// Flies `args`' path against its server. Must run inside a multi-threaded tokio runtime.
 pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 1000.0) {
@@ -737,6 +741,17 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         Some(file) => CameraPath::load(file, &manifest)?,
         None => CameraPath::default_for(&manifest),
     };
+    // Each frame keeps a record (flight.csv, the charts): a path whose frames would not fit
+    // in memory is refused here, before anything is made or written.
+    let frames = (path.duration_s() * args.fps).ceil() + 1.0;
+    if frames > MAX_FLIGHT_FRAMES as f64 {
+        return Err(FlightError::BadOption(format!(
+            "the flight is {:.0} s long, {frames:.0} frames at --fps {}; at most {MAX_FLIGHT_FRAMES} frames are flown (each keeps a row of flight.csv): shorten the path or lower --fps",
+            path.duration_s(),
+            args.fps
+        )));
+    }
+    let frames = frames as u64;
     let write_err = |path: &std::path::Path| {
         let path = path.to_path_buf();
         move |source| FlightError::Write { path, source }
@@ -752,7 +767,6 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         None => None,
     };
 
-    let frames = (path.duration_s() * args.fps).ceil() as u64 + 1;
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()
     } else {
@@ -800,7 +814,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     let started = Instant::now();
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.fps));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut records = Vec::with_capacity(frames as usize);
+    // Grown as frames are flown, not reserved for the whole path up front.
+    let mut records = Vec::new();
     let mut frames_written = Vec::new();
     let centre = [manifest.extent_m[0] / 2.0, manifest.extent_m[1] / 2.0];
     let start = path.position_at(0.0);

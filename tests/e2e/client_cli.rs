@@ -304,3 +304,55 @@ fn an_endless_or_oversized_body_is_cut_off_within_the_memory_limit_with_a_clear_
         assert!(proxy.stats().endless > 0, "{what}: the fault was served");
     }
 }
+
+/// Flight paths that would cost memory without end are refused at start, with a reason,
+/// in bounded memory: a path a hundred days long (each frame keeps a record), and a path
+/// that is not a regular file (`/dev/zero`, read without end before).
+#[test]
+fn a_path_too_long_to_fly_or_not_a_file_is_refused_at_start_in_bounded_memory() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let long = tmp.path().join("long.csv");
+    std::fs::write(&long, "t,x,y,z\n0,1000,1000,3000\n1e7,2000,1000,3000\n").expect("path");
+    let big = tmp.path().join("big.json");
+    let file = std::fs::File::create(&big).expect("file");
+    file.set_len(terrain_client::path::MAX_PATH_FILE_BYTES + 1)
+        .expect("sparse file");
+    let cases: [(&Path, &str); 3] = [
+        (&long, "at most 5184000 frames are flown"),
+        (Path::new("/dev/zero"), "not a regular file"),
+        (&big, "more than the 67108864 a camera path may have"),
+    ];
+    for (flight, reason) in cases {
+        let out = tmp.path().join("out");
+        let Watched {
+            output,
+            peak_bytes,
+            killed,
+        } = run_watched(
+            fly_command(server.base_url(), &out, flight, &[]),
+            512 << 20,
+            Duration::from_secs(60),
+        );
+        let stderr = text(&output.stderr);
+        assert!(
+            killed.is_none(),
+            "{}: {killed:?} {stderr}",
+            flight.display()
+        );
+        assert_eq!(
+            output.status.code(),
+            Some(1),
+            "{}: {stderr}",
+            flight.display()
+        );
+        assert!(stderr.contains(reason), "{}: {stderr}", flight.display());
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        assert!(
+            peak_bytes < 512 << 20,
+            "{}: {peak_bytes} bytes",
+            flight.display()
+        );
+        assert!(!out.exists(), "nothing written for {}", flight.display());
+    }
+}

@@ -342,3 +342,46 @@ fn a_pack_truncated_under_the_server_answers_an_error_on_http1_and_http2_and_the
         "the log says what happened: {text}"
     );
 }
+
+/// Inputs that are not regular files are refused by name before anything is read:
+/// `build /dev/zero` read without end before (8 GB in 8 s), a FIFO would block, a
+/// directory is no raster.
+#[test]
+fn a_build_from_a_device_a_fifo_or_a_directory_is_refused_by_name() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let fifo = tmp.path().join("heights.png");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .expect("mkfifo runs");
+    assert!(made.success());
+    let cases: [(&Path, &str); 3] = [
+        (Path::new("/dev/zero"), "a character device"),
+        (&fifo, "a FIFO"),
+        (tmp.path(), "a directory"),
+    ];
+    for (input, what) in cases {
+        let out = tmp.path().join("db");
+        let output =
+            std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+                .arg("build")
+                .arg(input)
+                .arg("--out")
+                .arg(&out)
+                .output()
+                .expect("runs");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(
+            output.status.code(),
+            Some(1),
+            "{}: {stderr}",
+            input.display()
+        );
+        assert!(
+            stderr.contains(&format!("is not a regular file ({what})")),
+            "{}: {stderr}",
+            input.display()
+        );
+        assert!(!out.exists());
+    }
+}

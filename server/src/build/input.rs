@@ -65,6 +65,8 @@ pub enum InputError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error("{path} is not a regular file ({what}): the builder reads DEM and texture files")]
+    NotAFile { path: PathBuf, what: &'static str },
     #[error("{path} is not a readable image: {message}")]
     Image { path: PathBuf, message: String },
     #[error("{path} is a {found} image; heights must be 8- or 16-bit greyscale")]
@@ -894,4 +896,47 @@ mod tests {
             (&[193452381, -2142857143], &[], 8.4e-8, 0),
         );
     }
+}
+
+/// Refuses an input that is not a regular file (after symbolic links): a device, a FIFO,
+/// a socket or a directory.
+pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
+    let meta = std::fs::metadata(path).map_err(|source| InputError::Io {
+        path: path.into(),
+        source,
+    })?;
+    if meta.is_file() {
+        return Ok(());
+    }
+    let what = if meta.is_dir() {
+        "a directory"
+    } else {
+        file_kind(&meta)
+    };
+    Err(InputError::NotAFile {
+        path: path.into(),
+        what,
+    })
+}
+
+#[cfg(unix)]
+fn file_kind(meta: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = meta.file_type();
+    if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else if t.is_fifo() {
+        "a FIFO"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "not a file"
+    }
+}
+
+#[cfg(not(unix))]
+fn file_kind(_: &std::fs::Metadata) -> &'static str {
+    "not a file"
 }

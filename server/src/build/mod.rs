@@ -393,6 +393,12 @@ pub fn build(
     }
     // Before reading anything: a refused output should not cost a read of the whole input.
     crate::db::check_output(&options.out, options.force)?;
+    // Only regular files: a device (`/dev/zero`), a FIFO or a directory has no size to
+    // check a header against and would be read without end.
+    input::check_regular_file(&options.heights)?;
+    if let TextureChoice::Image(path) = &options.texture {
+        input::check_regular_file(path)?;
+    }
     let mut warnings = Vec::new();
     let dataset = input::DatasetInfo::beside(&options.heights)?;
     let (dataset_dir, info) = match dataset {
