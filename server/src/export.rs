@@ -84,9 +84,13 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<Exported> {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let tmp = tempfile::Builder::new()
-        .prefix(".export-")
-        .suffix(".pmtiles.part")
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".export-").suffix(".pmtiles.part");
+    // A temporary file is made 0600; the archive is for web servers running as other users,
+    // so it is made as any new file is: 0666 less the umask (0644 under 0022).
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let tmp = builder
         .tempfile_in(&dir)
         .with_context(|| format!("cannot write in {}", dir.display()))?;
     let file = tmp.reopen().context("cannot reopen the temporary file")?;

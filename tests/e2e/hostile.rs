@@ -385,3 +385,44 @@ fn a_build_from_a_device_a_fifo_or_a_directory_is_refused_by_name() {
         assert!(!out.exists());
     }
 }
+
+/// Options that would make a server that cannot work, or write what is not a web address
+/// into the TileJSON documents, are refused before it starts, with the reason.
+#[test]
+fn serve_options_that_cannot_work_are_refused_with_the_reason() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let report = terrain_tests::data::build_jacksboro(tmp.path());
+    let cases: [(&[&str], &str); 6] = [
+        (
+            &["--worker-threads", "100000"],
+            "more than the 1024 a server starts",
+        ),
+        (&["--max-concurrent-requests", "0"], "must be at least 1"),
+        (&["--max-connections", "0"], "must be at least 1"),
+        (
+            &["--public-url", "javascript:alert(1)"],
+            "the scheme must be http or https",
+        ),
+        (
+            &["--public-url", "https://tiles.example/?x=\"><script>"],
+            "without credentials, query or fragment",
+        ),
+        (&["--public-url", "not a url"], "is not a URL"),
+    ];
+    for (flags, reason) in cases {
+        let output =
+            std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+                .arg("serve")
+                .arg(&report.out)
+                .args(["--addr", "127.0.0.1:0"])
+                .args(flags)
+                .stdin(std::process::Stdio::null())
+                .output()
+                .expect("runs");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(2), "{flags:?}: {stderr}");
+        assert!(stderr.contains(reason), "{flags:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{flags:?}: {stderr}");
+        assert!(output.stdout.is_empty(), "{flags:?}: it never listened");
+    }
+}

@@ -427,6 +427,17 @@ fn the_pmtiles_export_holds_every_terrarium_tile_and_replaces_nothing_unasked() 
     let (ok, stdout, stderr) = export(false);
     assert!(ok, "{stderr}");
     assert!(stdout.contains("26 tiles"), "{stdout}");
+    // Made as any new file is (0644 under a umask of 0022), not a temporary file's 0600:
+    // a web server running as another user reads it.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let probe = tmp.path().join("probe");
+        std::fs::write(&probe, b"").expect("probe");
+        let mode = |p: &Path| std::fs::metadata(p).expect("meta").permissions().mode() & 0o777;
+        assert_eq!(mode(&out), mode(&probe), "the archive's mode");
+        assert_ne!(mode(&out) & 0o044, 0, "others can read it under this umask");
+    }
     let bytes = std::fs::read(&out).expect("archive");
     // PMTiles v3 header: magic, version, then little-endian offsets and counts.
     assert_eq!(&bytes[..7], b"PMTiles");

@@ -392,12 +392,29 @@ fn geotiff_header<R: std::io::Read + std::io::Seek>(
     check_decoded_size(path, (width, height), sample_bytes, file_bytes)?;
     let nodata = match options.nodata {
         Some(v) => Some(v),
-        None => decoder
+        // A tag that says something but not a number is refused: taken as no tag, its
+        // voids (-32768 in an int16 SRTM file) would be built as heights.
+        None => match decoder
             .find_tag(Tag::GdalNodata)
             .ok()
             .flatten()
             .and_then(|v| v.into_string().ok())
-            .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok()),
+        {
+            None => None,
+            Some(text) => {
+                let value = text.trim_matches(char::from(0)).trim();
+                if value.is_empty() {
+                    None
+                } else {
+                    Some(value.parse::<f64>().map_err(|_| InputError::Tiff {
+                        path: path.into(),
+                        message: format!(
+                            "its GDAL_NODATA tag {value:?} is not a number; give the no-data value with --nodata"
+                        ),
+                    })?)
+                }
+            }
+        },
     };
     let scale = decoder
         .find_tag(Tag::ModelPixelScaleTag)

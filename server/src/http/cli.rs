@@ -40,26 +40,77 @@ pub struct ServeArgs {
     #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_REQUEST_TIMEOUT.as_secs_f64(), value_parser = seconds)]
     pub request_timeout: f64,
     /// Requests handled at once; more are refused with 503 instead of queued.
-    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONCURRENT_REQUESTS)]
+    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONCURRENT_REQUESTS, value_parser = at_least_one)]
     pub max_concurrent_requests: usize,
     /// Connections open at once. When all are taken, the oldest with no request in progress
     /// is closed to make room; when every one is busy, new ones wait in the accept backlog.
-    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONNECTIONS)]
+    #[arg(long, default_value_t = super::serve::DEFAULT_MAX_CONNECTIONS, value_parser = at_least_one)]
     pub max_connections: usize,
     /// Seconds shutdown waits for responses in flight after SIGINT or SIGTERM.
     #[arg(long, value_name = "SECONDS", default_value_t = super::serve::DEFAULT_SHUTDOWN_DEADLINE.as_secs_f64(), value_parser = seconds)]
     pub shutdown_deadline: f64,
     /// `scheme://host[:port]` of the server as browsers reach it, for the absolute tile
     /// URLs of the TileJSON documents (default: the request's Host, over http).
-    #[arg(long, value_name = "URL")]
+    #[arg(long, value_name = "URL", value_parser = public_url)]
     pub public_url: Option<String>,
     /// Serve the viewer page (MapLibre and Cesium, `bash viewer/setup.sh` makes it) from
     /// this directory under `/view/`; `/` then redirects to it.
     #[arg(long, value_name = "DIR")]
     pub viewer: Option<PathBuf>,
-    /// Runtime worker threads; 0 means one per CPU core.
-    #[arg(long, default_value_t = 0)]
+    /// Runtime worker threads, up to 1024; 0 means one per CPU core.
+    #[arg(long, default_value_t = 0, value_parser = worker_threads)]
     pub worker_threads: usize,
+}
+
+/// A count that 0 would make meaningless (a server answering nothing, or everything).
+fn at_least_one(text: &str) -> Result<usize, String> {
+    let n: usize = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a whole number"))?;
+    if n == 0 {
+        return Err("must be at least 1".into());
+    }
+    Ok(n)
+}
+
+/// The most runtime threads a server starts: beyond it the threads' stacks, not the
+/// requests, would be what the machine spends its memory on.
+pub const MAX_WORKER_THREADS: usize = 1024;
+
+fn worker_threads(text: &str) -> Result<usize, String> {
+    let n: usize = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a whole number"))?;
+    if n > MAX_WORKER_THREADS {
+        return Err(format!(
+            "{n} threads is more than the {MAX_WORKER_THREADS} a server starts (0: one per CPU core)"
+        ));
+    }
+    Ok(n)
+}
+
+/// `--public-url`: an `http` or `https` URL of a host, nothing after it but a path, so
+/// that what goes into the TileJSON documents' tile URLs is a web address and nothing else
+/// (`javascript:`, `data:`, a query or a fragment are refused).
+fn public_url(text: &str) -> Result<String, String> {
+    let url = url::Url::parse(text).map_err(|e| format!("{text:?} is not a URL: {e}"))?;
+    if !matches!(url.scheme(), "http" | "https") {
+        return Err(format!(
+            "{text:?}: the scheme must be http or https, not {:?}",
+            url.scheme()
+        ));
+    }
+    if url.host_str().is_none_or(str::is_empty)
+        || url.query().is_some()
+        || url.fragment().is_some()
+        || !url.username().is_empty()
+        || url.password().is_some()
+    {
+        return Err(format!(
+            "{text:?}: give scheme://host[:port][/path], without credentials, query or fragment"
+        ));
+    }
+    Ok(text.trim_end_matches('/').to_string())
 }
 
 impl ServeArgs {

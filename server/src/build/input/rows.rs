@@ -1043,6 +1043,36 @@ mod tests {
     }
 
     #[test]
+    fn a_gdal_nodata_tag_that_is_not_a_number_is_refused_by_both_readers() {
+        let (w, h) = (9, 6);
+        let ints: Vec<i16> = (0..w * h)
+            .map(|i| if i == 7 { -32768 } else { i as i16 })
+            .collect();
+        let tiff = tiff_bytes::<colortype::GrayI16>(w, h, &ints, 2, Some("abc"));
+        let dir = tempfile::tempdir().expect("temporary directory");
+        let path = dir.path().join("abc.tif");
+        std::fs::write(&path, &tiff).expect("write");
+        let whole = decode_heights(&tiff, Format::of(&path), &path, &OPTIONS)
+            .expect_err("an unreadable GDAL_NODATA is refused");
+        assert!(
+            whole.to_string().contains(
+                "its GDAL_NODATA tag \"abc\" is not a number; give the no-data value with --nodata"
+            ),
+            "{whole}"
+        );
+        check_streams_as_read_whole("abc.tif", &tiff, OPTIONS);
+        // With --nodata given, the tag is not read.
+        let given = ReadOptions {
+            nodata: Some(-32768.0),
+            ..OPTIONS
+        };
+        check_streams_as_read_whole("abc.tif", &tiff, given);
+        // An empty tag says nothing.
+        let empty = tiff_bytes::<colortype::GrayI16>(w, h, &ints, 2, Some(""));
+        check_streams_as_read_whole("empty.tif", &empty, OPTIONS);
+    }
+
+    #[test]
     fn a_file_that_changes_between_the_scan_and_the_build_is_refused() {
         let (w, h) = (9, 6);
         let dir = tempfile::tempdir().expect("temporary directory");
