@@ -29,6 +29,10 @@ use terrain_shared::{Blob, Manifest, TileBlob, TileId};
 use thiserror::Error;
 
 pub const MANIFEST_FILE: &str = "manifest.json";
+/// In a database being built, locked by its builder for as long as it runs: a directory
+/// holding it is never opened as a database, and one whose lock nobody holds was left by a
+/// killed build, which the next build to the same output removes.
+pub const BUILDING_LOCK: &str = "building.lock";
 pub const HEIGHTS_PACK: &str = "heights.pack";
 pub const TEXTURES_PACK: &str = "textures.pack";
 /// The quadtree patches' bodies and index, when built ([`terrain_shared::manifest::PatchesInfo`]).
@@ -44,6 +48,11 @@ pub enum DbError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error(
+        "{0} is a database being built, or one a killed build left (it holds {BUILDING_LOCK}); \
+         serve the build's output once it has finished"
+    )]
+    BeingBuilt(PathBuf),
     #[error("{path} is not a usable manifest")]
     Manifest {
         path: PathBuf,
@@ -235,7 +244,21 @@ pub struct TileDb {
 
 impl TileDb {
     /// Opens the database in `dir`, checking pack sizes and, with [`Verify::Hashes`], every hash.
+    /// A directory holding [`BUILDING_LOCK`] is refused ([`DbError::BeingBuilt`]).
     pub fn open(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
+        if std::fs::symlink_metadata(dir.join(BUILDING_LOCK)).is_ok() {
+            return Err(DbError::BeingBuilt(dir.to_path_buf()));
+        }
+        TileDb::open_unchecked(dir, verify)
+    }
+
+    /// [`TileDb::open`] of the database this build is writing: the builder reads back what
+    /// it wrote (for the web tiles) while its lock is still held.
+    pub(crate) fn open_being_built(writer_dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
+        TileDb::open_unchecked(writer_dir, verify)
+    }
+
+    fn open_unchecked(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
         let manifest_path = dir.join(MANIFEST_FILE);
         let manifest_json = std::fs::read(&manifest_path).map_err(|source| DbError::Io {
             path: manifest_path.clone(),
@@ -559,6 +582,33 @@ fn slice_pack(
     Ok(out)
 }
 
+/// Removes the directories in `parent` named `prefix…` whose [`BUILDING_LOCK`] nobody
+/// holds: builds to the same output that were killed (SIGKILL, a power cut) before they
+/// could clean up. A directory whose lock is held (a build running now) or that has no lock
+/// is left alone. Returns what was removed.
+fn remove_abandoned_builds(parent: &Path, prefix: &str) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return Vec::new();
+    };
+    let mut removed = Vec::new();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
+        if !name.starts_with(prefix) || !is_dir {
+            continue;
+        }
+        let dir = entry.path();
+        let Ok(lock) = File::open(dir.join(BUILDING_LOCK)) else {
+            continue;
+        };
+        if lock.try_lock().is_ok() && std::fs::remove_dir_all(&dir).is_ok() {
+            removed.push(dir);
+        }
+    }
+    removed
+}
+
 /// Whether a database may be written at `out`: it must not exist, or, with `force`, be a
 /// tile database (a real directory holding a manifest and nothing but the database's files)
 /// or an empty directory. Anything else (a regular file, a symbolic link, a folder of other
@@ -697,6 +747,10 @@ pub struct DbWriter {
     out: PathBuf,
     force: bool,
     tmp: tempfile::TempDir,
+    /// [`BUILDING_LOCK`], locked while this writer lives.
+    lock: File,
+    /// Directories of killed builds to the same output, removed when this one started.
+    abandoned: Vec<PathBuf>,
     heights: std::io::BufWriter<File>,
     textures: std::io::BufWriter<File>,
     /// Levels 1, 2, … (index 0 is level 1), opened when first written to.
@@ -737,22 +791,39 @@ impl DbWriter {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
+        let prefix = format!(".{name}.building-");
+        let abandoned = remove_abandoned_builds(&parent, &prefix);
         let tmp = tempfile::Builder::new()
-            .prefix(&format!(".{name}.building-"))
+            .prefix(&prefix)
             .tempdir_in(&parent)
             .map_err(io)?;
+        let lock = File::create(tmp.path().join(BUILDING_LOCK)).map_err(io)?;
+        lock.try_lock().map_err(|e| {
+            io(match e {
+                std::fs::TryLockError::Error(e) => e,
+                std::fs::TryLockError::WouldBlock => std::io::ErrorKind::WouldBlock.into(),
+            })
+        })?;
         let heights = File::create(tmp.path().join(HEIGHTS_PACK)).map_err(io)?;
         let textures = File::create(tmp.path().join(TEXTURES_PACK)).map_err(io)?;
         Ok(DbWriter {
             out: out.to_path_buf(),
             force,
             tmp,
+            lock,
+            abandoned,
             heights: std::io::BufWriter::new(heights),
             textures: std::io::BufWriter::new(textures),
             coarser: Vec::new(),
             heights_written: 0,
             textures_written: 0,
         })
+    }
+
+    /// Temporary directories of killed builds to the same output that this one removed
+    /// when it started.
+    pub fn abandoned_removed(&self) -> &[PathBuf] {
+        &self.abandoned
     }
 
     /// The temporary directory being written (for tests of interrupted builds).
@@ -901,6 +972,13 @@ impl DbWriter {
             Err(WriteError::Exists(path)) => return Err(WriteError::AppearedMeanwhile(path)),
             other => other?,
         }
+        // No longer being built: the lock goes before the directory takes its name.
+        let lock_path = self.tmp.path().join(BUILDING_LOCK);
+        let _ = self.lock.unlock();
+        std::fs::remove_file(&lock_path).map_err(|source| WriteError::Io {
+            path: lock_path.clone(),
+            source,
+        })?;
         let tmp = self.tmp.keep();
         // An existing database is moved aside first and removed only once the new one is
         // in place, so `out` holds either the old database or the new one, never a mix.

@@ -42,8 +42,52 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            eprintln!("error: {}", cause_chain(&error));
             ExitCode::FAILURE
         }
+    }
+}
+
+/// `error` and every cause under it, joined by `: `, each once: a cause whose text the
+/// line so far already holds (an error that prints its source, then is given it as its
+/// cause) is left out.
+fn cause_chain(error: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let line = cause.to_string();
+        if line.is_empty() || text.contains(&line) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&line);
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cause_chain;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("disk full")]
+    struct Full;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot write web.pack: {0}")]
+    struct Write(#[source] Full);
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("the web tiles: {0}")]
+    struct Web(#[from] Write);
+
+    #[test]
+    fn each_cause_is_printed_once_even_when_an_error_prints_its_source_too() {
+        let error = anyhow::Error::new(Web(Write(Full))).context("building dem.tif");
+        assert_eq!(
+            cause_chain(&error),
+            "building dem.tif: the web tiles: cannot write web.pack: disk full"
+        );
     }
 }

@@ -605,34 +605,98 @@ fn start_large_build(dir: &Path) -> (std::process::Child, PathBuf) {
     (child, out)
 }
 
-#[test]
-fn a_killed_build_never_leaves_a_database_at_the_output() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let (mut child, out) = start_large_build(tmp.path());
-    child.kill().expect("SIGKILL");
-    child.wait().expect("reaped");
-    assert!(!out.exists(), "a killed build left {}", out.display());
-    // What remains is hidden and has no manifest: nothing can mistake it for a database.
-    for left in leftovers(tmp.path()) {
-        assert!(!left.join(terrain_server::db::MANIFEST_FILE).exists());
+/// The temporary directory of the build running in `dir` once its lock is taken.
+fn locked_temporary_dir(dir: &Path) -> PathBuf {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    loop {
+        if let Some(found) = leftovers(dir)
+            .into_iter()
+            .find(|d| d.join(terrain_server::db::BUILDING_LOCK).exists())
+        {
+            return found;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no locked temporary directory"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(5));
     }
 }
 
 #[test]
-fn ctrl_c_cancels_a_build_and_cleans_up() {
+fn a_killed_build_never_leaves_a_database_at_the_output_and_the_next_build_removes_what_it_left() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let (child, out) = start_large_build(tmp.path());
-    let sent = std::process::Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .expect("kill runs");
-    assert!(sent.success());
-    let output = child.wait_with_output().expect("exits");
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(!output.status.success());
-    assert!(stderr.contains("cancelled"), "{stderr}");
-    assert!(!out.exists());
+    let (mut child, out) = start_large_build(tmp.path());
+    let left = locked_temporary_dir(tmp.path());
+    child.kill().expect("SIGKILL");
+    child.wait().expect("reaped");
+    assert!(!out.exists(), "a killed build left {}", out.display());
+    // What remains is hidden and marked as being built: the server refuses it even when it
+    // holds a manifest (a build killed during the web tiles).
+    assert!(left.exists());
+    std::fs::write(
+        left.join(terrain_server::db::MANIFEST_FILE),
+        report_manifest_json(),
+    )
+    .expect("a manifest as a build killed late leaves one");
+    let error = TileDb::open(&left, Verify::SizesOnly).expect_err("refused");
+    assert!(
+        error
+            .to_string()
+            .contains("is a database being built, or one a killed build left"),
+        "{error}"
+    );
+    let served = std::process::Command::new(workspace_binary("terrain-server"))
+        .arg("serve")
+        .arg(&left)
+        .args(["--addr", "127.0.0.1:0"])
+        .output()
+        .expect("runs");
+    assert_eq!(served.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&served.stderr).contains("is a database being built"),
+        "{}",
+        String::from_utf8_lossy(&served.stderr)
+    );
+    // The next build to the same output removes it, and says so.
+    let (ok, stdout, stderr) = build_cli(&jacksboro(), &out, &[]);
+    assert!(ok, "{stderr}");
+    assert!(
+        stdout.contains("removed what 1 killed build(s) to this output left"),
+        "{stdout}"
+    );
+    assert!(!left.exists(), "{} is still there", left.display());
     assert_eq!(leftovers(tmp.path()), Vec::<PathBuf>::new());
+    assert!(!out.join(terrain_server::db::BUILDING_LOCK).exists());
+    TileDb::open(&out, Verify::Hashes).expect("the new database opens");
+}
+
+/// Any small manifest: what a build killed after writing its manifest leaves.
+fn report_manifest_json() -> Vec<u8> {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    terrain_tests::data::build_jacksboro(tmp.path())
+        .manifest
+        .to_json()
+}
+
+#[test]
+fn ctrl_c_sigterm_and_sighup_cancel_a_build_and_clean_up() {
+    for signal in ["-INT", "-TERM", "-HUP"] {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let (child, out) = start_large_build(tmp.path());
+        locked_temporary_dir(tmp.path());
+        let sent = std::process::Command::new("kill")
+            .args([signal, &child.id().to_string()])
+            .status()
+            .expect("kill runs");
+        assert!(sent.success());
+        let output = child.wait_with_output().expect("exits");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{signal}");
+        assert!(stderr.contains("cancelled"), "{signal}: {stderr}");
+        assert!(!out.exists(), "{signal}");
+        assert_eq!(leftovers(tmp.path()), Vec::<PathBuf>::new(), "{signal}");
+    }
 }
 
 #[test]

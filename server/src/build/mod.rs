@@ -307,11 +307,22 @@ pub enum BuildWarning {
         texture: [u32; 2],
         raster: [u32; 2],
     },
+    /// Temporary directories of killed builds to the same output, removed.
+    AbandonedRemoved(Vec<PathBuf>),
 }
 
 impl fmt::Display for BuildWarning {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
+            BuildWarning::AbandonedRemoved(dirs) => {
+                let names: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
+                write!(
+                    f,
+                    "removed what {} killed build(s) to this output left: {}",
+                    dirs.len(),
+                    names.join(", ")
+                )
+            }
             BuildWarning::FilledVoids(r) => {
                 write!(
                     f,
@@ -529,6 +540,11 @@ pub fn build(
     };
 
     let mut writer = DbWriter::create(&options.out, options.force)?;
+    if !writer.abandoned_removed().is_empty() {
+        warnings.push(BuildWarning::AbandonedRemoved(
+            writer.abandoned_removed().to_vec(),
+        ));
+    }
     let mut pyramid = Pyramid::new(RasterSize { width, height }, context, progress, cancel);
     let mut rows = heights_input.rows;
     let mut whole: Vec<i32> = Vec::new();
@@ -623,7 +639,7 @@ pub fn build(
             Err(reason) => warnings.push(BuildWarning::NoWeb(reason.to_string())),
             Ok(placement) => {
                 let dir = writer.seal(&manifest)?.to_path_buf();
-                let db = crate::db::TileDb::open(&dir, crate::db::Verify::SizesOnly)?;
+                let db = crate::db::TileDb::open_being_built(&dir, crate::db::Verify::SizesOnly)?;
                 let (info, stats) = crate::web::build::build(
                     &db,
                     placement,
