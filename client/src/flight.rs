@@ -706,6 +706,9 @@ pub fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
     }
 }
 
+/// The least manifest cap a flight sets, whatever its budget.
+pub const MANIFEST_FLOOR_BYTES: u64 = 1 << 20;
+
 /// The most frames a flight flies: a day at 60 fps, whose records (about 200 bytes a
 /// frame) stay near a gigabyte.
 pub const MAX_FLIGHT_FRAMES: u64 = 5_184_000;
@@ -722,9 +725,14 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         .then(|| args.render.config())
         .transpose()?;
     let budget = args.stream.budget()?;
-    // A manifest the budget could not hold is refused as it arrives.
+    // A manifest the budget could not hold is refused as it arrives; below 1 MiB the
+    // manifest is taken, so that a budget too small for the terrain is refused with the
+    // least --memory that would do rather than for its manifest.
     let fetcher_config = crate::fetcher::FetcherConfig {
-        max_manifest_bytes: budget.budget_bytes.min(crate::fetch::MAX_MANIFEST_BYTES),
+        max_manifest_bytes: budget
+            .budget_bytes
+            .max(MANIFEST_FLOOR_BYTES)
+            .min(crate::fetch::MAX_MANIFEST_BYTES),
         ..args.stream.fetcher_config()
     };
     let connection = Scene::connect(

@@ -112,6 +112,11 @@ pub struct StoredBlob {
 struct Place {
     pack: Arc<PackFile>,
     offset: u64,
+    /// Whether the bytes read are checked against the hash: when the database was opened
+    /// with [`Verify::Hashes`], so that a mismatch means the pack changed since (opened
+    /// with [`Verify::SizesOnly`], as `serve --no-verify`, a damaged blob is served as
+    /// it is, and the client's hash check catches it).
+    check_hash: bool,
 }
 
 /// A pack file held open by an opened database.
@@ -135,9 +140,10 @@ pub struct PackChanged {
 impl StoredBlob {
     /// The blob's bytes as they are in its pack now, read with a positioned read (never
     /// through the memory map, whose pages would raise SIGBUS past the end of a file
-    /// truncated behind the server's back) and checked against the blob's hash. A pack cut
-    /// short or rewritten since the database opened is an error, never a dead process or
-    /// the wrong bytes under the right tag.
+    /// truncated behind the server's back) and, when the database was opened checking
+    /// hashes, checked against the blob's hash. A pack cut short (or, checked, rewritten)
+    /// since the database opened is an error, never a dead process or the wrong bytes under
+    /// the right tag.
     pub fn read(&self) -> Result<Bytes, PackChanged> {
         let Some(place) = &self.place else {
             return Ok(self.bytes.clone());
@@ -154,7 +160,11 @@ impl StoredBlob {
                 place.offset
             ))
         })?;
-        let found = content_hash(&body);
+        let found = if place.check_hash {
+            content_hash(&body)
+        } else {
+            self.hash.clone()
+        };
         if found != self.hash {
             return Err(changed(format!(
                 "the {} bytes at offset {} hash to {found}, not {}",
@@ -558,6 +568,7 @@ fn slice_pack(
         let place = Place {
             pack: Arc::clone(&pack.file),
             offset: pack.base + offset as u64,
+            check_hash: verify == Verify::Hashes,
         };
         offset += blob.bytes as usize;
         if verify == Verify::Hashes {
