@@ -731,8 +731,7 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     let fetcher_config = crate::fetcher::FetcherConfig {
         max_manifest_bytes: budget
             .budget_bytes
-            .max(MANIFEST_FLOOR_BYTES)
-            .min(crate::fetch::MAX_MANIFEST_BYTES),
+            .clamp(MANIFEST_FLOOR_BYTES, crate::fetch::MAX_MANIFEST_BYTES),
         ..args.stream.fetcher_config()
     };
     let connection = Scene::connect(

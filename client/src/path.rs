@@ -258,6 +258,37 @@ fn parse_csv(text: &str, name: &str) -> Result<Vec<Keyframe>, PathError> {
         .collect()
 }
 
+/// The most bytes a camera path file may have: millions of keyframes.
+pub const MAX_PATH_FILE_BYTES: u64 = 64 << 20;
+
+/// Reads a camera path file: a regular file of at most [`MAX_PATH_FILE_BYTES`], read no
+/// further than that whatever it is (`/dev/zero`, a FIFO, a file growing as it is read).
+fn read_path_file(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let file = std::fs::File::open(path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        return Err(std::io::Error::other(
+            "not a regular file (a device, a FIFO or a directory): a camera path is a .json or .csv file",
+        ));
+    }
+    if meta.len() > MAX_PATH_FILE_BYTES {
+        return Err(std::io::Error::other(format!(
+            "{} bytes, more than the {MAX_PATH_FILE_BYTES} a camera path may have",
+            meta.len()
+        )));
+    }
+    let mut text = String::new();
+    file.take(MAX_PATH_FILE_BYTES + 1)
+        .read_to_string(&mut text)?;
+    if text.len() as u64 > MAX_PATH_FILE_BYTES {
+        return Err(std::io::Error::other(format!(
+            "it grew past the {MAX_PATH_FILE_BYTES} bytes a camera path may have as it was read"
+        )));
+    }
+    Ok(text)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -346,35 +377,4 @@ mod tests {
             ]
         );
     }
-}
-
-/// The most bytes a camera path file may have: millions of keyframes.
-pub const MAX_PATH_FILE_BYTES: u64 = 64 << 20;
-
-/// Reads a camera path file: a regular file of at most [`MAX_PATH_FILE_BYTES`], read no
-/// further than that whatever it is (`/dev/zero`, a FIFO, a file growing as it is read).
-fn read_path_file(path: &Path) -> std::io::Result<String> {
-    use std::io::Read;
-    let file = std::fs::File::open(path)?;
-    let meta = file.metadata()?;
-    if !meta.is_file() {
-        return Err(std::io::Error::other(
-            "not a regular file (a device, a FIFO or a directory): a camera path is a .json or .csv file",
-        ));
-    }
-    if meta.len() > MAX_PATH_FILE_BYTES {
-        return Err(std::io::Error::other(format!(
-            "{} bytes, more than the {MAX_PATH_FILE_BYTES} a camera path may have",
-            meta.len()
-        )));
-    }
-    let mut text = String::new();
-    file.take(MAX_PATH_FILE_BYTES + 1)
-        .read_to_string(&mut text)?;
-    if text.len() as u64 > MAX_PATH_FILE_BYTES {
-        return Err(std::io::Error::other(format!(
-            "it grew past the {MAX_PATH_FILE_BYTES} bytes a camera path may have as it was read"
-        )));
-    }
-    Ok(text)
 }

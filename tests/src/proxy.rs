@@ -382,7 +382,7 @@ async fn proxy_one(
     if matches!(fault, Fault::Endless | Fault::Oversized) {
         shared.count(fault);
         // The client going away ends the body: what it read is all it will.
-        let _ = send_zeros(&mut client, fault == Fault::Endless, &shared).await;
+        let _ = send_zeros(&mut client, fault == Fault::Endless, shared).await;
         return Ok(());
     }
     if fault == Fault::ServerError {

@@ -748,6 +748,49 @@ impl DatasetInfo {
     }
 }
 
+/// Refuses an input that is not a regular file (after symbolic links): a device, a FIFO,
+/// a socket or a directory.
+pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
+    let meta = std::fs::metadata(path).map_err(|source| InputError::Io {
+        path: path.into(),
+        source,
+    })?;
+    if meta.is_file() {
+        return Ok(());
+    }
+    let what = if meta.is_dir() {
+        "a directory"
+    } else {
+        file_kind(&meta)
+    };
+    Err(InputError::NotAFile {
+        path: path.into(),
+        what,
+    })
+}
+
+#[cfg(unix)]
+fn file_kind(meta: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = meta.file_type();
+    if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else if t.is_fifo() {
+        "a FIFO"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "not a file"
+    }
+}
+
+#[cfg(not(unix))]
+fn file_kind(_: &std::fs::Metadata) -> &'static str {
+    "not a file"
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -913,47 +956,4 @@ mod tests {
             (&[193452381, -2142857143], &[], 8.4e-8, 0),
         );
     }
-}
-
-/// Refuses an input that is not a regular file (after symbolic links): a device, a FIFO,
-/// a socket or a directory.
-pub fn check_regular_file(path: &Path) -> Result<(), InputError> {
-    let meta = std::fs::metadata(path).map_err(|source| InputError::Io {
-        path: path.into(),
-        source,
-    })?;
-    if meta.is_file() {
-        return Ok(());
-    }
-    let what = if meta.is_dir() {
-        "a directory"
-    } else {
-        file_kind(&meta)
-    };
-    Err(InputError::NotAFile {
-        path: path.into(),
-        what,
-    })
-}
-
-#[cfg(unix)]
-fn file_kind(meta: &std::fs::Metadata) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
-    let t = meta.file_type();
-    if t.is_char_device() {
-        "a character device"
-    } else if t.is_block_device() {
-        "a block device"
-    } else if t.is_fifo() {
-        "a FIFO"
-    } else if t.is_socket() {
-        "a socket"
-    } else {
-        "not a file"
-    }
-}
-
-#[cfg(not(unix))]
-fn file_kind(_: &std::fs::Metadata) -> &'static str {
-    "not a file"
 }
