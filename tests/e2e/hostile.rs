@@ -426,3 +426,139 @@ fn serve_options_that_cannot_work_are_refused_with_the_reason() {
         assert!(output.stdout.is_empty(), "{flags:?}: it never listened");
     }
 }
+
+/// A real deflate stream of `bytes` zero bytes, as zlib wraps it: 1 MiB of zeros deflated
+/// once with a full flush (which resets the dictionary, so every such block is the same
+/// bytes) and repeated, then the rest, the end and the Adler-32 of the zeros.
+fn zlib_of_zeros(bytes: u64) -> Vec<u8> {
+    use flate2::{Compress, Compression, FlushCompress};
+    const BLOCK: u64 = 1 << 20;
+    let deflate = |c: &mut Compress, input: &[u8], flush| {
+        let mut out = Vec::with_capacity(64 << 10);
+        let before = c.total_in();
+        c.compress_vec(input, &mut out, flush).expect("deflates");
+        assert_eq!(c.total_in() - before, input.len() as u64, "all input taken");
+        out
+    };
+    let mut c = Compress::new(Compression::best(), false);
+    let zeros = vec![0u8; BLOCK as usize];
+    let block = deflate(&mut c, &zeros, FlushCompress::Full);
+    assert_eq!(
+        deflate(&mut c, &zeros, FlushCompress::Full),
+        block,
+        "a block after a full flush repeats"
+    );
+    let mut stream = vec![0x78, 0xda];
+    for _ in 0..bytes / BLOCK {
+        stream.extend_from_slice(&block);
+    }
+    stream.extend(deflate(
+        &mut c,
+        &zeros[..(bytes % BLOCK) as usize],
+        FlushCompress::Finish,
+    ));
+    // Adler-32 of zeros: a stays 1, b adds 1 a byte.
+    let adler = (((bytes % 65521) as u32) << 16) | 1;
+    stream.extend_from_slice(&adler.to_be_bytes());
+    stream
+}
+
+/// A PNG chunk: length, type, data and the CRC of type and data.
+fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(kind);
+    crc.update(data);
+    out.extend_from_slice(kind);
+    out.extend_from_slice(data);
+    out.extend_from_slice(&crc.finalize().to_be_bytes());
+}
+
+/// A valid 8-bit greyscale PNG of `side` x `side` zero samples, every row filtered "none".
+fn png_of_zeros(side: u32) -> Vec<u8> {
+    let mut png = vec![137, 80, 78, 71, 13, 10, 26, 10];
+    let mut header = Vec::new();
+    header.extend_from_slice(&side.to_be_bytes());
+    header.extend_from_slice(&side.to_be_bytes());
+    header.extend_from_slice(&[8, 0, 0, 0, 0]);
+    png_chunk(&mut png, b"IHDR", &header);
+    let decoded = u64::from(side) * (u64::from(side) + 1);
+    png_chunk(&mut png, b"IDAT", &zlib_of_zeros(decoded));
+    png_chunk(&mut png, b"IEND", &[]);
+    png
+}
+
+/// A PNG of 10 MB that inflates to 10 GB (10^10 samples): refused by its size, before its
+/// samples are read, with how large it is and the flag that takes it (it was ground through
+/// before, a fraction of a percent of its tiles a minute). A texture image of more pixels
+/// than `--max-samples` the same; within the limit both build.
+#[test]
+fn a_png_that_inflates_to_more_samples_than_the_limit_is_refused_before_it_is_read() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let side = 100_000;
+    let bomb = tmp.path().join("bomb.png");
+    std::fs::write(&bomb, png_of_zeros(side)).expect("write the PNG");
+    let file_bytes = std::fs::metadata(&bomb).expect("metadata").len();
+    assert!(
+        file_bytes * 4096 > u64::from(side) * u64::from(side),
+        "a file its decoded size can come from ({file_bytes} bytes): not the ratio guard"
+    );
+    let run = |args: &[&std::ffi::OsStr]| {
+        let mut command =
+            std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"));
+        command.arg("build").args(args);
+        terrain_tests::child::run_watched(command, 1 << 30, std::time::Duration::from_secs(60))
+    };
+    let out = tmp.path().join("db");
+    let refused = run(&[bomb.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    let stderr = refused.stderr();
+    assert_eq!(refused.killed, None, "{stderr}");
+    assert_eq!(refused.output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "heights of 100000 x 100000 = 10000000000 samples, more than the 4294967296 a build \
+             takes (--max-samples), from a file of {file_bytes} bytes. Pass --max-samples \
+             10000000000 to build it anyway"
+        )),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+
+    // A texture the same, and the limit a user sets is the one kept (jacksboro's heights
+    // are 403 x 344 = 138,632 samples).
+    let texture = tmp.path().join("texture.png");
+    image::RgbImage::new(400, 400)
+        .save(&texture)
+        .expect("write the texture");
+    let jacksboro = jacksboro();
+    let refused = run(&[
+        jacksboro.as_os_str(),
+        "--texture".as_ref(),
+        texture.as_os_str(),
+        "--max-samples".as_ref(),
+        "150000".as_ref(),
+        "--no-web".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    let stderr = refused.stderr();
+    assert_eq!(refused.output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("a texture of 400 x 400 = 160000 samples, more than the 150000"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+    let built = run(&[
+        jacksboro.as_os_str(),
+        "--texture".as_ref(),
+        texture.as_os_str(),
+        "--max-samples".as_ref(),
+        "160000".as_ref(),
+        "--no-web".as_ref(),
+        "--quiet".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert!(built.output.status.success(), "{}", built.stderr());
+    assert!(out.join("manifest.json").exists());
+}

@@ -1247,7 +1247,7 @@ async fn the_gzipped_manifest_is_the_one_compressed_at_open() {
     let db = synthetic();
     let server = TestServer::start(db.dir());
     let client = reqwest::Client::new();
-    let stored = server.state().db.manifest_gzip().clone();
+    let stored = server.state().db().manifest_gzip().clone();
     for _ in 0..3 {
         let answer = fetch(
             &client,

@@ -29,7 +29,7 @@ fn serve(heights: &std::path::Path, dir: &std::path::Path, tile_size: u32) -> Te
 
 /// The manifest as the server sends it to a client that accepts gzip, per tile.
 fn manifest_bytes_per_tile(server: &TestServer) -> (usize, usize, f64) {
-    let db = &server.state().db;
+    let db = server.state().db();
     let tiles = db.manifest().tile_count();
     let sent = db.manifest_gzip().len();
     (sent, tiles, sent as f64 / tiles as f64)
@@ -58,7 +58,7 @@ fn the_manifest_sends_at_most_96_bytes_a_tile_gzipped() {
             "{name}: {per_tile:.1} bytes a tile ({sent} for {tiles})"
         );
         assert!(
-            server.state().db.manifest().level_count() > 1,
+            server.state().db().manifest().level_count() > 1,
             "{name}: a pyramid"
         );
     }

@@ -15,6 +15,7 @@ mod levels;
 mod memory;
 mod methods;
 mod patches;
+mod reload;
 mod render;
 mod round_trip;
 mod web;

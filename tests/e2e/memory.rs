@@ -143,7 +143,7 @@ fn every_method_keeps_the_limit_on_every_frame_of_a_random_walk_or_refuses_below
     };
     let tmp = tempfile::tempdir().expect("tempdir");
     let server = TestServer::start(&jacksboro_with_patches(tmp.path()));
-    let manifest = server.state().db.manifest().clone();
+    let manifest = server.state().db().manifest().clone();
     let walk = random_walk(tmp.path(), manifest.extent_m);
     let whole = whole_database_bytes(&manifest);
     let runtime = runtime();
@@ -323,7 +323,7 @@ fn no_method_makes_the_process_grow_frame_after_frame() {
                     if method.is_projected_grid() {
                         "4"
                     } else {
-                        "15"
+                        "20"
                     },
                     "--size",
                     "320x180",
@@ -356,9 +356,13 @@ fn no_method_makes_the_process_grow_frame_after_frame() {
         let (from, to) = (settled + 10, rows.len() - 1);
         assert!(
             to >= from + 40,
-            "{}: settled at frame {settled} of {}",
+            "{}: settled at frame {settled} of {}: the last frame at {} s of wall time with \
+             {} tile(s) in flight and {} resident\n{stdout}",
             method.name(),
-            rows.len()
+            rows.len(),
+            last["wall_s"],
+            last["in_flight"],
+            last["resident_tiles"]
         );
         let growth = rss(to).saturating_sub(rss(from));
         eprintln!(

@@ -205,7 +205,7 @@ impl RestartableServer {
             .set_nonblocking(true)
             .expect("non-blocking listener");
         let db = TileDb::open(&self.db_dir, Verify::SizesOnly).expect("the database opens");
-        let state = Arc::new(AppState::new(db));
+        let state = Arc::new(AppState::with_verify(db, Verify::SizesOnly));
         // Shutdown drains for at most this long: the test stops the server mid-fetch and
         // should not wait the default 8 s for a connection that never ends.
         let options = ServeOptions {

@@ -128,10 +128,20 @@ pub struct BuildArgs {
     /// (GeoTIFF tags, an .hgt name, dataset.json bounds), from the finished pyramid.
     #[arg(long)]
     pub no_web: bool,
+    /// Largest raster a build takes, in samples (width x height), for the heights and for a
+    /// texture image alike. A larger one is refused before its samples are read, with its
+    /// size: a small file can decode to a huge raster (a PNG inflates up to about 1000-fold),
+    /// and a build passes over every sample several times before its first tile is done.
+    /// Raise it for a DEM that large.
+    #[arg(long, default_value_t = DEFAULT_MAX_SAMPLES, value_name = "SAMPLES")]
+    pub max_samples: u64,
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
 }
+
+/// The default of `--max-samples`: 65,536 x 65,536, 8 GiB of 16-bit heights.
+pub const DEFAULT_MAX_SAMPLES: u64 = 1 << 32;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TextureFormatArg {
@@ -164,6 +174,8 @@ pub struct BuildOptions {
     /// Make the web tiles when the input is georeferenced (the command line's default;
     /// off in [`BuildOptions::new`]).
     pub web: bool,
+    /// Largest raster taken, heights or texture, in samples (`--max-samples`).
+    pub max_samples: u64,
 }
 
 /// Where the texture comes from.
@@ -198,6 +210,7 @@ impl BuildOptions {
             zstd_level: heights::DEFAULT_ZSTD_LEVEL,
             patches: None,
             web: false,
+            max_samples: DEFAULT_MAX_SAMPLES,
         }
     }
 
@@ -244,6 +257,7 @@ impl BuildOptions {
             zstd_level: args.zstd_level,
             patches: args.patches.then_some(args.patch_tolerance),
             web: !args.no_web,
+            max_samples: args.max_samples,
             ..BuildOptions::new(&args.heights, out)
         })
     }
@@ -281,6 +295,20 @@ pub enum BuildError {
     BadTileSize(u32),
     #[error("invalid option: {0}")]
     BadOption(String),
+    #[error(
+        "{path}: {what} of {width} x {height} = {samples} samples, more than the {max} a build \
+         takes (--max-samples), from a file of {file_bytes} bytes. Pass --max-samples {samples} \
+         to build it anyway"
+    )]
+    TooLarge {
+        path: PathBuf,
+        what: &'static str,
+        width: u32,
+        height: u32,
+        samples: u64,
+        max: u64,
+        file_bytes: u64,
+    },
     #[error("build cancelled; nothing was written to the output")]
     Cancelled,
     #[error("level {level} stopped after {made} of its {rows} tile rows: the heights ended early")]
@@ -418,6 +446,7 @@ pub fn build(
     };
     let heights_input = open_heights(
         &options.heights,
+        options.max_samples,
         &input::ReadOptions {
             nodata: options.nodata.or(info.nodata),
             float_quantum_m: options.float_quantum_m,
@@ -490,7 +519,7 @@ pub fn build(
     };
     let source_image = match &texture_path {
         Some(path) => {
-            let image = read_texture(path)?;
+            let image = read_texture(path, options.max_samples)?;
             let (tw, th) = (f64::from(image.width()), f64::from(image.height()));
             let (rw, rh) = (f64::from(width - 1), f64::from(height - 1));
             if ((tw / th) / (rw / rh) - 1.0).abs() > 0.02 {
@@ -692,8 +721,14 @@ struct HeightsInput {
 
 /// Opens the heights: streamed when the file allows it and has no voids, else read whole
 /// and its voids filled (see the module docs).
-fn open_heights(path: &Path, options: &input::ReadOptions) -> Result<HeightsInput, BuildError> {
+fn open_heights(
+    path: &Path,
+    max_samples: u64,
+    options: &input::ReadOptions,
+) -> Result<HeightsInput, BuildError> {
     if let Some(reader) = input::rows::open(path, options)? {
+        let header = reader.header();
+        check_size(path, "heights", (header.width, header.height), max_samples)?;
         let scan = reader.scan()?;
         let (width, height) = (scan.header.width, scan.header.height);
         let mut rows = CodeRows::stream(&scan)?;
@@ -740,6 +775,12 @@ fn open_heights(path: &Path, options: &input::ReadOptions) -> Result<HeightsInpu
             filled,
         });
     }
+    // Only PNGs the row reader does not take (colour, interlaced) come here.
+    let size = image_size(path).map_err(|message| input::InputError::Image {
+        path: path.into(),
+        message,
+    })?;
+    check_size(path, "heights", size, max_samples)?;
     let mut raster = input::read_heights(path, options)?;
     let (width, height) = (raster.width, raster.height);
     let voids = std::mem::take(&mut raster.voids);
@@ -763,12 +804,48 @@ fn open_heights(path: &Path, options: &input::ReadOptions) -> Result<HeightsInpu
     })
 }
 
-/// Decodes a texture image whole, as RGB.
-fn read_texture(path: &Path) -> Result<image::RgbImage, BuildError> {
+/// Refuses a raster of more than `max_samples` samples, before its samples are read.
+fn check_size(
+    path: &Path,
+    what: &'static str,
+    (width, height): (u32, u32),
+    max_samples: u64,
+) -> Result<(), BuildError> {
+    let samples = u64::from(width) * u64::from(height);
+    if samples <= max_samples {
+        return Ok(());
+    }
+    Err(BuildError::TooLarge {
+        path: path.into(),
+        what,
+        width,
+        height,
+        samples,
+        max: max_samples,
+        file_bytes: std::fs::metadata(path).map_or(0, |m| m.len()),
+    })
+}
+
+/// An image's width and height, from its header alone.
+fn image_size(path: &Path) -> Result<(u32, u32), String> {
+    use image::ImageDecoder as _;
+    let decoder = image::ImageReader::open(path)
+        .map_err(|e| e.to_string())?
+        .with_guessed_format()
+        .map_err(|e| e.to_string())?
+        .into_decoder()
+        .map_err(|e| e.to_string())?;
+    Ok(decoder.dimensions())
+}
+
+/// Decodes a texture image whole, as RGB, when it holds at most `max_samples` pixels.
+fn read_texture(path: &Path, max_samples: u64) -> Result<image::RgbImage, BuildError> {
     let texture_error = |message: String| BuildError::Texture {
         path: path.into(),
         message,
     };
+    let size = image_size(path).map_err(texture_error)?;
+    check_size(path, "a texture", size, max_samples)?;
     Ok(image::ImageReader::open(path)
         .map_err(|e| texture_error(e.to_string()))?
         .with_guessed_format()

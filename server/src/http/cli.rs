@@ -16,6 +16,9 @@ use std::time::Duration;
 /// deliberate `--addr 0.0.0.0:8080`.
 pub const DEFAULT_ADDR: &str = "127.0.0.1:8080";
 
+/// How often the server looks for a rebuilt database by default: a `stat` of one file.
+pub const DEFAULT_RELOAD_POLL: Duration = Duration::from_secs(2);
+
 /// Arguments of `terrain-server serve`.
 #[derive(clap::Args, Debug)]
 pub struct ServeArgs {
@@ -57,6 +60,11 @@ pub struct ServeArgs {
     /// this directory under `/view/`; `/` then redirects to it.
     #[arg(long, value_name = "DIR")]
     pub viewer: Option<PathBuf>,
+    /// Seconds between two looks at the database's manifest file: when a build with
+    /// `--force` has replaced the database, the new one is served from then on, without a
+    /// restart (SIGHUP does the same at once). 0: only on SIGHUP.
+    #[arg(long, value_name = "SECONDS", default_value_t = DEFAULT_RELOAD_POLL.as_secs_f64(), value_parser = seconds)]
+    pub reload_poll: f64,
     /// Runtime worker threads, up to 1024; 0 means one per CPU core.
     #[arg(long, default_value_t = 0, value_parser = worker_threads)]
     pub worker_threads: usize,
@@ -126,7 +134,8 @@ impl ServeArgs {
     }
 }
 
-/// Opens the database, binds, prints the address and serves until SIGINT or SIGTERM.
+/// Opens the database, binds, prints the address and serves until SIGINT or SIGTERM; a
+/// rebuilt database is served without a restart ([`super::reload`]).
 pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
     let verify = if args.no_verify {
         Verify::SizesOnly
@@ -158,7 +167,7 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
     if manifest.web.is_none() {
         tracing::info!("no web tiles in this database: the MapLibre and Cesium routes answer 404");
     }
-    let mut state = AppState::new(db);
+    let mut state = AppState::with_verify(db, verify);
     state.public_url = args.public_url.clone();
     state.viewer = args.viewer.clone();
     let state = Arc::new(state);
@@ -180,6 +189,8 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
         crate::print_stdout(&format!("listening on http://{local}\n"))
             .context("cannot write to stdout")?;
         tracing::info!(addr = %local, ?options, "serving");
+        let poll = (args.reload_poll > 0.0).then(|| Duration::from_secs_f64(args.reload_poll));
+        tokio::spawn(super::reload::watch(Arc::clone(&state), poll));
         serve(listener, state, options, shutdown_signal())
             .await
             .context("server failed")

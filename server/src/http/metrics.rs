@@ -10,7 +10,8 @@
 //! - `http_request_duration_seconds{route}`: time from routing to response head;
 //! - `http_response_body_bytes_total{route,status}`: body bytes handed to the connection
 //!   (after gzip, so the manifest counts what went on the wire);
-//! - `http_requests_in_flight`: requests between routing and the end of their body.
+//! - `http_requests_in_flight`: requests between routing and the end of their body;
+//! - `database_reloads_total`: rebuilt databases put in place of the one served.
 
 use super::AppState;
 use axum::body::{Body, HttpBody};
@@ -85,6 +86,7 @@ pub struct Metrics {
     body_bytes: Family<RouteStatusLabels, Counter>,
     latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
     in_flight: Gauge,
+    reloads: Counter,
 }
 
 impl Default for Metrics {
@@ -128,8 +130,15 @@ impl Metrics {
             "Requests being answered, bodies included",
             in_flight.clone(),
         );
+        let reloads = Counter::default();
+        registry.register(
+            "database_reloads",
+            "Rebuilt databases served in place of the one before (SIGHUP or the directory's poll)",
+            reloads.clone(),
+        );
         Metrics {
             registry,
+            reloads,
             closed,
             requests,
             body_bytes,
@@ -148,6 +157,11 @@ impl Metrics {
                 status,
             })
             .inc();
+    }
+
+    /// A rebuilt database served in place of the one before.
+    pub fn reloaded(&self) {
+        self.reloads.inc();
     }
 
     /// A connection the server closed itself.

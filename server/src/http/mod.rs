@@ -4,7 +4,8 @@
 //! - [`error`]: every failure and its one JSON response;
 //! - [`metrics`]: counters by route template and the per-request span;
 //! - [`serve`](mod@serve): the hardened accept loop and graceful shutdown;
-//! - [`cli`]: `terrain-server serve`, the runtime and the signal handling.
+//! - [`cli`]: `terrain-server serve`, the runtime and the signal handling;
+//! - [`reload`]: a rebuilt database served without a restart (SIGHUP, or a poll).
 //!
 //! The layers, outermost first, and why in that order:
 //!
@@ -26,6 +27,7 @@ pub mod error;
 pub mod hooks;
 mod limits;
 pub mod metrics;
+pub mod reload;
 pub mod routes;
 pub mod serve;
 pub mod web;
@@ -35,11 +37,11 @@ pub use error::HttpError;
 pub use metrics::Metrics;
 pub use serve::{ServeOptions, serve, shutdown_signal};
 
-use crate::db::TileDb;
+use crate::db::{TileDb, Verify};
 use axum::Router;
 use axum::http::{Method, header};
 use axum::routing::get;
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 use terrain_shared::TileId;
 use terrain_shared::routes::{HEALTHZ, MANIFEST, METRICS};
 use tower::ServiceBuilder;
@@ -48,7 +50,10 @@ use tower_http::cors::{Any, CorsLayer};
 /// Everything a request may need, shared by all of them.
 #[derive(Debug)]
 pub struct AppState {
-    pub db: TileDb,
+    /// The database served now; [`AppState::reload`] puts a rebuilt one in its place.
+    db: RwLock<Arc<TileDb>>,
+    /// How a database is checked when it is opened again.
+    verify: Verify,
     pub metrics: Metrics,
     /// `scheme://host[:port]` put in front of tile URLs in the web documents, instead of
     /// the request's `Host` (for a server behind a proxy).
@@ -57,50 +62,99 @@ pub struct AppState {
     pub viewer: Option<std::path::PathBuf>,
 }
 
+/// What [`AppState::reload`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Reloaded {
+    /// The directory holds the database already served (the same content version).
+    Unchanged,
+    /// A new database is served from now on; requests that began earlier end with the old
+    /// one, whose files are closed when the last of them ends.
+    Replaced { from: String, to: String },
+}
+
 impl AppState {
+    /// Serves `db`, opened with [`Verify::Hashes`] (reloads check hashes too).
     pub fn new(db: TileDb) -> AppState {
+        AppState::with_verify(db, Verify::Hashes)
+    }
+
+    /// Serves `db`; a reload opens the directory again checking it as `verify` says.
+    pub fn with_verify(db: TileDb, verify: Verify) -> AppState {
         AppState {
-            db,
+            db: RwLock::new(Arc::new(db)),
+            verify,
             metrics: Metrics::new(),
             public_url: None,
             viewer: None,
         }
     }
 
-    /// The content version in a tile URL must be the one served: an old one names tiles
-    /// this server no longer has, whatever their coordinates.
-    fn check_content_version(&self, requested: &str) -> Result<(), HttpError> {
-        let current = &self.db.manifest().content_version;
-        if requested == current {
-            return Ok(());
-        }
-        Err(HttpError::UnknownContentVersion {
-            requested: routes::truncated(requested),
-            current: current.clone(),
-        })
+    /// The database served now. A request takes it once and answers from it alone, so a
+    /// reload in the middle never mixes two versions in one answer.
+    pub fn db(&self) -> Arc<TileDb> {
+        Arc::clone(
+            &self
+                .db
+                .read()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+        )
     }
 
-    fn check_in_grid(&self, id: TileId) -> Result<(), HttpError> {
-        match self.db.manifest().tile(id) {
-            Some(_) => Ok(()),
-            None => Err(self.outside_grid(id)),
+    /// Opens the database directory again and serves what it holds now, when its content
+    /// version differs (a build with `--force` replaced it). On an error (the directory
+    /// missing, a build's lock in it, a damaged pack) the database served stays.
+    pub fn reload(&self) -> Result<Reloaded, crate::db::DbError> {
+        let current = self.db();
+        let fresh = TileDb::open(current.dir(), self.verify)?;
+        let (from, to) = (
+            current.manifest().content_version.clone(),
+            fresh.manifest().content_version.clone(),
+        );
+        if from == to {
+            return Ok(Reloaded::Unchanged);
         }
+        *self
+            .db
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Arc::new(fresh);
+        self.metrics.reloaded();
+        Ok(Reloaded::Replaced { from, to })
     }
+}
 
-    fn outside_grid(&self, id: TileId) -> HttpError {
-        let manifest = self.db.manifest();
-        if id.level >= manifest.level_count() {
-            return HttpError::NoSuchLevel {
-                level: id.level,
-                last: manifest.coarsest_level(),
-            };
-        }
-        let grid = manifest.grid(id.level);
-        HttpError::TileOutsideGrid {
-            id,
-            columns: grid.columns,
-            rows: grid.rows,
-        }
+/// The content version in a tile URL must be the one served: an old one names tiles this
+/// server no longer has, whatever their coordinates.
+fn check_content_version(db: &TileDb, requested: &str) -> Result<(), HttpError> {
+    let current = &db.manifest().content_version;
+    if requested == current {
+        return Ok(());
+    }
+    Err(HttpError::UnknownContentVersion {
+        requested: routes::truncated(requested),
+        current: current.clone(),
+    })
+}
+
+fn check_in_grid(db: &TileDb, id: TileId) -> Result<(), HttpError> {
+    match db.manifest().tile(id) {
+        Some(_) => Ok(()),
+        None => Err(outside_grid(db, id)),
+    }
+}
+
+fn outside_grid(db: &TileDb, id: TileId) -> HttpError {
+    let manifest = db.manifest();
+    if id.level >= manifest.level_count() {
+        return HttpError::NoSuchLevel {
+            level: id.level,
+            last: manifest.coarsest_level(),
+        };
+    }
+    let grid = manifest.grid(id.level);
+    HttpError::TileOutsideGrid {
+        id,
+        columns: grid.columns,
+        rows: grid.rows,
     }
 }
 

@@ -128,7 +128,7 @@ pub(super) async fn manifest(
     conditional: Conditional,
     headers: HeaderMap,
 ) -> Response {
-    let db = &state.db;
+    let db = state.db();
     let gzipped = accepts_gzip(&headers);
     let body = if gzipped {
         db.manifest_gzip()
@@ -192,9 +192,10 @@ pub(super) async fn heights(
     check_canonical(&uri, HEIGHTS_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
-    state.check_content_version(&path.content_version)?;
-    state.check_in_grid(id)?;
-    let blob = state.db.heights(id).ok_or_else(|| state.outside_grid(id))?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    super::check_in_grid(&db, id)?;
+    let blob = db.heights(id).ok_or_else(|| super::outside_grid(&db, id))?;
     stored_entity(&conditional, blob, HEIGHTS_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
@@ -207,9 +208,10 @@ pub(super) async fn patch(
     check_canonical(&uri, PATCH_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
-    state.check_content_version(&path.content_version)?;
-    state.check_in_grid(id)?;
-    let blob = state.db.patch(id).ok_or(HttpError::NoPatches)?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    super::check_in_grid(&db, id)?;
+    let blob = db.patch(id).ok_or(HttpError::NoPatches)?;
     stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
@@ -221,8 +223,9 @@ pub(super) async fn patch_index(
 ) -> Result<Response, HttpError> {
     check_canonical(&uri, PATCH_INDEX_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
-    state.check_content_version(&path.content_version)?;
-    let blob = state.db.patch_index().ok_or(HttpError::NoPatches)?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    let blob = db.patch_index().ok_or(HttpError::NoPatches)?;
     stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
 }
 
@@ -236,17 +239,15 @@ pub(super) async fn texture(
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
     let level = parse_number("texture level", &path.mip)?;
-    state.check_content_version(&path.content_version)?;
-    state.check_in_grid(id)?;
-    let manifest = state.db.manifest();
-    let blob = state
-        .db
-        .texture(id, level)
-        .ok_or(HttpError::NoSuchTextureLevel {
-            id,
-            level,
-            last: manifest.texture.levels.saturating_sub(1),
-        })?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    super::check_in_grid(&db, id)?;
+    let manifest = db.manifest();
+    let blob = db.texture(id, level).ok_or(HttpError::NoSuchTextureLevel {
+        id,
+        level,
+        last: manifest.texture.levels.saturating_sub(1),
+    })?;
     let content_type = manifest.texture.format.content_type();
     stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL)
 }
@@ -266,8 +267,9 @@ pub(super) async fn legacy_tile(
     check_canonical(&uri, spelling)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile("0", &path.x, &path.y)?;
-    state.check_content_version(&path.content_version)?;
-    state.check_in_grid(id)?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    super::check_in_grid(&db, id)?;
     let cv = &path.content_version;
     let location = match &path.mip {
         None => terrain_shared::routes::heights(cv, id),

@@ -12,6 +12,7 @@
 use super::AppState;
 use super::error::HttpError;
 use super::routes::{Conditional, JSON_CONTENT_TYPE, TILE_CACHE_CONTROL, stored_entity};
+use crate::db::TileDb;
 use crate::web::index::{Entry, Kind};
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, Uri, header};
@@ -100,8 +101,8 @@ fn base_url(state: &AppState, headers: &HeaderMap) -> Result<String, HttpError> 
     Ok(format!("http://{host}"))
 }
 
-fn web_info(state: &AppState) -> Result<&terrain_shared::manifest::WebInfo, HttpError> {
-    state.db.manifest().web.as_ref().ok_or(HttpError::NoWeb)
+fn web_info(db: &TileDb) -> Result<&terrain_shared::manifest::WebInfo, HttpError> {
+    db.manifest().web.as_ref().ok_or(HttpError::NoWeb)
 }
 
 fn document(body: serde_json::Value) -> Response {
@@ -120,8 +121,9 @@ fn document(body: serde_json::Value) -> Response {
 }
 
 fn tilejson(state: &AppState, headers: &HeaderMap, kind: Kind) -> Result<Response, HttpError> {
-    let info = web_info(state)?;
-    let manifest = state.db.manifest();
+    let db = state.db();
+    let info = web_info(&db)?;
+    let manifest = db.manifest();
     let base = base_url(state, headers)?;
     let (segment, suffix) = xyz_segment(kind);
     let [w, s, e, n] = info.bounds_deg;
@@ -171,8 +173,9 @@ pub(super) async fn texture_json(
 pub(super) async fn cesium_layer(
     State(state): State<Arc<AppState>>,
 ) -> Result<Response, HttpError> {
-    let info = web_info(&state)?;
-    let manifest = state.db.manifest();
+    let db = state.db();
+    let info = web_info(&db)?;
+    let manifest = db.manifest();
     let mut available: Vec<Vec<serde_json::Value>> = Vec::new();
     for z in 0..=info.cesium_max_level {
         let (x0, x1, y0, y1) = crate::web::tiling::geographic_range(info.bounds_deg, z);
@@ -232,10 +235,11 @@ pub(super) async fn tile(
             canonical: spelling,
         })?;
     let y = super::routes::parse_number("y coordinate", y)?;
-    state.check_content_version(&path.content_version)?;
-    let info = web_info(&state)?;
+    let db = state.db();
+    super::check_content_version(&db, &path.content_version)?;
+    let info = web_info(&db)?;
     let entry = Entry { kind, z, x, y };
-    let blob = state.db.web_tile(entry).ok_or(HttpError::NoWebTile {
+    let blob = db.web_tile(entry).ok_or(HttpError::NoWebTile {
         what: segment,
         z,
         x,
@@ -268,7 +272,8 @@ pub(super) async fn root(State(state): State<Arc<AppState>>) -> Response {
         );
         return response;
     }
-    let web = if state.db.manifest().web.is_some() {
+    let db = state.db();
+    let web = if db.manifest().web.is_some() {
         format!(
             "MapLibre: {TERRARIUM_JSON} (raster-dem, terrarium), {TERRAIN_RGB_JSON} (mapbox), {TEXTURE_JSON} (raster)\nCesium: CesiumTerrainProvider.fromUrl(\"/v1/cesium/\")\n"
         )
@@ -277,7 +282,7 @@ pub(super) async fn root(State(state): State<Arc<AppState>>) -> Response {
     };
     let text = format!(
         "terrain-server: {}\nmanifest: {}\n{web}viewer: start with --viewer viewer/dist (after bash viewer/setup.sh)\n",
-        state.db.manifest().dataset,
+        db.manifest().dataset,
         terrain_shared::routes::MANIFEST
     );
     ([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response()
