@@ -9,13 +9,14 @@
 
 use crate::fetch::FetchError;
 use crate::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
+use crate::output::Output;
 use crate::overview::{OverviewError, mosaic};
 use crate::report::{FetchSummary, TileReport, csv};
 use crate::scene::Scene;
 use bytes::Bytes;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::collections::HashMap;
-use std::io::Cursor;
+use std::io::{Cursor, Write as _};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -31,6 +32,9 @@ pub const DEFAULT_CONCURRENCY: u32 = crate::fetcher::DEFAULT_CONCURRENCY as u32;
 pub const OVERVIEW_MAX_SIDE: u32 = 1024;
 pub const OVERVIEW_FILE: &str = "overview.png";
 pub const CSV_FILE: &str = "tiles.csv";
+/// Reserved on disk per row of tiles.csv when a fetch starts: more than a row of real
+/// heights and sizes takes.
+const CSV_ROW_MOST_BYTES: u64 = 128;
 
 /// Arguments of `terrain-client fetch`.
 #[derive(Debug, Clone, clap::Args)]
@@ -93,6 +97,26 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
         "fetching every tile"
     );
 
+    // The outputs' disk space is reserved before a tile is fetched: a disk too full for
+    // them is found now, not after the whole fetch.
+    create_dir(&args.out)?;
+    let overview_path = args.out.join(OVERVIEW_FILE);
+    let csv_path = args.out.join(CSV_FILE);
+    let reserve = |path: &std::path::Path, bytes: u64| {
+        Output::create(path, bytes).map_err(|source| CliError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
+    };
+    let mut overview_file = reserve(
+        &overview_path,
+        crate::overview::png_bound(&manifest, OVERVIEW_MAX_SIDE)?,
+    )?;
+    let mut csv_file = reserve(
+        &csv_path,
+        (manifest.levels[0].tiles.len() as u64 + 1) * CSV_ROW_MOST_BYTES,
+    )?;
+
     // Finer texture levels add to the bar as their sizes become known (in the tile blobs).
     let total_bytes: u64 = manifest.levels[0].tiles.iter().map(blob_bytes).sum();
     let bar = progress_bar(total_bytes);
@@ -118,8 +142,10 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
             .await
             .map_err(|error| join_failure(error, "making the overview"))??;
 
-    create_dir(&args.out)?;
-    let overview_path = args.out.join(OVERVIEW_FILE);
+    let written = |path: &std::path::Path| {
+        let path = path.to_path_buf();
+        move |source| CliError::Write { path, source }
+    };
     let mut png = Vec::new();
     overview
         .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
@@ -127,9 +153,14 @@ pub async fn run_fetch(args: &FetchArgs) -> Result<FetchSummary, CliError> {
             path: overview_path.clone(),
             source,
         })?;
-    write(&overview_path, &png)?;
-    let csv_path = args.out.join(CSV_FILE);
-    write(&csv_path, csv(&reports).as_bytes())?;
+    overview_file
+        .write_all(&png)
+        .map_err(written(&overview_path))?;
+    csv_file
+        .write_all(csv(&reports).as_bytes())
+        .map_err(written(&csv_path))?;
+    overview_file.commit().map_err(written(&overview_path))?;
+    csv_file.commit().map_err(written(&csv_path))?;
 
     let decoded_range_m = reports
         .iter()
@@ -341,13 +372,6 @@ fn join_failure(error: JoinError, task: &'static str) -> CliError {
 
 fn create_dir(path: &std::path::Path) -> Result<(), CliError> {
     std::fs::create_dir_all(path).map_err(|source| CliError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
-}
-
-fn write(path: &std::path::Path, bytes: &[u8]) -> Result<(), CliError> {
-    std::fs::write(path, bytes).map_err(|source| CliError::Write {
         path: path.to_path_buf(),
         source,
     })

@@ -21,10 +21,12 @@ use crate::lod::plan::{DEFAULT_MAX_ERROR_PX, LodSettings};
 use crate::memory::{MemoryBudget, MemoryError, MemorySize};
 use crate::method::CrackFiller;
 use crate::method::MethodKind;
+use crate::output::Output;
 use crate::path::{CameraPath, PathError};
 use crate::render::{Camera, Gpu, GpuError, Offscreen};
 use crate::scene::{Reconciled, RenderConfig, Scene, SceneError};
 use std::fmt;
+use std::io::Write as _;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -361,6 +363,22 @@ pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
     Ok((parse(w)?, parse(h)?))
 }
 
+impl From<crate::output::OutputError> for FlightError {
+    fn from(error: crate::output::OutputError) -> FlightError {
+        FlightError::Write {
+            path: error.path,
+            source: error.source,
+        }
+    }
+}
+
+/// The fewest bytes a row of flight.csv takes (a frame without rendering, small numbers):
+/// `frames` times this is reserved on disk when the flight starts.
+const CSV_ROW_LEAST_BYTES: u64 = 64;
+/// At most this much is reserved for flight.csv up front; past it a full disk is found as
+/// the rows are written.
+const CSV_RESERVE_MAX: u64 = 64 << 20;
+
 /// Why a flight stopped.
 #[derive(Debug, Error)]
 pub enum FlightError {
@@ -377,6 +395,17 @@ pub enum FlightError {
     #[error("cannot write {path}")]
     Write {
         path: PathBuf,
+        source: std::io::Error,
+    },
+    /// An output the disk refused while flying: the flight stops there, and what it would
+    /// have written is removed, not left cut short.
+    #[error(
+        "cannot write {path} at frame {frame} of {frames}: the flight stopped there and left no output cut short"
+    )]
+    WriteWhileFlying {
+        path: PathBuf,
+        frame: u64,
+        frames: u64,
         source: std::io::Error,
     },
     #[error("cannot write {path}: {message}")]
@@ -814,6 +843,20 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     if render.is_some() && args.frame_every > 0 {
         std::fs::create_dir_all(&frames_dir).map_err(write_err(&frames_dir))?;
     }
+    // flight.csv is written as frames are flown, so a disk that fills is found while flying;
+    // the least its rows take is reserved now, so a disk already too full is found at once.
+    let csv_path = args.out.join("flight.csv");
+    let mut csv = Output::create(
+        &csv_path,
+        (frames * CSV_ROW_LEAST_BYTES).min(CSV_RESERVE_MAX),
+    )
+    .map_err(|source| FlightError::WriteWhileFlying {
+        path: csv_path.clone(),
+        frame: 0,
+        frames,
+        source,
+    })?;
+    writeln!(csv, "{CSV_HEADER}").map_err(write_err(&csv_path))?;
     let mut content_changes = Vec::new();
     let mut last_failure = None;
     // A failure that stops the flight; the frames flown so far are still written.
@@ -909,9 +952,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
         {
             let file = frames_dir.join(format!("frame-{frame:06}.png"));
             let image = t.read(gpu)?;
-            image.save(&file).map_err(|e| FlightError::Image {
-                path: file.clone(),
-                message: e.to_string(),
+            crate::output::write_via(&file, |temp| {
+                image.save(temp).map_err(|e| FlightError::Image {
+                    path: file.clone(),
+                    message: e.to_string(),
+                })
             })?;
             frames_written.push(file);
         }
@@ -958,26 +1003,32 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
                 record.memory_limit_bytes as f64 / crate::memory::MIB
             ),
         });
+        if let Err(source) = writeln!(csv, "{}", record.csv_row()) {
+            bar.finish_and_clear();
+            return Err(FlightError::WriteWhileFlying {
+                path: csv_path,
+                frame,
+                frames,
+                source,
+            });
+        }
         records.push(record);
     }
     bar.finish_and_clear();
     let pending: Vec<_> = fetcher.pending().collect();
     fetcher.cancel(&pending);
 
-    let csv = args.out.join("flight.csv");
-    let mut text = String::with_capacity(records.len() * 200);
-    text.push_str(CSV_HEADER);
-    text.push('\n');
-    for record in &records {
-        text.push_str(&record.csv_row());
-        text.push('\n');
-    }
-    std::fs::write(&csv, text).map_err(write_err(&csv))?;
+    let csv = csv.commit().map_err(write_err(&csv_path))?;
     let mut charts = vec![args.out.join("flight.png")];
-    crate::charts::flight_chart(&records, &manifest.dataset, &charts[0])?;
+    crate::output::write_via(&charts[0], |temp| {
+        crate::charts::flight_chart(&records, &manifest.dataset, temp).map_err(FlightError::from)
+    })?;
     if records.iter().any(|r| r.render.is_some()) {
         let chart = args.out.join("render.png");
-        crate::charts::render_chart(&records, &manifest.dataset, &chart)?;
+        crate::output::write_via(&chart, |temp| {
+            crate::charts::render_chart(&records, &manifest.dataset, temp)
+                .map_err(FlightError::from)
+        })?;
         charts.push(chart);
     }
 

@@ -38,6 +38,7 @@ pub mod flight;
 pub mod lod;
 pub mod memory;
 pub mod method;
+pub mod output;
 pub mod overview;
 pub mod page;
 pub mod path;

@@ -113,6 +113,15 @@ pub fn image_format(format: ImageFormat) -> image::ImageFormat {
     }
 }
 
+/// The most bytes [`mosaic`]'s picture takes as a PNG, known before a tile is fetched: its
+/// RGB rows with their filter bytes, stored uncompressed at worst (deflate's stored blocks
+/// and the chunk headers add well under 1%), and the PNG's own headers.
+pub fn png_bound(manifest: &Manifest, max_side: u32) -> Result<u64, OverviewError> {
+    let (width, height) = scaled(real_extent(manifest)?, max_side);
+    let rows = u64::from(height) * (3 * u64::from(width) + 1);
+    Ok(rows + rows / 64 + 4096)
+}
+
 /// Texels of real terrain in the full-resolution mosaic, `(width, height)`.
 fn real_extent(manifest: &Manifest) -> Result<(u32, u32), OverviewError> {
     let grid = manifest.grid(0);

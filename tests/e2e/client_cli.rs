@@ -356,3 +356,126 @@ fn a_path_too_long_to_fly_or_not_a_file_is_refused_at_start_in_bounded_memory() 
         assert!(!out.exists(), "nothing written for {}", flight.display());
     }
 }
+
+/// `command` with the files it writes limited to `kib` KiB (bash's `ulimit -f`, with
+/// SIGXFSZ ignored so the limit is an error, not a kill): a write or a reservation past it
+/// fails with EFBIG ("File too large") at the moment it is made, as one on a full disk fails
+/// with ENOSPC, without filling a disk this machine shares.
+fn with_files_limited_to(command: &Command, kib: u64) -> Command {
+    let mut limited = Command::new("bash");
+    limited
+        .arg("-c")
+        .arg(format!("trap '' XFSZ; ulimit -f {kib}; exec \"$0\" \"$@\""))
+        .arg(command.get_program())
+        .args(command.get_args());
+    for (key, value) in command.get_envs() {
+        match value {
+            Some(value) => limited.env(key, value),
+            None => limited.env_remove(key),
+        };
+    }
+    limited
+}
+
+/// Every file under `dir`, with its size.
+fn files_under(dir: &Path) -> Vec<(String, u64)> {
+    let mut files = Vec::new();
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for entry in entries {
+            let entry = entry.expect("entry");
+            let meta = entry.metadata().expect("metadata");
+            if meta.is_dir() {
+                files.extend(files_under(&entry.path()));
+            } else {
+                files.push((entry.path().display().to_string(), meta.len()));
+            }
+        }
+    }
+    files
+}
+
+/// Heights requests the server has answered, from its `/metrics`.
+fn heights_requests(server: &TestServer) -> f64 {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let text = runtime.block_on(async {
+        reqwest::get(server.url("/metrics"))
+            .await
+            .expect("metrics")
+            .text()
+            .await
+            .expect("text")
+    });
+    text.lines()
+        .filter(|l| l.starts_with("http_requests_total{") && l.contains("heights"))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+/// A disk that fills during `fetch` or `fly` (here a file size limit, which refuses a write
+/// the way a full disk does): `fetch` finds it before a tile is asked for (its outputs'
+/// space is reserved first), `fly` at the frame whose row does not fit (flight.csv is
+/// written as frames fly), or at start when even the rows' least size does not fit; each
+/// exits 1 naming the file and the cause, and leaves no file cut short or of 0 bytes.
+#[test]
+fn a_disk_that_fills_is_reported_while_fetching_or_flying_and_leaves_no_output_cut_short() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let server = TestServer::start(&build_jacksboro(tmp.path()).out);
+    let no_output_cut_short = |out: &Path| {
+        let files = files_under(out);
+        assert!(files.is_empty(), "left behind: {files:?}");
+    };
+
+    // fetch: 8 KiB of file, far less than the overview can take.
+    let out = tmp.path().join("fetch");
+    let output = run(with_files_limited_to(
+        &fetch_command(server.base_url(), &out),
+        8,
+    ));
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("overview.png") && stderr.contains("File too large"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(heights_requests(&server), 0.0, "reported before the fetch");
+    no_output_cut_short(&out);
+    // The same fetch with room succeeds: the limit was the only thing in the way.
+    let room = run(fetch_command(server.base_url(), &out));
+    assert_eq!(room.status.code(), Some(0), "{}", text(&room.stderr));
+    let written = files_under(&out);
+    assert!(
+        written.len() == 2 && written.iter().all(|(_, bytes)| *bytes > 0),
+        "{written:?}"
+    );
+
+    // fly, 401 frames of a 2 s path at 200 fps; its rows take more than 64 bytes each, so
+    // 32 KiB holds the least reserved at start (401 x 64) and not every row.
+    let flight = still_flight(tmp.path());
+    let out = tmp.path().join("fly");
+    let fly = fly_command(server.base_url(), &out, &flight, &["--fps", "200"]);
+    let output = run(with_files_limited_to(&fly, 32));
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    let frame: u64 = stderr
+        .split("flight.csv at frame ")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no frame named: {stderr}"));
+    assert!(
+        frame > 0 && frame < 400 && stderr.contains("of 401") && stderr.contains("File too large"),
+        "stopped at the frame that did not fit, not after the flight: {stderr}"
+    );
+    no_output_cut_short(&out);
+
+    // fly with 4 KiB: not even the rows' least size fits, found before the first frame.
+    let output = run(with_files_limited_to(&fly, 4));
+    let stderr = text(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("flight.csv at frame 0 of 401"), "{stderr}");
+    no_output_cut_short(&out);
+}

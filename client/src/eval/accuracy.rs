@@ -994,7 +994,7 @@ fn write(args: &AccuracyArgs, report: &mut AccuracyReport) -> Result<(), FlightE
         csv.push('\n');
     }
     let csv_path = out.join("accuracy.csv");
-    std::fs::write(&csv_path, csv).map_err(write_err(&csv_path))?;
+    crate::output::write_file(&csv_path, csv).map_err(write_err(&csv_path))?;
     let md_path = out.join("summary.md");
     let header = format!(
         "Dataset {}, {} cameras along the flight at {}x{}, adapter {}. Reference: {:.0} triangles, {:.1} ms a frame; {}.\n\n",
@@ -1007,7 +1007,8 @@ fn write(args: &AccuracyArgs, report: &mut AccuracyReport) -> Result<(), FlightE
         report.reference_ms,
         reference_floor(report)
     );
-    std::fs::write(&md_path, header + &summary_markdown(report)).map_err(write_err(&md_path))?;
+    crate::output::write_file(&md_path, header + &summary_markdown(report))
+        .map_err(write_err(&md_path))?;
     report.files = vec![csv_path, md_path];
     report.files.extend(draw_charts(report, out)?);
     Ok(())

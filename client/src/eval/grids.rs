@@ -252,7 +252,7 @@ pub async fn run(args: &GridsArgs) -> Result<GridsReport, FlightError> {
         );
     }
     let path = args.out.join("grids.md");
-    std::fs::write(&path, &s).map_err(|e| FlightError::Write {
+    crate::output::write_file(&path, &s).map_err(|e| FlightError::Write {
         path: path.clone(),
         source: e,
     })?;

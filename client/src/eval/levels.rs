@@ -317,9 +317,9 @@ fn write(args: &LevelsArgs, report: &mut LevelsReport) -> Result<(), FlightError
         }
     }
     let csv_path = out.join("levels.csv");
-    std::fs::write(&csv_path, csv).map_err(write_err(&csv_path))?;
+    crate::output::write_file(&csv_path, csv).map_err(write_err(&csv_path))?;
     let md_path = out.join("levels.md");
-    std::fs::write(&md_path, report.table()).map_err(write_err(&md_path))?;
+    crate::output::write_file(&md_path, report.table()).map_err(write_err(&md_path))?;
     let chart = out.join("levels.png");
     let series = |value: fn(&Sample) -> f64| -> Vec<XySeries> {
         report

@@ -1026,7 +1026,7 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
         report.files.push(file);
     }
     let md_path = out.join("stability.md");
-    std::fs::write(&md_path, &md).map_err(write_err(&md_path))?;
+    crate::output::write_file(&md_path, &md).map_err(write_err(&md_path))?;
     let mut csv = String::from(
         "scenario,method,failure,crack_pixels,hole_pixels,reference_terrain_pixels,max_error_px,above_threshold_pct,frame_ms_median,frame_ms_p95,frame_ms_max,peak_resident_bytes,peak_held_bytes,memory_limit_bytes,database_bytes,flat_tiles,flat_tiles_coarsest,triangles,triangles_needed,coverage_pct,mean_error_px,whole_reference,p99_error_px,filler_pixels,leak_pixels\n",
     );
@@ -1066,7 +1066,7 @@ fn write(args: &StabilityArgs, report: &mut StabilityReport) -> Result<(), Fligh
         );
     }
     let csv_path = out.join("stability.csv");
-    std::fs::write(&csv_path, csv).map_err(write_err(&csv_path))?;
+    crate::output::write_file(&csv_path, csv).map_err(write_err(&csv_path))?;
     report.files.insert(0, csv_path);
     report.files.insert(0, md_path);
     Ok(())
