@@ -4,7 +4,7 @@
 # (Wayland, no DISPLAY set), with the window's statistics printed (--print-stats). It passes
 # when each run drew frames (a statistics line with a frame rate and triangles) and did not
 # fail. Needs the release binaries (cargo build --release); installs xvfb and weston when
-# missing (Debian, as root). Without them it says NOT RUN, and with REQUIRE_GPU=1 fails.
+# missing (Debian, as root). Without them it says NOT RUN, and with REQUIRE_BROWSER=1 (as scripts/test.sh says) fails.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/gpu-env.sh >/dev/null
@@ -22,7 +22,7 @@ need() { # command package
   command -v "$1" >/dev/null 2>&1
 }
 if ! need Xvfb xvfb || ! need weston weston; then
-  if [ "${REQUIRE_GPU:-}" = 1 ]; then
+  if [ "${REQUIRE_BROWSER:-}" = 1 ]; then
     echo "error: view-check: Xvfb or weston is missing and could not be installed" >&2
     exit 1
   fi

@@ -1,4 +1,5 @@
-//! The client's top-level modules depend on each other without a loop, and the renderer
+//! The client's modules depend on each other without a loop, at every depth (the
+//! top-level modules, and the modules of each folder among themselves), and the renderer
 //! names no level-of-detail method: read from the sources, so a new import that closes a
 //! loop fails here.
 //!
@@ -38,56 +39,166 @@ fn code(path: &Path) -> String {
         .join("\n")
 }
 
-/// The top-level module a file belongs to (`render` for `src/render/frame.rs`).
-fn module_of(path: &Path) -> Option<String> {
-    let relative = path.strip_prefix(src()).ok()?;
-    let first = relative.components().next()?.as_os_str().to_str()?;
-    let name = first.trim_end_matches(".rs");
-    (name != "lib" && name != "main").then(|| name.to_string())
+/// The module a file is (`["render", "frame"]` for `src/render/frame.rs`, `["eval"]` for
+/// `src/eval/mod.rs`, `[]` for `lib.rs` and `main.rs`).
+fn module_of(path: &Path) -> Vec<String> {
+    let relative = path.strip_prefix(src()).expect("under src");
+    let mut parts: Vec<String> = relative
+        .components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect();
+    let file = parts.pop().expect("a file name");
+    let stem = file.trim_end_matches(".rs");
+    if !matches!(stem, "mod" | "lib" | "main") {
+        parts.push(stem.to_string());
+    }
+    parts
 }
 
-/// Top-level modules named in `text` as `crate::NAME`.
-fn named_modules(text: &str) -> BTreeSet<String> {
-    let mut out = BTreeSet::new();
-    for (at, _) in text.match_indices("crate::") {
-        let rest = &text[at + "crate::".len()..];
-        let name: String = rest
-            .chars()
-            .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
-            .collect();
-        if !name.is_empty() {
-            out.insert(name);
+fn is_ident(c: char) -> bool {
+    c.is_ascii_alphanumeric() || c == '_'
+}
+
+/// The `::`-separated identifiers at the start of `text`, and what follows them: a `{` group
+/// is returned unread.
+fn path_at(text: &str) -> (Vec<String>, &str) {
+    let mut parts = Vec::new();
+    let mut rest = text;
+    loop {
+        let name: String = rest.chars().take_while(|c| is_ident(*c)).collect();
+        if name.is_empty() {
+            break;
+        }
+        rest = &rest[name.len()..];
+        parts.push(name);
+        match rest.strip_prefix("::") {
+            Some(after) => rest = after,
+            None => break,
         }
     }
-    // `use crate::{a, b::c}`.
-    for (at, _) in text.match_indices("crate::{") {
-        let rest = &text[at + "crate::{".len()..];
-        let group = &rest[..rest.find('}').unwrap_or(rest.len())];
-        for part in group.split(',') {
-            let name: String = part
-                .trim()
-                .chars()
-                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
-                .collect();
-            if !name.is_empty() {
-                out.insert(name);
+    (parts, rest)
+}
+
+/// The comma-separated items of the `{...}` group at the start of `text`, nested groups
+/// kept whole.
+fn group_items(text: &str) -> Vec<&str> {
+    let mut items = Vec::new();
+    let (mut depth, mut from) = (0usize, 1usize);
+    for (at, c) in text.char_indices() {
+        match c {
+            '{' => depth += 1,
+            '}' => {
+                depth -= 1;
+                if depth == 0 {
+                    items.push(&text[from..at]);
+                    break;
+                }
+            }
+            ',' if depth == 1 => {
+                items.push(&text[from..at]);
+                from = at + 1;
+            }
+            _ => {}
+        }
+    }
+    items
+}
+
+/// Every path `text` (the code of module `module`) names through `crate::`, `super::` or
+/// `self::`, resolved to a path from the crate root, groups expanded
+/// (`use super::{a::B, c}` in `eval::x` names `eval::a::B` and `eval::c`).
+fn references(text: &str, module: &[String]) -> BTreeSet<Vec<String>> {
+    let mut out = BTreeSet::new();
+    let expand = |base: Vec<String>, rest: &str, out: &mut BTreeSet<Vec<String>>| {
+        let mut pending = vec![(base, rest.to_string())];
+        while let Some((base, rest)) = pending.pop() {
+            let (parts, after) = path_at(&rest);
+            let mut full = base.clone();
+            full.extend(parts);
+            if after.starts_with('{') {
+                for item in group_items(after) {
+                    pending.push((full.clone(), item.trim().to_string()));
+                }
+            } else {
+                out.insert(full);
             }
         }
+    };
+    for (at, _) in text.match_indices("::") {
+        // The first segment: `crate`, `self` or one or more `super`s.
+        let head_start = text[..at]
+            .rfind(|c: char| !(is_ident(c) || c == ':'))
+            .map_or(0, |i| i + 1);
+        let head = &text[head_start..at];
+        let mut rest = &text[at + 2..];
+        let base = match head {
+            "crate" => Vec::new(),
+            "self" => module.to_vec(),
+            // `super` names the module's parent (from `eval/levels.rs`, `eval`; from
+            // `eval/mod.rs`, the root), each further `super` the parent's.
+            "super" => {
+                let mut base = module.to_vec();
+                base.pop();
+                while let Some(after) = rest.strip_prefix("super::") {
+                    base.pop();
+                    rest = after;
+                }
+                base
+            }
+            _ => continue,
+        };
+        expand(base, rest, &mut out);
     }
     out
 }
 
-fn graph() -> BTreeMap<String, BTreeSet<String>> {
-    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+/// For each folder of modules (the crate root, `eval`, `render`, ...), which of its
+/// children import which: an import from `render::frame` of `render::offscreen::f` is the
+/// edge `frame -> offscreen` in the folder `render`; one of `crate::page::X` from
+/// `eval::levels` is `eval -> page` in the root.
+fn graphs() -> BTreeMap<String, BTreeMap<String, BTreeSet<String>>> {
+    let mut graphs: BTreeMap<String, BTreeMap<String, BTreeSet<String>>> = BTreeMap::new();
     for path in sources(&src()) {
-        let Some(module) = module_of(&path) else {
-            continue;
-        };
-        let uses = named_modules(&code(&path));
-        let entry = graph.entry(module.clone()).or_default();
-        entry.extend(uses.into_iter().filter(|m| *m != module));
+        let module = module_of(&path);
+        for target in references(&code(&path), &module) {
+            let common = module
+                .iter()
+                .zip(&target)
+                .take_while(|(a, b)| a == b)
+                .count();
+            // A module naming its own items, an ancestor or a descendant: no edge.
+            let (Some(from), Some(to)) = (module.get(common), target.get(common)) else {
+                continue;
+            };
+            // `crate::NAME` where NAME is an item of the root, not a module, has no file.
+            let folder = module[..common].join("::");
+            graphs
+                .entry(folder)
+                .or_default()
+                .entry(from.clone())
+                .or_default()
+                .insert(to.clone());
+        }
     }
-    graph
+    // Only children that are modules: an item named in a folder (`super::CONST`) is no node.
+    let modules: BTreeSet<Vec<String>> = sources(&src()).iter().map(|p| module_of(p)).collect();
+    for (folder, graph) in &mut graphs {
+        let prefix: Vec<String> = if folder.is_empty() {
+            Vec::new()
+        } else {
+            folder.split("::").map(String::from).collect()
+        };
+        let is_module = |name: &String| {
+            let mut path = prefix.clone();
+            path.push(name.clone());
+            modules.contains(&path)
+        };
+        graph.retain(|from, _| is_module(from));
+        for uses in graph.values_mut() {
+            uses.retain(|to| is_module(to));
+        }
+    }
+    graphs
 }
 
 /// A loop through `graph`, if there is one.
@@ -126,22 +237,39 @@ fn find_loop(graph: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> 
 }
 
 #[test]
-fn no_two_modules_import_each_other_directly_or_in_a_loop() {
-    let graph = graph();
-    for (module, uses) in &graph {
-        println!(
-            "{module} -> {}",
-            uses.iter().cloned().collect::<Vec<_>>().join(", ")
-        );
+fn no_two_modules_import_each_other_directly_or_in_a_loop_at_any_depth() {
+    let graphs = graphs();
+    for (folder, graph) in &graphs {
+        for (module, uses) in graph {
+            println!(
+                "{}{module} -> {}",
+                if folder.is_empty() {
+                    String::new()
+                } else {
+                    format!("{folder}::")
+                },
+                uses.iter().cloned().collect::<Vec<_>>().join(", ")
+            );
+        }
     }
-    assert!(graph.len() > 10, "the modules were found: {graph:?}");
+    let root = &graphs[""];
+    assert!(root.len() > 10, "the modules were found: {root:?}");
     assert!(
-        graph["scene"].contains("render"),
+        root["scene"].contains("render"),
         "the reading of imports works"
     );
-    if let Some(cycle) = find_loop(&graph) {
-        panic!("modules import each other: {}", cycle.join(" -> "));
-    }
+    assert!(
+        graphs["render"]["frame"].contains("gpu"),
+        "the reading of imports inside a folder works: {:?}",
+        graphs["render"]
+    );
+    let loops: Vec<String> = graphs
+        .iter()
+        .filter_map(|(folder, graph)| {
+            find_loop(graph).map(|cycle| format!("in {folder:?}: {}", cycle.join(" -> ")))
+        })
+        .collect();
+    assert!(loops.is_empty(), "modules import each other: {loops:#?}");
 }
 
 #[test]
@@ -155,9 +283,32 @@ fn the_loop_finder_finds_a_loop() {
         find_loop(&graph),
         Some(vec!["a".into(), "b".into(), "c".into(), "a".into()])
     );
+}
+
+#[test]
+fn references_are_resolved_from_the_crate_root() {
+    let module = |m: &str| m.split("::").map(String::from).collect::<Vec<_>>();
+    let found = references(
+        "use crate::{scene::Scene, render};\nlet x = crate::eval::f();\nuse super::{a::B, c};\nsuper::super::page::decide();\nself::inner::g();",
+        &module("eval::levels"),
+    );
+    let expected: BTreeSet<Vec<String>> = [
+        "scene::Scene",
+        "render",
+        "eval::f",
+        "eval::a::B",
+        "eval::c",
+        "page::decide",
+        "eval::levels::inner::g",
+    ]
+    .iter()
+    .map(|p| module(p))
+    .collect();
+    assert_eq!(found, expected);
+    // From `mod.rs`, `super` is the folder's parent.
     assert_eq!(
-        named_modules("use crate::{scene::Scene, render};\nlet x = crate::eval::f();"),
-        ["eval", "render", "scene"].map(String::from).into()
+        references("super::page::X", &module("eval")),
+        [module("page::X")].into()
     );
 }
 

@@ -461,7 +461,11 @@ fn check_dataset(
         &[],
         &out,
     );
-    terrain_tests::golden::compare(&format!("browser-{name}-maplibre"), &pitched.screenshot);
+    terrain_tests::golden::compare(
+        &format!("browser-{name}-maplibre"),
+        &pitched.screenshot,
+        terrain_tests::golden::Match::Tolerant,
+    );
 
     // Cesium: the most detailed tiles, against the error layer.json states for them.
     let layer = fetch_json(&format!("{base}/v1/cesium/layer.json"));
@@ -491,7 +495,11 @@ fn check_dataset(
     println!(
         "{name}: Cesium at 20 samples within {worst:.2} m of the source (level {finest}'s stated error {stated:.2} m)"
     );
-    terrain_tests::golden::compare(&format!("browser-{name}-cesium"), &cesium.screenshot);
+    terrain_tests::golden::compare(
+        &format!("browser-{name}-cesium"),
+        &cesium.screenshot,
+        terrain_tests::golden::Match::Tolerant,
+    );
 }
 
 #[test]
@@ -685,5 +693,9 @@ fn maplibre_at_a_high_dem_edge_draws_the_surface_level_with_it_not_a_wall() {
         &[],
         &out,
     );
-    terrain_tests::golden::compare("browser-jacksboro-maplibre-edge", &pitched.screenshot);
+    terrain_tests::golden::compare(
+        "browser-jacksboro-maplibre-edge",
+        &pitched.screenshot,
+        terrain_tests::golden::Match::Tolerant,
+    );
 }

@@ -114,7 +114,7 @@ fn projected_grids_over_jacksboro_match_their_golden_images() {
                         m.error.p99_px
                     );
                 }
-                golden::compare(&name, &measured.capture.color);
+                golden::compare(&name, &measured.capture.color, golden::Match::on(&session.gpu));
             }
         }
         session.close();
@@ -122,19 +122,21 @@ fn projected_grids_over_jacksboro_match_their_golden_images() {
 }
 
 /// The guarantee of the error-bounded projective grid (Löffler et al.): with ray casting in
-/// every pixel whose bound passes 1 px, the 99th percentile of the screen-space error stays
-/// within 1 px on every camera of the Puget Sound flight. Without ray casting the same grid
-/// leaves pixels past 1 px (so the rays are what holds it). The shares of pixels past the
+/// every pixel whose bound passes 1 px, the screen-space error of every pixel (the maximum,
+/// not only the 99th percentile) stays within 1 px on every camera of the Puget Sound
+/// flight, with at most a pixel in ten thousand a hole. Without ray casting the same grid
+/// leaves pixels past 1 px (so the rays are what holds it: the deliberate break). The shares of pixels past the
 /// threshold and ray cast are printed; `docs/evaluation.md` reports them per grid size.
 #[test]
-fn the_projective_grid_with_ray_casting_keeps_p99_within_a_pixel_over_puget_sound() {
+fn the_projective_grid_with_ray_casting_keeps_every_pixel_within_a_pixel_over_puget_sound() {
     let Some(png) = kit_file(
         "projective grid over puget",
         "puget_sound_1k/ps_height_1k.png",
     ) else {
         return;
     };
-    let Some(_) = golden::gpu("grids::the_projective_grid_with_ray_casting_keeps_p99") else {
+    let Some(_) = golden::gpu("grids::the_projective_grid_with_ray_casting_keeps_every_pixel")
+    else {
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -176,6 +178,8 @@ fn the_projective_grid_with_ray_casting_keeps_p99_within_a_pixel_over_puget_soun
                     eprintln!("the frame is at {}", path.display());
                 }
                 assert!(e.p99_px <= 1.0, "camera {}: {e:?}", row.camera);
+                // The bound is on every pixel, not on most: the largest error too.
+                assert!(e.max_px <= 1.0, "camera {}: max {e:?}", row.camera);
                 // A ray may slip between two triangles where it meets a cell's edge
                 // exactly: a pixel in ten thousand at most.
                 assert!(

@@ -27,9 +27,32 @@ fn rebuild(out: &Path, raise_m: f64) -> String {
     .content_version
 }
 
+/// A server child killed when dropped, so a failed assertion leaves no server running.
+struct Serving(Child);
+
+impl Drop for Serving {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl std::ops::Deref for Serving {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Serving {
+    fn deref_mut(&mut self) -> &mut Child {
+        &mut self.0
+    }
+}
+
 /// `terrain-server serve DB` with `extra` arguments, its log in `log`; the child and its
 /// base URL.
-fn serve(db: &Path, extra: &[&str], log: &Path) -> (Child, String) {
+fn serve(db: &Path, extra: &[&str], log: &Path) -> (Serving, String) {
     let mut child = Command::new(workspace_binary("terrain-server"))
         .arg("serve")
         .arg(db)
@@ -48,7 +71,7 @@ fn serve(db: &Path, extra: &[&str], log: &Path) -> (Child, String) {
         .strip_prefix("listening on ")
         .unwrap_or_else(|| panic!("{line}"))
         .to_string();
-    (child, base)
+    (Serving(child), base)
 }
 
 fn get(base: &str, path: &str) -> (u16, String) {

@@ -214,7 +214,7 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
             plan.triangles
         );
         let image = painter.draw(&camera, &plan.draws, CrackFiller::PlanarShadow);
-        golden::compare(name, &image);
+        golden::compare(name, &image, golden::Match::on(&gpu));
     }
 }
 
@@ -422,7 +422,11 @@ fn planar_shadows_and_skirts_leave_fewer_sky_pixels_between_tiles_of_different_l
             let frame = painter.draw(&camera, &mixed, filler);
             counts[k] = crack_pixels(&reference, &frame, sky);
             if name == "jacksboro-overview" && filler != CrackFiller::Skirts {
-                golden::compare(&format!("jacksboro-cracks-{}", filler.name()), &frame);
+                golden::compare(
+                    &format!("jacksboro-cracks-{}", filler.name()),
+                    &frame,
+                    golden::Match::on(&gpu),
+                );
             }
             if filler == CrackFiller::PlanarShadow {
                 // Every shared side of the checkerboard changes mask: the bands close every
@@ -887,7 +891,7 @@ fn the_padding_of_the_last_tiles_is_never_drawn_whatever_the_filler() {
                     }
                 } else {
                     assert_eq!(coarser, 0, "{}: level 0 alone", filler.name());
-                    golden::compare(&name, &capture.color);
+                    golden::compare(&name, &capture.color, golden::Match::on(&session.gpu));
                 }
             }
         }

@@ -4,11 +4,12 @@
 //! the test did not run; with `REQUIRE_GPU=1` (CI) a missing adapter, or one that is not
 //! Vulkan, fails the test instead.
 //!
-//! **Golden images** live in `tests/golden/`. [`compare`] passes when at most
-//! [`MAX_DIFFERING_SHARE`] of the pixels differ from the golden image by more than
-//! [`CHANNEL_TOLERANCE`] in some channel: lavapipe renders bit for bit the same on every
-//! run, and the tolerance leaves room for other adapters' rasterisation and filtering
-//! (a pixel along an edge, a texel's rounding). On failure it writes
+//! **Golden images** live in `tests/golden/`, made with lavapipe (the render tests; its
+//! name in `tests/golden/ADAPTER`) and headless Chromium (the browser tests). [`compare`]
+//! asks for every pixel equal ([`Match::Exact`]) on that lavapipe, which renders bit for
+//! bit the same on every run; on any other adapter, and for the browsers, at most [`MAX_DIFFERING_SHARE`] of the pixels may
+//! differ by more than [`CHANNEL_TOLERANCE`] in some channel ([`Match::Tolerant`]): room
+//! for other rasterisation and filtering (a pixel along an edge, a texel's rounding). On failure it writes
 //! `target/golden/NAME-actual.png` and `NAME-diff.png` (differing pixels in red over a
 //! faded copy of the golden image) and says where. `UPDATE_GOLDEN=1` rewrites the golden
 //! images instead of comparing; look at them before committing.
@@ -22,6 +23,51 @@ use terrain_client::render::gpu::gpu_required;
 pub const CHANNEL_TOLERANCE: u8 = 12;
 /// Largest share of pixels allowed to differ.
 pub const MAX_DIFFERING_SHARE: f64 = 0.005;
+
+/// How close a frame must be to its golden image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Match {
+    /// Every channel of every pixel equal.
+    Exact,
+    /// At most [`MAX_DIFFERING_SHARE`] of the pixels differ by more than
+    /// [`CHANNEL_TOLERANCE`].
+    Tolerant,
+}
+
+/// The adapter the render tests' golden images were made with (its name, as wgpu gives it:
+/// lavapipe's carries its LLVM version and vector width, which change its rounding).
+const ADAPTER_FILE: &str = "ADAPTER";
+
+impl Match {
+    /// Exact on the adapter the golden images were made with (`tests/golden/ADAPTER`, a
+    /// lavapipe), tolerant on any other, which is said on stderr. With `UPDATE_GOLDEN=1` on
+    /// lavapipe, records this adapter as the one.
+    pub fn on(gpu: &Gpu) -> Match {
+        let name = gpu.adapter.get_info().name;
+        let path = golden_dir().join(ADAPTER_FILE);
+        if std::env::var("UPDATE_GOLDEN").is_ok_and(|v| v == "1") && name.starts_with("llvmpipe") {
+            std::fs::write(&path, format!("{name}\n")).expect("tests/golden/ADAPTER written");
+        }
+        let recorded = std::fs::read_to_string(&path).unwrap_or_default();
+        if recorded.trim() == name {
+            Match::Exact
+        } else {
+            let _ = writeln!(
+                std::io::stderr(),
+                "golden images compared with a tolerance: made with {:?}, rendered with {name:?}",
+                recorded.trim()
+            );
+            Match::Tolerant
+        }
+    }
+
+    fn tolerance(self) -> (u8, f64) {
+        match self {
+            Match::Exact => (0, 0.0),
+            Match::Tolerant => (CHANNEL_TOLERANCE, MAX_DIFFERING_SHARE),
+        }
+    }
+}
 
 /// A headless device, or `None` (said on stderr) when there is none and none is required.
 pub fn gpu(test: &str) -> Option<Gpu> {
@@ -46,15 +92,22 @@ fn failure_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/golden")
 }
 
-/// Pixels whose channels differ by more than the tolerance.
+fn differs(p: &image::Rgba<u8>, q: &image::Rgba<u8>, tolerance: u8) -> bool {
+    p.0.iter()
+        .zip(q.0.iter())
+        .any(|(x, y)| x.abs_diff(*y) > tolerance)
+}
+
+/// Pixels whose channels differ by more than [`CHANNEL_TOLERANCE`].
 pub fn differing_pixels(a: &image::RgbaImage, b: &image::RgbaImage) -> u64 {
+    differing_pixels_by(a, b, CHANNEL_TOLERANCE)
+}
+
+/// Pixels whose channels differ by more than `tolerance`.
+pub fn differing_pixels_by(a: &image::RgbaImage, b: &image::RgbaImage, tolerance: u8) -> u64 {
     a.pixels()
         .zip(b.pixels())
-        .filter(|(p, q)| {
-            p.0.iter()
-                .zip(q.0.iter())
-                .any(|(x, y)| x.abs_diff(*y) > CHANNEL_TOLERANCE)
-        })
+        .filter(|(p, q)| differs(p, q, tolerance))
         .count() as u64
 }
 
@@ -72,7 +125,7 @@ pub fn differing_share(name: &str, actual: &image::RgbaImage) -> Option<f64> {
 }
 
 /// Compares `actual` with `tests/golden/NAME.png` (see the module docs).
-pub fn compare(name: &str, actual: &image::RgbaImage) {
+pub fn compare(name: &str, actual: &image::RgbaImage, how: Match) {
     let golden_path = golden_dir().join(format!("{name}.png"));
     if std::env::var("UPDATE_GOLDEN").is_ok_and(|v| v == "1") {
         std::fs::create_dir_all(golden_dir()).expect("tests/golden");
@@ -83,7 +136,7 @@ pub fn compare(name: &str, actual: &image::RgbaImage) {
     let golden = match image::open(&golden_path) {
         Ok(image) => image.into_rgba8(),
         Err(e) => {
-            let out = write_failure(name, actual, None);
+            let out = write_failure(name, actual, None, 0);
             panic!(
                 "{name}: no golden image at {} ({e}); the frame is at {}. Look at it, then run with UPDATE_GOLDEN=1 to make it the golden image",
                 golden_path.display(),
@@ -97,16 +150,17 @@ pub fn compare(name: &str, actual: &image::RgbaImage) {
         "{name}: size differs from {}",
         golden_path.display()
     );
-    let differing = differing_pixels(&golden, actual);
+    let (tolerance, allowed) = how.tolerance();
+    let differing = differing_pixels_by(&golden, actual, tolerance);
     let total = u64::from(actual.width()) * u64::from(actual.height());
     let share = differing as f64 / total as f64;
-    if share > MAX_DIFFERING_SHARE {
-        write_failure(name, actual, Some(&golden));
+    if share > allowed {
+        write_failure(name, actual, Some(&golden), tolerance);
         panic!(
-            "{name}: {differing} of {total} pixels ({:.2}%) differ from {} by more than {CHANNEL_TOLERANCE} (allowed {:.2}%); see {}-actual.png and -diff.png",
+            "{name}: {differing} of {total} pixels ({:.3}%) differ from {} by more than {tolerance} (allowed {:.2}%, {how:?}); see {}-actual.png and -diff.png",
             100.0 * share,
             golden_path.display(),
-            100.0 * MAX_DIFFERING_SHARE,
+            100.0 * allowed,
             failure_dir().join(name).display()
         );
     }
@@ -117,6 +171,7 @@ fn write_failure(
     name: &str,
     actual: &image::RgbaImage,
     golden: Option<&image::RgbaImage>,
+    tolerance: u8,
 ) -> PathBuf {
     let dir = failure_dir();
     let _ = std::fs::create_dir_all(&dir);
@@ -125,11 +180,7 @@ fn write_failure(
     if let Some(golden) = golden {
         let diff = image::RgbaImage::from_fn(actual.width(), actual.height(), |x, y| {
             let (p, q) = (actual.get_pixel(x, y), golden.get_pixel(x, y));
-            let differs =
-                p.0.iter()
-                    .zip(q.0.iter())
-                    .any(|(a, b)| a.abs_diff(*b) > CHANNEL_TOLERANCE);
-            if differs {
+            if differs(p, q, tolerance) {
                 image::Rgba([255, 0, 0, 255])
             } else {
                 let grey = (u16::from(q.0[0]) + u16::from(q.0[1]) + u16::from(q.0[2])) / 6 + 128;

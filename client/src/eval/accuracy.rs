@@ -37,7 +37,7 @@ pub struct AccuracyArgs {
     pub server: Option<String>,
     /// More databases to sweep, NAME=URL (repeatable): each is swept in turn, into
     /// OUT/NAME, titled NAME.
-    #[arg(long = "data", value_parser = super::stability::parse_named)]
+    #[arg(long = "data", value_parser = super::parse_named)]
     pub data: Vec<(String, String)>,
     /// Directory for the CSVs, the summary and the charts; created if missing.
     #[arg(long, default_value = "out/accuracy")]
@@ -356,7 +356,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         None => CameraPath::default_for(&manifest),
     };
     let cameras = cameras_along(&path, args.cameras, args.pitch_deg);
-    let bar = progress(
+    let bar = super::progress(
         "loading every tile",
         u64::from(args.cameras) * configs(args).len() as u64,
     );
@@ -1266,19 +1266,6 @@ fn with_front(mut series: Vec<XySeries>) -> Vec<XySeries> {
         dashed: true,
     });
     series
-}
-
-/// A progress bar of `len` steps (hidden when stderr is not a terminal).
-pub fn progress(message: &str, len: u64) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg}",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
-    bar.set_message(message.to_string());
-    bar
 }
 
 #[cfg(test)]

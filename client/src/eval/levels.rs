@@ -167,7 +167,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
         }
         let path = CameraPath::default_for(&session.manifest);
         let frames = (path.duration_s() * args.fps).ceil() as u32 + 1;
-        let bar = super::accuracy::progress(paging.name(), u64::from(frames));
+        let bar = super::progress(paging.name(), u64::from(frames));
         let (mut samples, mut peak) = (Vec::new(), 0u64);
         let start = path.position_at(0.0);
         let centre = [
@@ -230,7 +230,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
         ));
     }
     let count = kept.first().map_or(0, |k| k.1.len());
-    let bar = super::accuracy::progress("references", count as u64);
+    let bar = super::progress("references", count as u64);
     let mut results: Vec<FlightResult> = kept
         .iter()
         .map(|(paging, _, frames, downloaded, peak)| FlightResult {

@@ -64,3 +64,26 @@ impl Variants {
         method.name_with(filler)
     }
 }
+
+/// Parses `NAME=URL` (`--data`).
+pub fn parse_named(text: &str) -> Result<(String, String), String> {
+    text.split_once('=')
+        .filter(|(n, u)| !n.is_empty() && !u.is_empty())
+        .map(|(n, u)| (n.to_string(), u.to_string()))
+        .ok_or_else(|| {
+            format!("{text:?}: expected NAME=URL, e.g. himalaya_4097=http://127.0.0.1:8081")
+        })
+}
+
+/// A progress bar of `len` steps (hidden when stderr is not a terminal).
+pub fn progress(message: &str, len: u64) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_message(message.to_string());
+    bar
+}

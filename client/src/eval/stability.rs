@@ -34,7 +34,7 @@ pub struct StabilityArgs {
     /// grand_canyon_hoppe, srtm_geotiff, himalaya_4097. Scenarios without theirs are listed
     /// as not run. A database under any other name is your own: the altitude scenarios
     /// run on it too, as SCENARIO@NAME, with the same checks.
-    #[arg(long = "data", value_parser = parse_named)]
+    #[arg(long = "data", value_parser = super::parse_named)]
     pub data: Vec<(String, String)>,
     /// Directory for stability.md, stability.csv and the pictures; created if missing.
     #[arg(long, default_value = "out/stability")]
@@ -73,16 +73,6 @@ impl StabilityArgs {
             size: (480, 270),
         }
     }
-}
-
-/// Parses `NAME=URL` (`--data`).
-pub fn parse_named(text: &str) -> Result<(String, String), String> {
-    text.split_once('=')
-        .filter(|(n, u)| !n.is_empty() && !u.is_empty())
-        .map(|(n, u)| (n.to_string(), u.to_string()))
-        .ok_or_else(|| {
-            format!("{text:?}: expected NAME=URL, e.g. himalaya_4097=http://127.0.0.1:8081")
-        })
 }
 
 /// What a scenario does to the camera, the memory or the budget.
@@ -406,7 +396,7 @@ pub async fn run(args: &StabilityArgs) -> Result<StabilityReport, FlightError> {
         .collect();
     let variants = args.variants.list();
     let mut report = StabilityReport::default();
-    let bar = super::accuracy::progress("stability", (chosen.len() * variants.len()) as u64);
+    let bar = super::progress("stability", (chosen.len() * variants.len()) as u64);
     let whole = WholeCache::default();
     let mut runs: Vec<(&Scenario, Vec<(String, String)>)> = chosen
         .into_iter()

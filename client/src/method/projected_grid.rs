@@ -763,7 +763,7 @@ impl LodMethod for ProjectedGrid {
             .device
             .poll(wgpu::PollType::Wait {
                 submission_index: None,
-                timeout: Some(crate::render::frame::GPU_TIMEOUT),
+                timeout: Some(crate::render::gpu::GPU_TIMEOUT),
             })
             .is_err()
         {

@@ -33,7 +33,7 @@
 //! the early depth test a `discard` would turn off.
 
 use super::camera::Camera;
-use super::gpu::Gpu;
+use super::gpu::{GPU_TIMEOUT, Gpu};
 use super::layout::Layout;
 use super::tiles::TileStore;
 use std::time::Instant;
@@ -51,9 +51,6 @@ const TIMED_PASSES: u32 = 4;
 pub const AMBIENT: f32 = 0.45;
 /// Frames queued on the GPU at most: [`Frame::finish`] waits for the one before it.
 pub const FRAMES_IN_FLIGHT: u64 = 2;
-/// The longest any wait for the GPU lasts: past it the GPU is taken as lost (an error, not a
-/// hang).
-pub const GPU_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 /// `TileUniform` as per-instance attributes, locations 0 to 8 (`Tile` in `terrain.wgsl`).
 const TILE_ATTRIBUTES: [wgpu::VertexAttribute; 9] = wgpu::vertex_attr_array![
     0 => Float32x4, 1 => Float32x4, 2 => Float32x4, 3 => Float32x4, 4 => Float32x4,

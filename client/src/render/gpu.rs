@@ -8,6 +8,10 @@
 use thiserror::Error;
 pub use wgpu::Backend;
 
+/// The longest any wait for the GPU lasts: past it the GPU is taken as lost (an error, not a
+/// hang).
+pub const GPU_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Set to 1 to require a Vulkan adapter (and fail without one).
 pub const REQUIRE_GPU_VAR: &str = "REQUIRE_GPU";
 

@@ -42,7 +42,7 @@ impl Offscreen {
 }
 
 /// Mip 0 of `texture` (every aspect, `bytes_per_texel` bytes a texel), row after row with
-/// no padding, waiting (at most [`super::frame::GPU_TIMEOUT`]) for the GPU.
+/// no padding, waiting (at most [`super::gpu::GPU_TIMEOUT`]) for the GPU.
 pub fn read_texture(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
@@ -90,7 +90,7 @@ pub fn read_texture(
     device
         .poll(wgpu::PollType::Wait {
             submission_index: None,
-            timeout: Some(super::frame::GPU_TIMEOUT),
+            timeout: Some(super::gpu::GPU_TIMEOUT),
         })
         .map_err(|e| GpuError::Readback(format!("waiting for the GPU: {e}")))?;
     let data = slice
