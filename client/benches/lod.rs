@@ -20,10 +20,10 @@ use common::{Random, Stats, cpu_model};
 use std::hint::black_box;
 use std::time::Instant;
 use terrain_client::lod::budget::{Allocation, share_into};
-use terrain_client::lod::geomipmap::Stitch;
 use terrain_client::lod::importance::{DEFAULT_ALPHA, HeightMeasure, TileView, importance_into};
 use terrain_client::lod::needed::{ErrorProjection, coarsest_level_within, suffix_minima};
 use terrain_client::lod::strips::MaskSet;
+use terrain_client::method::geomipmap::stitching::Stitch;
 
 const SIDE: u32 = 64;
 const TILE_SIZE: u32 = 129;
@@ -68,7 +68,7 @@ fn main() {
         .collect();
     let mut caps: Vec<u32> = Vec::with_capacity(tiles);
     // GeoMipMaps: 8 levels (every 2^k-th sample), errors growing with the step.
-    let geomip_levels = terrain_client::lod::geomipmap::level_count(TILE_SIZE);
+    let geomip_levels = terrain_client::method::geomipmap::stitching::level_count(TILE_SIZE);
     let geomip_errors: Vec<Vec<f32>> = heights
         .iter()
         .map(|&(_, roughness)| {

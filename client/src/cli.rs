@@ -7,11 +7,11 @@
 //! Owns the IO at the rim: the progress bar, the output files. What it
 //! prints and writes is formatted by [`crate::report`] and [`crate::overview`].
 
-use crate::fetch::FetchError;
-use crate::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
+use crate::http_client::FetchError;
 use crate::output::Output;
 use crate::overview::{OverviewError, mosaic};
 use crate::report::{FetchSummary, TileReport, csv};
+use crate::requests::{FetchEvent, Fetcher, FetcherConfig, Want};
 use crate::scene::Scene;
 use bytes::Bytes;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -26,8 +26,8 @@ use tokio::task::JoinError;
 
 /// Where `fetch` writes unless told otherwise.
 pub const DEFAULT_OUT_DIR: &str = "out/fetch";
-/// Requests in flight at once: the fetcher's default, [`crate::fetcher::DEFAULT_CONCURRENCY`].
-pub const DEFAULT_CONCURRENCY: u32 = crate::fetcher::DEFAULT_CONCURRENCY as u32;
+/// Requests in flight at once: the fetcher's default, [`crate::requests::DEFAULT_CONCURRENCY`].
+pub const DEFAULT_CONCURRENCY: u32 = crate::requests::DEFAULT_CONCURRENCY as u32;
 /// Longest side of `overview.png`: enough to see the terrain, small enough to open anywhere.
 pub const OVERVIEW_MAX_SIDE: u32 = 1024;
 pub const OVERVIEW_FILE: &str = "overview.png";

@@ -2,9 +2,9 @@
 //!
 //! The data path runs in steps, one module each, and a tile travels through them in order:
 //!
-//! 1. **fetch** ([`fetch`], [`fetcher`]): the manifest, then tiles by URL; every body is
+//! 1. **fetch** ([`http_client`], [`requests`]): the manifest, then tiles by URL; every body is
 //!    checked against the manifest's content hash before anything else sees it, and
-//!    heights are decoded off the async threads. The [`fetcher`] carries out the pager's
+//!    heights are decoded off the async threads. The [`requests`] scheduler carries out the pager's
 //!    and the method's requests: bounded concurrency, priority order, cancellation, retries
 //!    with backoff.
 //! 2. **page** ([`page`]): which belts of tiles around the viewpoint to hold, fetch and
@@ -22,19 +22,18 @@
 //!
 //! Deciding code (paging, level of detail, camera paths, the [`overview`] mosaic, the
 //! [`report`] of a fetch) is pure: values in, values out, no sockets, clocks or GPU, so it
-//! is tested with plain data. IO sits at the rim: [`fetch`] and [`fetcher`] talk HTTP,
+//! is tested with plain data. IO sits at the rim: [`http_client`] and [`requests`] talk HTTP,
 //! [`cli`] and [`flight`] write files and draw progress.
 //!
-//! **Invariant:** nothing downstream of [`fetch`] sees bytes whose hash was not checked
+//! **Invariant:** nothing downstream of [`http_client`] sees bytes whose hash was not checked
 //! (a method's own data is checked when its hash is given).
 //! **Invariant:** the pager never awaits, reads a clock or touches the GPU.
 
 pub mod charts;
 pub mod cli;
 pub mod eval;
-pub mod fetch;
-pub mod fetcher;
 pub mod flight;
+pub mod http_client;
 pub mod lod;
 pub mod memory;
 pub mod method;
@@ -46,6 +45,7 @@ pub mod process;
 pub mod record;
 pub mod render;
 pub mod report;
+pub mod requests;
 pub mod scene;
 #[cfg(test)]
 mod testing;

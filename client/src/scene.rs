@@ -29,7 +29,6 @@
 //! and pipelines, or the graphics driver's own memory; a flight reports them beside it
 //! (heap, GPU allocations, resident set).
 
-use crate::fetcher::{FailureKind, FetchEvent, Fetcher, Want};
 use crate::lod::budget::{BudgetMode, FrameCost, FrameRateController};
 use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::memory::{LeastLimit, TileBytes};
@@ -37,6 +36,7 @@ use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, Met
 use crate::page::{self, Decision, PagerConfig, PagerView};
 use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
 use crate::render::{Camera, Gpu, RenderStats, Renderer};
+use crate::requests::{FailureKind, FetchEvent, Fetcher, Want};
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -365,12 +365,12 @@ impl Scene {
     /// time driver: backoff sleeps there).
     pub async fn connect(
         server: &str,
-        config: crate::fetcher::FetcherConfig,
+        config: crate::requests::FetcherConfig,
         runtime: tokio::runtime::Handle,
-    ) -> Result<Connection, crate::fetch::FetchError> {
-        let client = crate::fetch::TileClient::new(server)?
+    ) -> Result<Connection, crate::http_client::FetchError> {
+        let client = crate::http_client::TileClient::new(server)?
             .with_max_manifest_bytes(config.max_manifest_bytes);
-        let manifest = Arc::new(crate::fetcher::fetch_manifest(&client, &config).await?);
+        let manifest = Arc::new(crate::requests::fetch_manifest(&client, &config).await?);
         let fetcher = Fetcher::new(client, Arc::clone(&manifest), config, runtime);
         Ok(Connection { manifest, fetcher })
     }
@@ -1723,7 +1723,7 @@ fn coarsest_rgba_bytes(manifest: &Manifest) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fetch::FetchError;
+    use crate::http_client::FetchError;
     use terrain_shared::manifest::{ImageFormat, RasterSize, TextureInfo, TextureSource};
     use terrain_shared::{Blob, Heights, TileRecord};
 

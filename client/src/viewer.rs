@@ -13,8 +13,8 @@
 //! A/D strafe, E or Space up, Q or Ctrl down, Shift five times faster, left mouse drag
 //! looks around, the mouse wheel changes the speed, Escape quits.
 
-use crate::fetch::FetchError;
 use crate::flight::{FlightError, RenderArgs, StreamArgs};
+use crate::http_client::FetchError;
 use crate::memory::{MemoryBudget, MemoryError};
 use crate::render::{Camera, Gpu, GpuError};
 use crate::scene::{Connection, DrawReport, RenderConfig, Scene, SceneError};

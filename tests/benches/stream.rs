@@ -18,8 +18,8 @@
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
-use terrain_client::fetch::TileClient;
-use terrain_client::fetcher::{FetchEvent, Fetcher, FetcherConfig, Want};
+use terrain_client::http_client::TileClient;
+use terrain_client::requests::{FetchEvent, Fetcher, FetcherConfig, Want};
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::TileBlob;
 use terrain_tests::proxy::{FaultPlan, FaultyProxy};

@@ -7,7 +7,7 @@ use std::ffi::OsString;
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
-use terrain_client::fetch::MAX_MANIFEST_BYTES;
+use terrain_client::http_client::MAX_MANIFEST_BYTES;
 use terrain_tests::child::{Watched, run_watched};
 use terrain_tests::data::{build_jacksboro, workspace_binary};
 use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};

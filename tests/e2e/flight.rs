@@ -4,9 +4,9 @@
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
-use terrain_client::fetcher::FetcherConfig;
 use terrain_client::flight::{CSV_HEADER, FlightArgs, FlightError, StreamArgs, fly};
 use terrain_client::memory::MemorySize;
+use terrain_client::requests::FetcherConfig;
 use terrain_client::scene::Scene;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};

@@ -17,7 +17,6 @@ use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 use terrain_client::eval::session::whole_database_bytes;
-use terrain_client::fetcher::FetcherConfig;
 use terrain_client::lod::plan::{self, Draw, LodSettings};
 use terrain_client::lod::strips::MaskSet;
 use terrain_client::method::{
@@ -26,6 +25,7 @@ use terrain_client::method::{
 use terrain_client::render::offscreen::OFFSCREEN_FORMAT;
 use terrain_client::render::tiles::TERRAIN_LABEL;
 use terrain_client::render::{Camera, Frame, Gpu, IndexSet, Offscreen, TileExtras};
+use terrain_client::requests::FetcherConfig;
 use terrain_client::scene::{RenderConfig, Scene};
 use terrain_shared::{Heights, TileId, TileRecord, routes};
 use terrain_tests::data::build_jacksboro;
@@ -477,7 +477,7 @@ fn scene(
     gpu: &Gpu,
     limit: u64,
     config: RenderConfig,
-) -> (Scene, terrain_client::fetcher::Fetcher) {
+) -> (Scene, terrain_client::requests::Fetcher) {
     let connection = tokio::runtime::Handle::current().block_on(Scene::connect(
         server.base_url(),
         FetcherConfig::default(),
@@ -492,7 +492,7 @@ fn scene(
 /// the last frame's image.
 fn fly(
     scene: &mut Scene,
-    fetcher: &mut terrain_client::fetcher::Fetcher,
+    fetcher: &mut terrain_client::requests::Fetcher,
     target: &Offscreen,
     camera: &Camera,
     frames: std::ops::Range<u64>,
@@ -629,7 +629,7 @@ fn textures_follow_importance(scene: &Scene, camera: &Camera) -> (f64, f64) {
 /// expects to hold for each, and a quarter of what their finer levels would take (their
 /// sizes are in the tile blobs, fetched here): textures compete.
 fn competing_limit(server: &TestServer, per_tile: u64) -> u64 {
-    let client = terrain_client::fetch::TileClient::new(server.base_url()).expect("client");
+    let client = terrain_client::http_client::TileClient::new(server.base_url()).expect("client");
     let handle = tokio::runtime::Handle::current();
     let manifest = handle.block_on(client.manifest()).expect("manifest");
     let (mut base, mut finer) = (0, 0);
@@ -662,7 +662,7 @@ fn a_method_fetches_data_of_its_own_through_the_scene_and_is_counted() {
     let _guard = runtime.enter();
     let manifest = tokio::runtime::Handle::current()
         .block_on(
-            terrain_client::fetch::TileClient::new(server.base_url())
+            terrain_client::http_client::TileClient::new(server.base_url())
                 .expect("client")
                 .manifest(),
         )

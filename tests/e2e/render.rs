@@ -3,8 +3,8 @@
 //! and a rendered flight's records.
 
 use std::path::Path;
-use terrain_client::fetch::TileClient;
 use terrain_client::flight::{FlightArgs, RenderArgs, StreamArgs, fly};
+use terrain_client::http_client::TileClient;
 use terrain_client::lod::needed::suffix_minima;
 use terrain_client::lod::plan::{Candidate, Draw, Layout, LodSettings, plan_frame};
 use terrain_client::lod::strips::MaskSet;

@@ -3,7 +3,7 @@
 //! of the pyramid must equal the source raster's sample it stands on, and every texture
 //! level must match its tile blob's hash and be the image the manifest promises.
 
-use terrain_client::fetch::{FetchError, TileClient, decode_tile};
+use terrain_client::http_client::{FetchError, TileClient, decode_tile};
 use terrain_shared::{Heights, TileBlob, TileId};
 use terrain_tests::data::{build_jacksboro, jacksboro, png_codes};
 use terrain_tests::server::TestServer;

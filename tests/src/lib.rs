@@ -17,7 +17,7 @@ pub fn connect(
     runtime
         .block_on(terrain_client::scene::Scene::connect(
             base_url,
-            terrain_client::fetcher::FetcherConfig::default(),
+            terrain_client::requests::FetcherConfig::default(),
             runtime.handle().clone(),
         ))
         .unwrap_or_else(|e| panic!("cannot connect to {base_url}: {e}"))

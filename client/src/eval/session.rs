@@ -3,12 +3,12 @@
 //! camera. The accuracy sweep and the stability matrix both run on it.
 
 use super::frame::{Capture, FrameMeasures, Unfilled, measure};
-use crate::fetcher::{Fetcher, FetcherConfig};
 use crate::flight::FlightError;
 use crate::lod::budget::BudgetMode;
 use crate::method::CrackFiller;
 use crate::method::MethodKind;
 use crate::render::{Camera, Gpu, Offscreen};
+use crate::requests::{Fetcher, FetcherConfig};
 use crate::scene::{DrawReport, RenderConfig, Scene, Update, expected_tile_bytes};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -81,7 +81,7 @@ pub async fn whole_database_bytes_from(
     let Some(info) = &manifest.patches else {
         return Ok(whole_database_bytes(manifest));
     };
-    let client = crate::fetch::TileClient::new(server)?;
+    let client = crate::http_client::TileClient::new(server)?;
     let bytes = client
         .blob(
             &terrain_shared::routes::patch_index(&manifest.content_version),
@@ -115,7 +115,7 @@ fn tiles_bytes(manifest: &Manifest) -> u64 {
         .sum::<u64>()
         + finer_encoded
         // The projected grids' atlas slot per tile: what they hold beside the tiles.
-        + manifest.tile_count() as u64 * crate::method::atlas::slot_bytes_for(manifest)
+        + manifest.tile_count() as u64 * crate::method::projected_grid::atlas::slot_bytes_for(manifest)
 }
 
 impl Session {

@@ -13,18 +13,16 @@
 //!
 //! Beside them, [`needed`] measures a frame against what it needs: per tile, the coarsest
 //! mask whose projected error stays within a pixel threshold; [`levels`] chooses which
-//! level of the pyramid draws each part of the terrain; [`geomipmap`] makes the
-//! GeoMipMaps' stitched index sets and their level errors; [`grid`] the projected grids'
-//! auxiliary camera and warp; [`plan`] culls a frame's tiles,
-//! ranks them and makes the strip-mask plan (steps 1 to 3 together).
+//! level of the pyramid draws each part of the terrain; [`plan`] culls a frame's tiles,
+//! ranks them and makes the strip-mask plan (steps 1 to 3 together). A method's own pure
+//! decisions live with it ([`crate::method`]: GeoMipMaps' stitching, the projected grids'
+//! geometry).
 //!
 //! The module owns these decisions and nothing else. The methods ([`crate::method`]) call
 //! them; uploading index sets and drawing them is the methods', through the renderer. Nothing here reads a clock, does IO or touches the GPU:
 //! time is passed in, so every rule is tested with plain data (benches/lod.rs times a frame).
 
 pub mod budget;
-pub mod geomipmap;
-pub mod grid;
 pub mod importance;
 pub mod levels;
 pub mod needed;

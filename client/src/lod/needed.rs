@@ -19,7 +19,7 @@
 //! the depth is smaller than the distance, and at a 16:9 viewport's corner that
 //! underestimates the error by a factor of up to 2.4.) Per-level errors are the manifest's
 //! `mask_errors_m` for strip masks, measured by the builder with the triangulation the strips
-//! draw, and [`crate::lod::geomipmap::level_errors`] for GeoMipMaps.
+//! draw, and [`crate::method::geomipmap::stitching::level_errors`] for GeoMipMaps.
 
 /// Pixels per metre of vertical error at `distance_m` for a viewport `height_px` high with a
 /// vertical field of view `fov_y` (radians). Infinite at distance 0.

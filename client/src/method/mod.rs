@@ -11,16 +11,23 @@
 //! - [`strip_masks`]: the strip-mask paper's method (a global budget shared by importance,
 //!   one precomputed strip per mask level, [`fillers`] for the cracks), and the
 //!   full-resolution reference of the accuracy measures ([`crate::eval`]).
-//! - [`geomipmap`]: GeoMipMaps, each side stitched to its neighbour's level.
+//! - [`geomipmap`]: GeoMipMaps, each side stitched to its neighbour's level (the index sets
+//!   and level errors in [`geomipmap::stitching`]).
 //! - [`projected_grid`]: persistent grid mapping and the error-bounded projective grid, a
-//!   screen grid cast onto their own copy of the terrain ([`atlas`]).
+//!   screen grid cast from an auxiliary camera ([`projected_grid::geometry`]) onto their own
+//!   copy of the terrain ([`projected_grid::atlas`]).
+//! - [`quadtree_patches`]: quadtree progressive patches with a guaranteed error and
+//!   geomorphing.
+//!
+//! Each method is one folder: its pure decisions beside its GPU part. What methods share
+//! stays here ([`fillers`], the crack fillers of strip masks and GeoMipMaps) or in
+//! [`crate::lod`] (culling, importance, the budget, the mask set).
 //!
 //! **Memory.** Every byte a method holds, CPU or GPU, is counted: per resident tile
 //! ([`LodMethod::tile_bytes`], expected before it arrives: [`LodMethod::expected_tile_bytes`])
 //! and for no tile in particular ([`LodMethod::shared_bytes`]). The scene adds them to what
 //! the pager and the texture budget see, so they stay inside the memory limit.
 
-pub mod atlas;
 pub mod fillers;
 pub mod geomipmap;
 pub mod projected_grid;
@@ -109,7 +116,7 @@ pub struct DataWant {
     /// The BLAKE3 hash the body must have (first 128 bits, hex), when known.
     pub hash: Option<String>,
     /// Its size, when known: a longer body is refused as it arrives
-    /// ([`crate::fetch::FetchError::TooLarge`]).
+    /// ([`crate::http_client::FetchError::TooLarge`]).
     pub bytes: Option<u64>,
 }
 
@@ -312,7 +319,7 @@ impl MethodKind {
     /// The coarsest level it draws a tile of `tile_size` samples a side at.
     pub fn coarsest_level(self, tile_size: u32) -> u32 {
         match self {
-            MethodKind::Geomipmap => crate::lod::geomipmap::level_count(tile_size) - 1,
+            MethodKind::Geomipmap => geomipmap::stitching::level_count(tile_size) - 1,
             MethodKind::StripMasks
             | MethodKind::Reference
             | MethodKind::Pgm

@@ -1,6 +1,6 @@
 //! GeoMipMaps (Brodersen 2005) as a method: per visible tile the coarsest level whose
 //! error, projected by the frame's bound, stays within `--max-error-px`, each side stitched
-//! to its neighbour's level ([`crate::lod::geomipmap`]): crack-free, no budget, no filler.
+//! to its neighbour's level ([`stitching`]): crack-free, no budget, no filler.
 //! Tiles are bound block by block with MapBlock textures, as the paper draws them
 //! ([`super::MethodConfig::uses_texture_blocks`]).
 //!
@@ -9,8 +9,10 @@
 //! side that borders a tile of another level (a seam, [`crate::lod::levels::seams`]) hangs a
 //! skirt from its edge samples instead, down past the cracks the two edges can leave.
 
+pub mod stitching;
+
+use self::stitching::{self as levels, Stitch};
 use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
-use crate::lod::geomipmap::{self as levels, Stitch};
 use crate::lod::needed;
 use crate::lod::plan::{self, LodSettings};
 use crate::lod::strips::MaskSet;

@@ -40,8 +40,8 @@ const USER_AGENT: &str = concat!("terrain-client/", env!("CARGO_PKG_VERSION"));
 /// a clone to each task.
 ///
 /// ```no_run
-/// # async fn demo() -> Result<(), terrain_client::fetch::FetchError> {
-/// use terrain_client::fetch::TileClient;
+/// # async fn demo() -> Result<(), terrain_client::http_client::FetchError> {
+/// use terrain_client::http_client::TileClient;
 /// use terrain_shared::TileId;
 ///
 /// let client = TileClient::new("http://127.0.0.1:8080")?;

@@ -5,13 +5,13 @@
 //! once; the vertex shader makes a vertex's place on the screen from its index) and an
 //! [`Atlas`] of the resident tiles' height pyramids and colours. Each frame the vertex
 //! shader (`grid.wgsl`) casts each vertex's ray from an auxiliary camera
-//! ([`crate::lod::grid::aux_camera`]) onto a plane below the terrain, picks the pyramid
+//! ([`geometry::aux_camera`]) onto a plane below the terrain, picks the pyramid
 //! level whose samples are as far apart as the vertex's neighbours on the ground, blends it
 //! with its parent and displaces the vertex by the height found; the main camera draws it.
 //!
 //! - **Persistent grid mapping** (`pgm`): a uniform grid; nothing bounds its error.
 //! - **Error-bounded projective grid** (`projective-grid`): the grid warped so its cells
-//!   come out square on the ground ([`crate::lod::grid::warp_tables`]); each vertex's
+//!   come out square on the ground ([`geometry::warp_tables`]); each vertex's
 //!   object-space error from the min/max pyramids turned into pixels and written, with the
 //!   colour, to an error buffer; a second pass casts rays through the heights in the pixels
 //!   the buffer marks (past the threshold, or not covered by the grid), replacing colour and
@@ -22,9 +22,12 @@
 //! (`--max-error-px`) for the projective grid. No triangle budget plays a part: the grid
 //! draws the same triangles every frame.
 
-use super::atlas::{Atlas, slot_order};
+pub mod atlas;
+pub mod geometry;
+
+use self::atlas::{Atlas, slot_order};
+use self::geometry::{aux_camera, warp_tables};
 use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
-use crate::lod::grid::{aux_camera, warp_tables};
 use crate::lod::plan::{self, LodSettings};
 use crate::lod::strips::MaskSet;
 use crate::render::{Frame, Gpu};
