@@ -24,6 +24,8 @@ echo "== databases"
 /usr/bin/time -f "build: %e s wall, peak RSS %M KiB" \
   "$bin/terrain-server" build "$TERRAIN_DATA_DIR/himalaya_4097/g10g_himalaya_4097.png" --out "$out/db/himalaya_4097" --force --quiet --no-web
 
+echo "== builder: levels in bounded memory, with and without voids"
+cargo bench -p terrain-server --bench build_memory -- "$out/build_memory" 2>/dev/null
 echo "== heights codec"
 cargo bench -p terrain-server --bench codec 2>/dev/null
 echo "== HTTP: terrain-server against nginx"
@@ -35,6 +37,8 @@ echo "== level of detail per frame (strip masks, importance, budget)"
 cargo bench -p terrain-client --bench lod 2>/dev/null
 echo "== triangles per second on this machine's adapter"
 cargo bench -p terrain-client --bench render 2>/dev/null
+echo "== web tiles against the native ones: bytes and requests a second"
+cargo bench -p terrain-tests --bench web 2>/dev/null
 echo "== streaming through 100 Mbit/s"
 cargo bench -p terrain-tests --bench stream -- "$out/db/himalaya_4097" 2>/dev/null
 
@@ -58,10 +62,11 @@ echo "== memory per method: the limit, and what the process holds beside it"
 cargo bench -p terrain-tests --bench memory -- "$out/memory" 2>/dev/null
 
 # The generated tables into the documents, stamped with this run's commit, machine and date.
-for table in controller/controller.md controller/controller.csv memory/memory.md memory/memory.csv; do
+for table in build_memory/build_memory.md controller/controller.md controller/controller.csv memory/memory.md memory/memory.csv; do
   cp "$out/$table" docs/benchmarks/
 done
 cp "$out/controller/jacksboro-60fps-16MiB-planar-shadow/render.png" docs/images/frame-rate-jacksboro-60.png
 cp "$out/controller/jacksboro-30fps-16MiB-planar-shadow/render.png" docs/images/frame-rate-jacksboro-planar-shadow.png
+bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/build_memory.md
 bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/controller.md
 bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/memory.md

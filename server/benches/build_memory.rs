@@ -51,7 +51,12 @@ fn main() {
         );
         return;
     };
-    if let Err(error) = run(&data) {
+    // `-- DIR`: also write DIR/build_memory.md (`scripts/bench.sh` puts it in BENCHMARKS.md).
+    let out = std::env::args_os()
+        .skip(1)
+        .find(|a| !a.to_string_lossy().starts_with('-'))
+        .map(std::path::PathBuf::from);
+    if let Err(error) = run(&data, out.as_deref()) {
         eprintln!("build_memory: {error:#}");
         std::process::exit(1);
     }
@@ -68,7 +73,7 @@ struct Measured {
     textures: [u64; 2],
 }
 
-fn run(data: &Path) -> anyhow::Result<()> {
+fn run(data: &Path, out: Option<&Path>) -> anyhow::Result<()> {
     let source = data.join(SOURCE);
     if !source.exists() {
         println!("NOT RUN: build_memory needs {}", source.display());
@@ -108,11 +113,35 @@ fn run(data: &Path) -> anyhow::Result<()> {
     let small = measure(&source, &work.path().join("db-4097"))?;
     let voided = measure(&with_voids, &work.path().join("db-4097-voids"))?;
     let large = measure(&mosaic, &work.path().join("db-8193"))?;
+    let report = report(&small, &voided, &large, void_samples);
+    print!("{report}");
+    if let Some(out) = out {
+        std::fs::create_dir_all(out)?;
+        let path = out.join("build_memory.md");
+        std::fs::write(&path, report)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
 
-    println!("| input | samples | seconds | M samples/s | peak RSS MiB |");
-    println!("|---|---|---|---|---|");
-    for m in [&small, &voided, &large] {
-        println!(
+/// The tables and the two ratios against their target, in Markdown, stamped with the run.
+fn report(small: &Measured, voided: &Measured, large: &Measured, void_samples: u64) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "<!-- written by `cargo bench -p terrain-server --bench build_memory`; do not edit -->"
+    );
+    let _ = writeln!(s, "Run: {}.\n", common::stamp::line());
+    let _ = writeln!(
+        s,
+        "| input | samples | seconds | M samples/s | peak RSS MiB |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|");
+    for m in [small, voided, large] {
+        let _ = writeln!(
+            s,
             "| {} | {} | {:.1} | {:.2} | {:.1} |",
             m.name,
             m.samples,
@@ -121,32 +150,36 @@ fn run(data: &Path) -> anyhow::Result<()> {
             m.peak_kib as f64 / 1024.0
         );
     }
-    println!();
-    let ratio = large.peak_kib as f64 / small.peak_kib as f64;
-    println!(
-        "peak RSS, 4x the samples over 1x: {ratio:.3} (target <= {TARGET_RATIO}): {}",
+    let verdict = |ratio: f64| {
         if ratio <= TARGET_RATIO {
             "PASS"
         } else {
             "FAIL"
         }
-    );
+    };
+    let ratio = large.peak_kib as f64 / small.peak_kib as f64;
     let voids_ratio = voided.peak_kib as f64 / small.peak_kib as f64;
-    println!(
-        "peak RSS, with voids over without: {voids_ratio:.3} (target <= {TARGET_RATIO}): {}",
-        if voids_ratio <= TARGET_RATIO {
-            "PASS"
-        } else {
-            "FAIL"
-        }
+    let _ = writeln!(
+        s,
+        "\nPeak RSS, 4x the samples over 1x: **{ratio:.3}** (target at most {TARGET_RATIO}: {}).",
+        verdict(ratio)
     );
-    println!();
-    println!("| input | pyramid / level 0, heights | textures | both |");
-    println!("|---|---|---|---|");
-    for m in [&small, &large] {
+    let _ = writeln!(
+        s,
+        "Peak RSS, with voids ({void_samples} void samples, {:.0}% of the source's) over without: **{voids_ratio:.3}** (target at most {TARGET_RATIO}: {}).\n",
+        100.0 * VOID_SHARE,
+        verdict(voids_ratio)
+    );
+    let _ = writeln!(
+        s,
+        "| input | pyramid / level 0, heights | textures | both |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|");
+    for m in [small, large] {
         let over = |[level0, all]: [u64; 2]| all as f64 / level0 as f64;
         let both = [m.heights[0] + m.textures[0], m.heights[1] + m.textures[1]];
-        println!(
+        let _ = writeln!(
+            s,
             "| {} | {:.3} | {:.3} | {:.3} |",
             m.name,
             over(m.heights),
@@ -154,7 +187,7 @@ fn run(data: &Path) -> anyhow::Result<()> {
             over(both)
         );
     }
-    Ok(())
+    s
 }
 
 /// The source's dataset.json minus what names its own files and place, so the mosaic gets

@@ -1,4 +1,5 @@
-//! What the server's bench binaries share: the machine's name, the data kit's place and the
+//! What the server's bench binaries share: the machine's name and a run's stamp, the data
+//! kit's place and the
 //! mosaic that makes a larger input from a smaller one. A bench includes it with
 //! `mod common;`.
 
@@ -21,31 +22,12 @@ pub fn data_dir() -> Option<PathBuf> {
     dir.is_dir().then_some(dir)
 }
 
-/// The CPU's model name from /proc/cpuinfo.
-pub fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|m| m.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into())
-}
+/// The stamp of a generated figure (commit, machine, date): the one the tests' benches
+/// use, `tests/src/stamp.rs`, included here rather than written twice.
+#[path = "../../../tests/src/stamp.rs"]
+pub mod stamp;
 
 /// The machine in one line: CPU model, cores, memory.
 pub fn machine() -> String {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let memory_gib = std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|text| {
-            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
-            let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-            Some(kib / (1024.0 * 1024.0))
-        });
-    match memory_gib {
-        Some(gib) => format!("{} ({cores} cores, {gib:.0} GiB)", cpu_model()),
-        None => format!("{} ({cores} cores)", cpu_model()),
-    }
+    stamp::machine()
 }
