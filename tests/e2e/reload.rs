@@ -170,8 +170,20 @@ fn a_rebuilt_database_is_served_after_sighup_and_its_old_packs_are_closed() {
     assert_eq!(status, 200, "a tile of the new version");
     let (status, body) = get(&base, &routes::heights(&first, tile));
     assert_eq!(status, 404, "the old version is gone: {body}");
-    // The last request with the old database has ended: its files are closed and unmapped.
-    assert_eq!(deleted_under(child.id(), tmp.path()), Vec::<String>::new());
+    // The last request with the old database has ended: its files are closed and unmapped
+    // (by the reload's own thread, which may still be at it when the new version is seen).
+    let started = Instant::now();
+    loop {
+        let held = deleted_under(child.id(), tmp.path());
+        if held.is_empty() {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the replaced packs are never closed: {held:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let (_, metrics) = get(&base, routes::METRICS);
     assert!(metrics.contains("database_reloads_total 1"), "{metrics}");
 
@@ -206,11 +218,20 @@ fn a_rebuilt_database_is_found_by_the_poll_without_a_signal() {
     assert_eq!(served_version(&base), first);
     let second = rebuild(&db, 10.0);
     until_served(&base, &second, &log);
-    let text = std::fs::read_to_string(&log).unwrap_or_default();
-    assert!(
-        text.contains("serving the rebuilt database") && text.contains("manifest changed"),
-        "{text}"
-    );
+    // The reload logs once it has returned, just after the new version can be seen.
+    let started = Instant::now();
+    loop {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        if text.contains("serving the rebuilt database") {
+            assert!(text.contains("manifest changed"), "{text}");
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the reload is never logged: {text}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
     signal(&child, "-TERM");
     assert!(child.wait().expect("exit").success());
 }

@@ -104,20 +104,32 @@ impl AppState {
     /// version differs (a build with `--force` replaced it). On an error (the directory
     /// missing, a build's lock in it, a damaged pack) the database served stays.
     pub fn reload(&self) -> Result<Reloaded, crate::db::DbError> {
-        let current = self.db();
-        let fresh = TileDb::open(current.dir(), self.verify)?;
-        let (from, to) = (
-            current.manifest().content_version.clone(),
-            fresh.manifest().content_version.clone(),
-        );
+        // What is needed of the database served, and no reference to it held past here:
+        // once the swap below is done, the last request that took it closes its packs.
+        let (dir, from) = {
+            let current = self.db();
+            (
+                current.dir().to_path_buf(),
+                current.manifest().content_version.clone(),
+            )
+        };
+        let fresh = TileDb::open(&dir, self.verify)?;
+        let to = fresh.manifest().content_version.clone();
         if from == to {
             return Ok(Reloaded::Unchanged);
         }
-        *self
-            .db
-            .write()
-            .unwrap_or_else(std::sync::PoisonError::into_inner) = Arc::new(fresh);
+        // Counted before the new version can be seen, so whoever sees it sees the count.
         self.metrics.reloaded();
+        let replaced = std::mem::replace(
+            &mut *self
+                .db
+                .write()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+            Arc::new(fresh),
+        );
+        // Outside the lock: unmapping the old packs (when no request holds them) does not
+        // hold up the requests taking the new database.
+        drop(replaced);
         Ok(Reloaded::Replaced { from, to })
     }
 }
