@@ -6,10 +6,15 @@
 //!
 //! **Golden images** live in `tests/golden/`, made with lavapipe (the render tests; its
 //! name in `tests/golden/ADAPTER`) and headless Chromium (the browser tests). [`compare`]
-//! asks for every pixel equal ([`Match::Exact`]) on that lavapipe, which renders bit for
-//! bit the same on every run; on any other adapter, and for the browsers, at most [`MAX_DIFFERING_SHARE`] of the pixels may
-//! differ by more than [`CHANNEL_TOLERANCE`] in some channel ([`Match::Tolerant`]): room
-//! for other rasterisation and filtering (a pixel along an edge, a texel's rounding). On failure it writes
+//! asks for every pixel equal ([`Match::Exact`]) on that lavapipe running on the processor
+//! recorded beside it, where it renders bit for bit the same on every run. The same lavapipe
+//! on another processor compiles its shaders for other vector instructions (AVX-512, FMA)
+//! and rounds differently: there every channel of every pixel may differ by one level and
+//! no more ([`Match::Rounding`]; an AMD EPYC and an Intel Xeon with AVX-512 differ on up to
+//! 2% of the pixels, each by one level). On any other adapter, and for the browsers, at
+//! most [`MAX_DIFFERING_SHARE`] of the pixels may differ by more than [`CHANNEL_TOLERANCE`]
+//! in some channel ([`Match::Tolerant`]): room for other rasterisation and filtering (a
+//! pixel along an edge, a texel's rounding). On failure it writes
 //! `target/golden/NAME-actual.png` and `NAME-diff.png` (differing pixels in red over a
 //! faded copy of the golden image) and says where. `UPDATE_GOLDEN=1` rewrites the golden
 //! images instead of comparing; look at them before committing.
@@ -21,6 +26,8 @@ use terrain_client::render::gpu::gpu_required;
 
 /// Largest per-channel difference (0-255) for a pixel to count as equal.
 pub const CHANNEL_TOLERANCE: u8 = 12;
+/// Largest per-channel difference on the golden images' adapter run on another processor.
+pub const ROUNDING_TOLERANCE: u8 = 1;
 /// Largest share of pixels allowed to differ.
 pub const MAX_DIFFERING_SHARE: f64 = 0.005;
 
@@ -29,41 +36,82 @@ pub const MAX_DIFFERING_SHARE: f64 = 0.005;
 pub enum Match {
     /// Every channel of every pixel equal.
     Exact,
+    /// Every channel of every pixel within [`ROUNDING_TOLERANCE`].
+    Rounding,
     /// At most [`MAX_DIFFERING_SHARE`] of the pixels differ by more than
     /// [`CHANNEL_TOLERANCE`].
     Tolerant,
 }
 
 /// The adapter the render tests' golden images were made with (its name, as wgpu gives it:
-/// lavapipe's carries its LLVM version and vector width, which change its rounding).
+/// lavapipe's carries its LLVM version and vector width, which change its rounding), and on
+/// its second line the processor it ran on ([`processor`]).
 const ADAPTER_FILE: &str = "ADAPTER";
 
+/// What of this machine's processor decides how lavapipe rounds: its vendor and model, and
+/// the vector instructions LLVM compiles shaders for.
+pub fn processor() -> String {
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let field = |key: &str| {
+        info.lines()
+            .find(|l| l.split(':').next().is_some_and(|k| k.trim() == key))
+            .and_then(|l| l.split_once(':'))
+            .map_or(String::new(), |(_, v)| v.trim().to_string())
+    };
+    let flags = field("flags");
+    let vector: Vec<&str> = ["avx", "avx2", "fma", "avx512f"]
+        .into_iter()
+        .filter(|f| flags.split_whitespace().any(|x| x == *f))
+        .collect();
+    format!(
+        "{} {} [{}] on {}",
+        field("vendor_id"),
+        field("model name"),
+        vector.join(" "),
+        std::env::consts::ARCH
+    )
+}
+
 impl Match {
-    /// Exact on the adapter the golden images were made with (`tests/golden/ADAPTER`, a
-    /// lavapipe), tolerant on any other, which is said on stderr. With `UPDATE_GOLDEN=1` on
-    /// lavapipe, records this adapter as the one.
+    /// Exact on the adapter and processor the golden images were made with
+    /// (`tests/golden/ADAPTER`, a lavapipe), within rounding on that adapter elsewhere,
+    /// tolerant on any other adapter; said on stderr unless exact. With `UPDATE_GOLDEN=1`
+    /// on lavapipe, records this adapter and processor as the ones.
     pub fn on(gpu: &Gpu) -> Match {
         let name = gpu.adapter.get_info().name;
+        let cpu = processor();
         let path = golden_dir().join(ADAPTER_FILE);
         if std::env::var("UPDATE_GOLDEN").is_ok_and(|v| v == "1") && name.starts_with("llvmpipe") {
-            std::fs::write(&path, format!("{name}\n")).expect("tests/golden/ADAPTER written");
+            std::fs::write(&path, format!("{name}\n{cpu}\n"))
+                .expect("tests/golden/ADAPTER written");
         }
         let recorded = std::fs::read_to_string(&path).unwrap_or_default();
-        if recorded.trim() == name {
-            Match::Exact
-        } else {
+        let mut lines = recorded.lines().map(str::trim);
+        let (made_with, made_on) = (lines.next().unwrap_or(""), lines.next().unwrap_or(""));
+        let how = Match::between(made_with, made_on, &name, &cpu);
+        if how != Match::Exact {
             let _ = writeln!(
                 std::io::stderr(),
-                "golden images compared with a tolerance: made with {:?}, rendered with {name:?}",
-                recorded.trim()
+                "golden images compared {how:?}: made with {made_with:?} on {made_on:?}, rendered with {name:?} on {cpu:?}"
             );
-            Match::Tolerant
+        }
+        how
+    }
+
+    /// How close a frame rendered by `adapter` on `cpu` must be to images made by
+    /// `made_with` on `made_on`.
+    pub fn between(made_with: &str, made_on: &str, adapter: &str, cpu: &str) -> Match {
+        match (made_with == adapter, made_on == cpu) {
+            (true, true) => Match::Exact,
+            (true, false) => Match::Rounding,
+            (false, _) => Match::Tolerant,
         }
     }
 
     fn tolerance(self) -> (u8, f64) {
         match self {
             Match::Exact => (0, 0.0),
+            Match::Rounding => (ROUNDING_TOLERANCE, 0.0),
             Match::Tolerant => (CHANNEL_TOLERANCE, MAX_DIFFERING_SHARE),
         }
     }
@@ -190,4 +238,44 @@ fn write_failure(
         let _ = diff.save(dir.join(format!("{name}-diff.png")));
     }
     actual_path
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_same_adapter_on_another_processor_is_held_to_rounding_and_no_more() {
+        let lvp = "llvmpipe (LLVM 15.0.6, 256 bits)";
+        let amd = "AuthenticAMD AMD EPYC [avx avx2 fma] on x86_64";
+        let intel = "GenuineIntel Intel(R) Xeon(R) Processor [avx avx2 fma avx512f] on x86_64";
+        assert_eq!(Match::between(lvp, amd, lvp, amd), Match::Exact);
+        assert_eq!(Match::between(lvp, amd, lvp, intel), Match::Rounding);
+        assert_eq!(
+            Match::between(lvp, amd, "NVIDIA H100", amd),
+            Match::Tolerant
+        );
+
+        let golden = image::RgbaImage::from_pixel(8, 8, image::Rgba([100, 150, 200, 255]));
+        let mut rounded = golden.clone();
+        for p in rounded.pixels_mut() {
+            p.0[1] += 1;
+        }
+        let mut wrong = golden.clone();
+        wrong.get_pixel_mut(3, 3).0[0] += 2;
+        let fails = |how: Match, actual: &image::RgbaImage| {
+            let (tolerance, allowed) = how.tolerance();
+            differing_pixels_by(&golden, actual, tolerance) as f64 / 64.0 > allowed
+        };
+        assert!(fails(Match::Exact, &rounded), "exact allows no rounding");
+        assert!(
+            !fails(Match::Rounding, &rounded),
+            "one level on every pixel is rounding"
+        );
+        assert!(
+            fails(Match::Rounding, &wrong),
+            "two levels on one pixel is not"
+        );
+        assert!(!processor().is_empty());
+    }
 }
