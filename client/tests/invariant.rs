@@ -34,7 +34,7 @@ fn the_memory_invariant_is_stated_word_for_word_everywhere() {
         "ARCHITECTURE.md",
         "docs/flight.md",
         "docs/reliability.md",
-        "client/src/scene.rs",
+        "client/src/scene/mod.rs",
     ] {
         let text =
             std::fs::read_to_string(root.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));

@@ -339,7 +339,11 @@ fn no_file_of_the_renderer_names_a_method() {
 
 #[test]
 fn the_scene_names_the_method_kind_only_to_build_the_method() {
-    let text = code(&src().join("scene.rs"));
+    let text: String = sources(&src().join("scene"))
+        .iter()
+        .map(|path| code(path))
+        .collect::<Vec<_>>()
+        .join("\n");
     let uses: Vec<&str> = text
         .lines()
         .filter(|l| l.contains("MethodKind"))
