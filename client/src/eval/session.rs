@@ -199,8 +199,8 @@ impl Session {
     }
 
     /// Updates at `position` until the scene has settled (nothing in flight, textures at
-    /// their targets) or `timeout` passes; frames are drawn from `camera` so that textures
-    /// are shared by importance. Returns whether it settled.
+    /// their targets) or `timeout` passes; a frame is drawn from `camera` each time so that
+    /// textures are shared by importance. Returns whether it settled.
     pub async fn settle(
         &mut self,
         position: [f64; 3],
@@ -208,21 +208,11 @@ impl Session {
         timeout: Duration,
     ) -> Result<bool, FlightError> {
         let started = Instant::now();
-        let mut next_draw = started;
         loop {
             self.update(position).await?;
-            // A frame is drawn for what its plan decides (textures shared by importance,
-            // the data the method wants), not to be seen: at most a quarter of the time
-            // goes to drawing, so that decoding and the method's own builds have the
-            // processor. A scene that looks settled is drawn at once, and settled only if
-            // it still is after that frame.
-            if Instant::now() >= next_draw || self.scene.settled() {
-                let drawing = Instant::now();
-                self.scene.draw(&self.target.view, camera, drawing);
-                next_draw = Instant::now() + drawing.elapsed() * 3;
-                if self.scene.settled() {
-                    return Ok(true);
-                }
+            self.scene.draw(&self.target.view, camera, Instant::now());
+            if self.scene.settled() {
+                return Ok(true);
             }
             if started.elapsed() > timeout {
                 return Ok(false);
