@@ -57,12 +57,11 @@ pub fn run_watched(mut command: Command, kill_above: u64, deadline: Duration) ->
     let stderr = drain(Box::new(child.stderr.take().expect("piped stderr")));
     let status_path = format!("/proc/{}/status", child.id());
     let started = Instant::now();
-    let (mut peak_bytes, mut killed, mut polls) = (0, None, 0u64);
+    let (mut peak_bytes, mut killed) = (0, None);
     let status: ExitStatus = loop {
         if let Some(kib) = high_water_mark_kib(&status_path) {
             peak_bytes = peak_bytes.max(kib * 1024);
         }
-        polls += 1;
         if let Some(status) = child.try_wait().expect("wait for the child") {
             break status;
         }
@@ -86,13 +85,11 @@ pub fn run_watched(mut command: Command, kill_above: u64, deadline: Duration) ->
         high_water_mark_kib("/proc/self/status").is_some(),
         "no VmHWM in /proc/self/status: memory cannot be read here"
     );
-    // A child that ended before the first read (a refusal in a millisecond: its status is
-    // a zombie's, without memory lines) held too little for long enough to be seen; one
-    // read more than once never is.
-    assert!(
-        peak_bytes > 0 || polls == 1,
-        "no VmHWM read from {status_path} in {polls} reads while it ran"
-    );
+    // A child never seen with memory (`peak_bytes` 0) ended before its status could show
+    // it: before the first read, or between releasing its memory and becoming a zombie,
+    // when its status has no memory lines although it has not been reaped yet. The line
+    // above shows that this platform reads memory; `a_child_that_runs_has_its_memory_read`
+    // that a child living past a read is seen.
     Watched {
         output: Output {
             status,
