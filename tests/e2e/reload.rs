@@ -98,18 +98,26 @@ fn served_version(base: &str) -> String {
         .to_string()
 }
 
-/// Waits (at most 30 s, a bound on a broken reload, not a pace) until the server serves
-/// `version`.
-fn until_served(base: &str, version: &str, log: &Path) {
+/// Polls `check` every 20 ms until it gives `None` (done), failing with the last thing it
+/// gave after 30 s: a bound on a broken reload, not a pace.
+fn eventually(mut check: impl FnMut() -> Option<String>) {
     let started = Instant::now();
-    while served_version(base) != version {
-        assert!(
-            started.elapsed() < Duration::from_secs(30),
-            "{version} never served: {}",
-            std::fs::read_to_string(log).unwrap_or_default()
-        );
+    while let Some(waiting) = check() {
+        assert!(started.elapsed() < Duration::from_secs(30), "{waiting}");
         std::thread::sleep(Duration::from_millis(20));
     }
+}
+
+/// Waits until the server serves `version`.
+fn until_served(base: &str, version: &str, log: &Path) {
+    eventually(|| {
+        (served_version(base) != version).then(|| {
+            format!(
+                "{version} never served: {}",
+                std::fs::read_to_string(log).unwrap_or_default()
+            )
+        })
+    });
 }
 
 /// Files and mappings of `pid` under `dir` that are deleted: what keeps their disk space.
@@ -172,18 +180,10 @@ fn a_rebuilt_database_is_served_after_sighup_and_its_old_packs_are_closed() {
     assert_eq!(status, 404, "the old version is gone: {body}");
     // The last request with the old database has ended: its files are closed and unmapped
     // (by the reload's own thread, which may still be at it when the new version is seen).
-    let started = Instant::now();
-    loop {
+    eventually(|| {
         let held = deleted_under(child.id(), tmp.path());
-        if held.is_empty() {
-            break;
-        }
-        assert!(
-            started.elapsed() < Duration::from_secs(30),
-            "the replaced packs are never closed: {held:?}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+        (!held.is_empty()).then(|| format!("the replaced packs are never closed: {held:?}"))
+    });
     let (_, metrics) = get(&base, routes::METRICS);
     assert!(metrics.contains("database_reloads_total 1"), "{metrics}");
 
@@ -191,14 +191,10 @@ fn a_rebuilt_database_is_served_after_sighup_and_its_old_packs_are_closed() {
     let aside = tmp.path().join("aside");
     std::fs::rename(&db, &aside).expect("move the database away");
     signal(&child, "-HUP");
-    let started = Instant::now();
-    while !std::fs::read_to_string(&log)
-        .unwrap_or_default()
-        .contains("still serving the one before")
-    {
-        assert!(started.elapsed() < Duration::from_secs(30), "no warning");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    eventually(|| {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        (!text.contains("still serving the one before")).then(|| format!("no warning: {text}"))
+    });
     assert_eq!(served_version(&base), second);
     let (status, _) = get(&base, &routes::heights(&second, tile));
     assert_eq!(status, 200, "still served from the open files");
@@ -219,19 +215,13 @@ fn a_rebuilt_database_is_found_by_the_poll_without_a_signal() {
     let second = rebuild(&db, 10.0);
     until_served(&base, &second, &log);
     // The reload logs once it has returned, just after the new version can be seen.
-    let started = Instant::now();
-    loop {
+    eventually(|| {
         let text = std::fs::read_to_string(&log).unwrap_or_default();
-        if text.contains("serving the rebuilt database") {
-            assert!(text.contains("manifest changed"), "{text}");
-            break;
-        }
-        assert!(
-            started.elapsed() < Duration::from_secs(30),
-            "the reload is never logged: {text}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+        (!text.contains("serving the rebuilt database"))
+            .then(|| format!("the reload is never logged: {text}"))
+    });
+    let text = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(text.contains("manifest changed"), "{text}");
     signal(&child, "-TERM");
     assert!(child.wait().expect("exit").success());
 }
