@@ -252,7 +252,7 @@ EOF
     echo "|---:|---:|---:|---:|"
     paste -d'|' <(grep '^| quadtree-patches ' "$docs/accuracy-puget/summary.md") \
       <(grep '^| quadtree-patches ' "$docs/accuracy-puget-no-morph/summary.md") |
-      awk -F"|" '{ printf "| %s | %s | %s | %s / %s |\n", $3, $20, $42, $4, $26 }'
+      awk -F"|" '{ printf "| %s | %s | %s | %s / %s |\n", $3, $21, $44, $4, $27 }'
     echo
     echo "![popping without morphing](evaluation/accuracy-puget-no-morph/popping.png)"
     echo

@@ -10,6 +10,11 @@
 # browser tests (MapLibre and Cesium in headless Chromium) without Chromium and the npm
 # packages, which viewer/setup.sh installs here when it can (apt-get, npm ci), and for the
 # windowed client's check (scripts/view-check.sh) without Xvfb and Weston.
+#
+# Two tiers: the default runs every test but the longest flights, which say NOT RUN;
+# TERRAIN_TEST_TIER=full (set by .ci/run) runs them too, and checks that the client and the
+# server compile for Windows (x86_64-pc-windows-gnu, with Debian's MinGW for the C in build
+# scripts).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -46,6 +51,17 @@ cargo build --release --workspace --locked
 cargo test --release --workspace --locked
 # The windowed client under X11 (Xvfb) and Wayland (headless Weston).
 bash scripts/view-check.sh
+
+if [ "${TERRAIN_TEST_TIER:-}" = full ]; then
+  # Windows: the client and the server compile (a check, not a build: nothing here runs
+  # them). The README's platform table says so.
+  rustup target list --installed | grep -qx x86_64-pc-windows-gnu || rustup target add x86_64-pc-windows-gnu
+  install_if_missing x86_64-w64-mingw32-gcc gcc-mingw-w64-x86-64
+  cargo check --locked -p terrain-client -p terrain-server --target x86_64-pc-windows-gnu
+  echo "windows (x86_64-pc-windows-gnu): the client and the server compile"
+else
+  echo "note: the full tier's checks (the longest flights, Windows) did not run: TERRAIN_TEST_TIER=full runs them"
+fi
 
 install_if_missing docker-compose docker-compose
 docker-compose -f docker-compose.yml config -q

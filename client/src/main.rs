@@ -53,7 +53,7 @@ enum BenchCommand {
     /// The projected grids' paper tables on our data: persistent grid mapping's grid sizes
     /// (Livny et al., Table 1) and the error-bounded projective grid uniform and warped,
     /// with and without ray casting (Löffler et al., Tables 1 and 2); writes grids.md.
-    Grids(terrain_client::eval::grids::GridsArgs),
+    Grids(terrain_client::eval::paper_tables::GridsArgs),
 }
 
 fn main() -> ExitCode {
@@ -103,7 +103,7 @@ fn main() -> ExitCode {
                 .map_err(anyhow::Error::from)
         }),
         Command::Bench(BenchCommand::Grids(args)) => in_runtime(async move {
-            terrain_client::eval::grids::run(&args)
+            terrain_client::eval::paper_tables::run(&args)
                 .await
                 .map(|report| report.markdown)
                 .map_err(anyhow::Error::from)

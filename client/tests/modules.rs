@@ -357,3 +357,79 @@ fn the_scene_names_the_method_kind_only_to_build_the_method() {
         "{uses:#?}"
     );
 }
+
+/// The lines of a file before its unit tests (`#[cfg(test)]` at the start of a line).
+fn lines_before_tests(text: &str) -> usize {
+    text.lines()
+        .take_while(|line| !line.starts_with("#[cfg(test)]"))
+        .count()
+}
+
+/// A reader can hold a file: none is over 900 lines before its unit tests.
+#[test]
+fn no_file_is_over_900_lines_before_its_tests() {
+    const LIMIT: usize = 900;
+    let mut long = Vec::new();
+    let files = sources(&src());
+    assert!(files.len() > 30, "the sources were found: {}", files.len());
+    for path in files {
+        let text = std::fs::read_to_string(&path).expect("read source");
+        let n = lines_before_tests(&text);
+        if n > LIMIT {
+            long.push(format!("{} ({n} lines)", path.display()));
+        }
+    }
+    assert!(
+        long.is_empty(),
+        "over {LIMIT} lines before the tests: {long:#?}"
+    );
+}
+
+#[test]
+fn the_line_counter_stops_at_the_tests() {
+    assert_eq!(lines_before_tests("a\nb\n#[cfg(test)]\nmod tests {}\n"), 2);
+    assert_eq!(lines_before_tests("a\nb\nc\n"), 3);
+}
+
+/// Each level-of-detail method has one folder under `method/` (its selection and its GPU
+/// part), and no file elsewhere is named after one.
+#[test]
+fn each_method_has_one_folder_and_no_file_elsewhere_is_named_after_one() {
+    let methods = [
+        "strip_masks",
+        "geomipmap",
+        "projected_grid",
+        "quadtree_patches",
+    ];
+    let method_dir = src().join("method");
+    for name in methods {
+        assert!(
+            method_dir.join(name).join("mod.rs").is_file(),
+            "method/{name}/mod.rs is missing"
+        );
+    }
+    let words = ["geomipmap", "mipmap", "grid", "patch", "strip_mask"];
+    let strays: Vec<String> = sources(&src())
+        .into_iter()
+        .filter(|p| !p.starts_with(&method_dir))
+        .filter(|p| {
+            let stem = p.file_stem().unwrap_or_default().to_string_lossy();
+            words.iter().any(|w| stem.contains(w))
+        })
+        .map(|p| p.display().to_string())
+        .collect();
+    assert!(
+        strays.is_empty(),
+        "files named after a method outside method/: {strays:#?}"
+    );
+    let loose: Vec<String> = std::fs::read_dir(&method_dir)
+        .expect("read method/")
+        .map(|e| e.expect("entry").path())
+        .filter(|p| p.is_dir() && !methods.iter().any(|m| p.ends_with(m)))
+        .map(|p| p.display().to_string())
+        .collect();
+    assert!(
+        loose.is_empty(),
+        "folders under method/ that are no method: {loose:#?}"
+    );
+}

@@ -12,7 +12,6 @@ use terrain_client::lod::plan::{Draw, Layout, LodSettings};
 use terrain_client::method::strip_masks::StripMasks;
 use terrain_client::method::{CrackFiller, MethodConfig, MethodKind};
 use terrain_client::render::{Camera, Offscreen, Renderer};
-use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Heights, TileId};
 use terrain_tests::data::{build_jacksboro, kit_file};
 use terrain_tests::golden;
@@ -373,7 +372,7 @@ fn the_planar_shadow_fills_every_crack_of_the_puget_sound_sweep_and_shows_nowher
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_db(&png, tmp.path());
+    let db = terrain_tests::fixtures::database(&png, terrain_tests::fixtures::Options::Defaults);
     let server = TestServer::start(&db);
     check_planar_shadow_sweep(&server, &tmp.path().join("accuracy"));
 }
@@ -390,7 +389,7 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_db(&png, tmp.path());
+    let db = terrain_tests::fixtures::database(&png, terrain_tests::fixtures::Options::Defaults);
     let server = TestServer::start(&db);
     let mut args = AccuracyArgs {
         cameras: 4,
@@ -454,7 +453,7 @@ fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() 
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let db = build_db(&png, tmp.path());
+    let db = terrain_tests::fixtures::database(&png, terrain_tests::fixtures::Options::Defaults);
     let server = TestServer::start(&db);
     let mut args = AccuracyArgs {
         max_errors_px: vec![1.0],
@@ -496,16 +495,6 @@ fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() 
     let geometry = &report.geometry[0].1;
     println!("geomipmap: {geometry}");
     assert!(geometry.gpu.sample_buffers <= geometry.gpu.tiles);
-}
-
-pub(crate) fn build_db(input: &Path, dir: &Path) -> std::path::PathBuf {
-    build(
-        &BuildOptions::new(input, dir.join("db")),
-        &|_, _| {},
-        &std::sync::atomic::AtomicBool::new(false),
-    )
-    .expect("builds")
-    .out
 }
 
 /// Checks every run of the matrix: no failure, memory within a limit that binds (below
@@ -629,7 +618,8 @@ fn the_dataset_scenarios_run_and_flat_sea_tiles_get_the_coarsest_mask() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let mut servers = Vec::new();
     for (name, path) in &inputs {
-        let db = build_db(path, &tmp.path().join(name));
+        let db =
+            terrain_tests::fixtures::database(path, terrain_tests::fixtures::Options::Defaults);
         servers.push((name.to_string(), TestServer::start(&db)));
     }
     let args = StabilityArgs {

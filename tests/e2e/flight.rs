@@ -280,13 +280,9 @@ fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame(
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let report = build(
-        &BuildOptions::new(&heights, tmp.path().join("db")),
-        &|_, _| {},
-        &AtomicBool::new(false),
-    )
-    .expect("builds");
-    let server = TestServer::start(&report.out);
+    let db =
+        terrain_tests::fixtures::database(&heights, terrain_tests::fixtures::Options::Defaults);
+    let server = TestServer::start(&db);
     let mut flight = args(&server, &tmp.path().join("flight"), Some(32 << 20));
     flight.stream.concurrency = 8;
     let summary = runtime().block_on(fly(&flight)).expect("flight");
@@ -309,7 +305,7 @@ fn a_himalaya_flight_in_32_mib_keeps_resident_tiles_under_the_limit_every_frame(
         "{} complete belts",
         last["complete_belts"]
     );
-    assert_eq!(report.manifest.tile_count(), 1365);
+    assert_eq!(server.state().db().manifest().tile_count(), 1365);
     assert!(number(last, "resident_tiles") < 1365);
     assert!(
         summary.peak_resident_bytes > limit / 2,

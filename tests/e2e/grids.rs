@@ -140,7 +140,7 @@ fn the_projective_grid_with_ray_casting_keeps_every_pixel_within_a_pixel_over_pu
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let db = super::accuracy::build_db(&png, tmp.path());
+    let db = terrain_tests::fixtures::database(&png, terrain_tests::fixtures::Options::Defaults);
     let server = TestServer::start(&db);
     let mut worst_without = 0.0f64;
     for ray_casting in [true, false] {

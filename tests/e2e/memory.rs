@@ -10,7 +10,6 @@ use terrain_client::eval::stability::{self, StabilityArgs};
 use terrain_client::flight::{FlightArgs, FlightError, StreamArgs, fly};
 use terrain_client::memory::{MemoryError, MemorySize};
 use terrain_client::method::{CrackFiller, MethodKind};
-use terrain_server::build::{BuildOptions, build};
 use terrain_tests::data::jacksboro;
 use terrain_tests::golden;
 use terrain_tests::server::TestServer;
@@ -20,21 +19,6 @@ fn runtime() -> tokio::runtime::Runtime {
         .enable_all()
         .build()
         .expect("tokio runtime")
-}
-
-/// Jacksboro with the quadtree patches, so that every method runs on it.
-fn jacksboro_with_patches(dir: &Path) -> PathBuf {
-    let options = BuildOptions {
-        patches: Some(0.0),
-        ..BuildOptions::new(jacksboro(), dir.join("db"))
-    };
-    build(
-        &options,
-        &|_, _| {},
-        &std::sync::atomic::AtomicBool::new(false),
-    )
-    .expect("builds")
-    .out
 }
 
 /// Every method, the strip masks with every filler a user can choose.
@@ -138,11 +122,17 @@ fn number(row: &std::collections::HashMap<String, String>, column: &str) -> u64 
 #[test]
 fn every_method_keeps_the_limit_on_every_frame_of_a_random_walk_or_refuses_below_what_it_needs() {
     let test = "memory::every_method_keeps_the_limit_on_every_frame_of_a_random_walk";
+    if !terrain_tests::tier::full(test) {
+        return;
+    }
     let Some(_) = golden::gpu(test) else {
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let server = TestServer::start(&jacksboro_with_patches(tmp.path()));
+    let server = TestServer::start(&terrain_tests::fixtures::database(
+        &jacksboro(),
+        terrain_tests::fixtures::Options::WithPatches,
+    ));
     let manifest = server.state().db().manifest().clone();
     let walk = random_walk(tmp.path(), manifest.extent_m);
     let whole = whole_database_bytes(&manifest);
@@ -224,7 +214,10 @@ fn every_method_and_filler_below_one_belt_keeps_the_limit_or_refuses_at_start() 
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let server = TestServer::start(&jacksboro_with_patches(tmp.path()));
+    let server = TestServer::start(&terrain_tests::fixtures::database(
+        &jacksboro(),
+        terrain_tests::fixtures::Options::WithPatches,
+    ));
     let mut args = StabilityArgs {
         frames: 8,
         scenarios: vec!["memory-below-one-belt".into()],
@@ -286,11 +279,17 @@ fn still(dir: &Path) -> PathBuf {
 #[test]
 fn no_method_makes_the_process_grow_frame_after_frame() {
     let test = "memory::no_method_makes_the_process_grow_frame_after_frame";
+    if !terrain_tests::tier::full(test) {
+        return;
+    }
     let Some(_) = golden::gpu(test) else {
         return;
     };
     let tmp = tempfile::tempdir().expect("tempdir");
-    let server = TestServer::start(&jacksboro_with_patches(tmp.path()));
+    let server = TestServer::start(&terrain_tests::fixtures::database(
+        &jacksboro(),
+        terrain_tests::fixtures::Options::WithPatches,
+    ));
     let path = still(tmp.path());
     for method in [
         MethodKind::StripMasks,

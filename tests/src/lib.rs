@@ -2,11 +2,13 @@
 
 pub mod child;
 pub mod data;
+pub mod fixtures;
 pub mod golden;
 pub mod proxy;
 pub mod server;
 pub mod stamp;
 pub mod synthetic;
+pub mod tier;
 
 /// A scene's connection to the server at `base_url` with the default fetcher, made on
 /// `runtime`; panics with the reason when the server cannot be reached.

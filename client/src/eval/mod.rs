@@ -4,10 +4,10 @@
 
 pub mod accuracy;
 pub mod frame;
-pub mod grids;
 pub mod levels;
 pub mod metrics;
 pub mod oracle;
+pub mod paper_tables;
 pub mod popping;
 pub mod session;
 pub mod stability;

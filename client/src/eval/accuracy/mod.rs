@@ -253,6 +253,10 @@ pub struct Row {
     pub camera: u32,
     pub config: Config,
     pub measured: Measured,
+    /// Whether the method had every piece of data it asked for before the frame was measured
+    /// (the quadtree patches' bodies): `false` when the wait for them ran out, and the frame
+    /// was drawn with coarser patches where finer ones had not arrived.
+    pub settled: bool,
 }
 
 /// A configuration over all cameras.
@@ -405,9 +409,16 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         reference_ms.push(report.draw_ms);
         for config in configs(args) {
             let render = config.render(base);
-            session
+            let settled = session
                 .prepare(centre, camera, render, Duration::from_secs(120))
                 .await?;
+            if !settled {
+                tracing::warn!(
+                    camera = i,
+                    config = %config.series(),
+                    "measured before the method's data had all arrived (waited 120 s)"
+                );
+            }
             let mut measured =
                 session.measure(camera, render, &reference, lod.max_error_px, args.repeats)?;
             let unfilled = measured.unfilled.take();
@@ -436,6 +447,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
                 camera: i as u32,
                 config,
                 measured,
+                settled,
             });
             bar.inc(1);
         }

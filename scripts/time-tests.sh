@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# How long the two test tiers take here, each from a fresh clone of this commit (a new
+# target directory: the build is part of the time), written stamped into
+# docs/benchmarks/test-times.md and the README's generated block.
+#
+#   bash scripts/time-tests.sh            # both tiers (the full one needs the data kit)
+#   TIERS=default bash scripts/time-tests.sh
+#
+# The default tier runs the README's test command without the data kit (what a newcomer
+# runs); the full tier runs .ci/run (data kit, GPU adapter and browser required).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/stamp.sh
+repo=$(pwd)
+work=$(mktemp -d)
+trap 'rm -rf "$work"' EXIT
+rows=()
+for tier in ${TIERS:-default full}; do
+  rm -rf "$work/clone"
+  git clone -q "$repo" "$work/clone"
+  # The npm packages come from the registry as on any fresh machine.
+  log="$work/$tier.log"
+  start=$(date +%s)
+  if [ "$tier" = full ]; then
+    (cd "$work/clone" && TERRAIN_DATA_DIR="${TERRAIN_DATA_DIR:-$repo/../shared/data}" bash .ci/run) >"$log" 2>&1 && ok=passed || ok=FAILED
+  else
+    (cd "$work/clone" && env -u TERRAIN_DATA_DIR -u REQUIRE_DATA -u REQUIRE_GPU -u REQUIRE_BROWSER -u TERRAIN_TEST_TIER bash scripts/test.sh) >"$log" 2>&1 && ok=passed || ok=FAILED
+  fi
+  seconds=$(( $(date +%s) - start ))
+  passed=$(grep -o '[0-9]* passed' "$log" | awk '{s += $1} END {print s + 0}')
+  failed=$(grep -o '[0-9]* failed' "$log" | awk '{s += $1} END {print s + 0}')
+  not_run=$(grep -c '^NOT RUN\|NOT RUN:' "$log" || true)
+  echo "$tier: $ok in $seconds s ($passed passed, $failed failed, $not_run NOT RUN lines)"
+  [ "$ok" = passed ] || { tail -n 40 "$log"; cp "$log" "out/test-times-$tier.log" 2>/dev/null || true; }
+  rows+=("| $tier | \`$( [ "$tier" = full ] && echo "bash .ci/run" || echo "bash scripts/test.sh" )\` | $ok | $(( seconds / 60 )) min $(( seconds % 60 )) s | $passed | $failed | $not_run |")
+done
+{
+  echo "<!-- written by \`bash scripts/time-tests.sh\`; do not edit -->"
+  echo "Run: $(stamp_line); each tier from a fresh clone (build included)."
+  echo
+  echo "| tier | command | result | time | tests passed | failed | NOT RUN lines |"
+  echo "|---|---|---|---:|---:|---:|---:|"
+  printf '%s\n' "${rows[@]}"
+} >docs/benchmarks/test-times.md
+bash scripts/insert-generated.sh README.md docs/benchmarks/test-times.md
