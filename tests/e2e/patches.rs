@@ -228,8 +228,9 @@ fn guarantee_holds_over(test: &str, relative: &str) {
         );
         if !row.settled {
             failures.push(format!(
-                "camera {}: measured before every patch it asked for arrived",
-                row.camera
+                "camera {}: measured before the scene settled: {}",
+                row.camera,
+                row.unsettled.as_deref().unwrap_or("?")
             ));
         }
         if e.max_px > report.threshold_px.max(floor.max_px) {

@@ -221,6 +221,12 @@ impl Session {
         }
     }
 
+    /// What keeps the scene from having settled, `None` once settled
+    /// ([`Scene::unsettled`]).
+    pub fn unsettled(&self) -> Option<String> {
+        self.scene.unsettled()
+    }
+
     /// Switches to `config` and, if its method wants data of its own (the quadtree
     /// patches), updates at `position` until it has it (see [`Session::settle`]); a method
     /// built anew asks for its data again.

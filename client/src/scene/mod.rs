@@ -555,26 +555,53 @@ impl Scene {
     /// Whether every tile is resident with every texture level it is meant to have and
     /// nothing is in flight: what the accuracy measures wait for.
     pub fn settled(&self) -> bool {
-        let textures_done = self.rendering.as_ref().is_none_or(|r| {
+        self.unsettled().is_none()
+    }
+
+    /// What keeps the scene from having settled (see [`Scene::settled`]), in words: tiles in
+    /// flight, textures short of their target level, the method's data pending or in the
+    /// making. `None` once settled.
+    pub fn unsettled(&self) -> Option<String> {
+        let textures_short = self.rendering.as_ref().map_or(0, |r| {
             self.tiles
                 .iter()
                 .zip(&r.texture_target)
-                .all(|(t, &target)| {
-                    t.as_ref().is_none_or(|t| {
+                .filter(|(t, target)| {
+                    t.as_ref().is_some_and(|t| {
                         let held = t
                             .textures
                             .len()
                             .min(t.undecodable_from.unwrap_or(usize::MAX));
-                        t.uploaded_levels >= held
-                            && (t.textures.len() > target as usize || t.undecodable_from.is_some())
+                        !(t.uploaded_levels >= held
+                            && (t.textures.len() > **target as usize
+                                || t.undecodable_from.is_some()))
                     })
                 })
+                .count()
         });
-        let method_done = self
+        let (data_pending, method_busy) = self
             .rendering
             .as_ref()
-            .is_none_or(|r| r.data_pending.is_empty() && r.method.settled());
-        self.in_flight.iter().all(|f| !f) && textures_done && method_done
+            .map_or((0, false), |r| (r.data_pending.len(), !r.method.settled()));
+        let in_flight = self.in_flight();
+        let mut parts = Vec::new();
+        if in_flight > 0 {
+            parts.push(format!("{in_flight} tile(s) in flight"));
+        }
+        if textures_short > 0 {
+            parts.push(format!(
+                "{textures_short} tile(s) short of their texture level"
+            ));
+        }
+        if data_pending > 0 {
+            parts.push(format!(
+                "{data_pending} request(s) of the method's data pending"
+            ));
+        }
+        if method_busy {
+            parts.push("the method still making or waiting for its data".to_string());
+        }
+        (!parts.is_empty()).then(|| parts.join(", "))
     }
 
     /// Height of the true surface at world point `(x, y)` (metres), as full resolution

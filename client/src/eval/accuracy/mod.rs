@@ -257,6 +257,8 @@ pub struct Row {
     /// (the quadtree patches' bodies): `false` when the wait for them ran out, and the frame
     /// was drawn with coarser patches where finer ones had not arrived.
     pub settled: bool,
+    /// What was still missing when the wait ran out ([`crate::scene::Scene::unsettled`]).
+    pub unsettled: Option<String>,
 }
 
 /// A configuration over all cameras.
@@ -412,11 +414,12 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
             let settled = session
                 .prepare(centre, camera, render, Duration::from_secs(120))
                 .await?;
-            if !settled {
+            let unsettled = (!settled).then(|| session.unsettled().unwrap_or_default());
+            if let Some(missing) = &unsettled {
                 tracing::warn!(
                     camera = i,
                     config = %config.series(),
-                    "measured before the method's data had all arrived (waited 120 s)"
+                    "measured before the scene settled (waited 120 s): {missing}"
                 );
             }
             let mut measured =
@@ -448,6 +451,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
                 config,
                 measured,
                 settled,
+                unsettled,
             });
             bar.inc(1);
         }
