@@ -35,7 +35,12 @@ pub struct ErrorStats {
     pub threshold_px: f64,
     /// Terrain pixels whose error exceeds `threshold_px`.
     pub above_threshold: u64,
+    /// The [`LARGEST`] largest errors, largest first (0 past the terrain pixels).
+    pub largest_px: [f64; LARGEST],
 }
+
+/// How many of the largest errors [`ErrorStats`] keeps.
+pub const LARGEST: usize = 32;
 
 impl ErrorStats {
     /// Share of terrain pixels above the threshold, in [0, 1] (0 without terrain pixels).
@@ -45,6 +50,12 @@ impl ErrorStats {
         } else {
             self.above_threshold as f64 / self.terrain_pixels as f64
         }
+    }
+
+    /// The largest error once the `set_aside` largest are set aside (the maximum for 0).
+    /// Past [`LARGEST`] it answers the smallest error kept, which is at least as large.
+    pub fn max_after_px(&self, set_aside: u64) -> f64 {
+        self.largest_px[(set_aside as usize).min(LARGEST - 1)]
     }
 }
 
@@ -86,6 +97,7 @@ pub fn screen_space_error(
         max_px: 0.0,
         threshold_px,
         above_threshold: 0,
+        largest_px: [0.0; LARGEST],
     };
     let mut sum = 0.0;
     let mut errors = Vec::new();
@@ -110,6 +122,11 @@ pub fn screen_space_error(
     }
     if stats.terrain_pixels > 0 {
         stats.mean_px = sum / stats.terrain_pixels as f64;
+    }
+    let mut largest = errors.clone();
+    largest.sort_unstable_by(|a, b| b.total_cmp(a));
+    for (kept, error) in stats.largest_px.iter_mut().zip(largest) {
+        *kept = error;
     }
     stats.p95_px = percentile(&mut errors, 95.0);
     stats.p99_px = percentile(&mut errors, 99.0);
@@ -241,6 +258,26 @@ mod tests {
         let stats = screen_space_error(&frame, W, H, &camera, |_, _| Some(0.0), 1.0);
         assert_eq!((stats.p95_px, stats.p99_px), (0.0, 0.0));
         assert!(stats.max_px > 1.0);
+        // The one outlier set aside, the largest error left is 0.
+        assert_eq!(stats.max_after_px(0), stats.max_px);
+        assert_eq!(stats.max_after_px(1), 0.0);
+    }
+
+    #[test]
+    fn the_largest_errors_are_kept_largest_first() {
+        let camera = Camera::new([0.0, 0.0, 0.0], 0.0, 0.0);
+        // Pixel i at 500 m east, i metres off: errors grow with i.
+        let frame: Vec<Pixel> = (0..(W * H))
+            .map(|i| (i < 100).then(|| [500.0, 0.0, f64::from(i)]))
+            .collect();
+        let stats = screen_space_error(&frame, W, H, &camera, |_, _| Some(0.0), 1.0);
+        let each = |m: f64| m * (f64::from(H) / 2.0) / (500.0 * (camera.fov_y / 2.0).tan());
+        for k in 0..LARGEST as u64 {
+            let expected = each(99.0 - k as f64);
+            assert!((stats.max_after_px(k) - expected).abs() < 1e-9, "{k}");
+        }
+        // Past what is kept: the smallest kept, at least as large as the true answer.
+        assert_eq!(stats.max_after_px(1000), stats.largest_px[LARGEST - 1]);
     }
 
     #[test]

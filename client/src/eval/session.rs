@@ -207,17 +207,44 @@ impl Session {
         camera: &Camera,
         timeout: Duration,
     ) -> Result<bool, FlightError> {
+        // Waiting is not an interactive frame: every level that has arrived is uploaded at
+        // once instead of a few a frame (the measured frames then draw a scene that no
+        // longer changes, whatever the cap).
+        let cap = self.scene.set_uploads_per_frame(usize::MAX);
+        let settled = self.settle_loop(position, camera, timeout).await;
+        self.scene.set_uploads_per_frame(cap);
+        settled
+    }
+
+    async fn settle_loop(
+        &mut self,
+        position: [f64; 3],
+        camera: &Camera,
+        timeout: Duration,
+    ) -> Result<bool, FlightError> {
         let started = Instant::now();
+        self.update(position).await?;
         loop {
-            self.update(position).await?;
+            let drawing = Instant::now();
             self.scene.draw(&self.target.view, camera, Instant::now());
+            let drew = drawing.elapsed();
             if self.scene.settled() {
                 return Ok(true);
             }
             if started.elapsed() > timeout {
                 return Ok(false);
             }
-            tokio::time::sleep(Duration::from_millis(2)).await;
+            // The fetcher starts requests only when polled, and a draw can take seconds (a
+            // million triangles on a software rasterizer): between two draws, poll for as
+            // long as the last one took, so that the requests do not wait on the frames.
+            let until = Instant::now() + drew.max(Duration::from_millis(20));
+            loop {
+                tokio::time::sleep(Duration::from_millis(2)).await;
+                self.update(position).await?;
+                if Instant::now() >= until {
+                    break;
+                }
+            }
         }
     }
 
@@ -378,8 +405,9 @@ impl Session {
     }
 
     /// The screen-space error of `capture` itself against the true surface: for the
-    /// reference, the floor of the measure (pixels the renderer itself gets wrong, such as a
-    /// rasterizer's pinhole showing a point under the surface).
+    /// reference, the floor of the measure (pixels the renderer itself gets wrong: a
+    /// rasterizer's pinhole showing a point under the surface, a depth taken off a triangle
+    /// seen edge-on past its exact edge).
     pub fn own_error(
         &self,
         capture: &Capture,

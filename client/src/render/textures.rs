@@ -20,8 +20,9 @@ pub struct TextureCandidate<'a> {
     pub extra_cost: &'a [u64],
 }
 
-/// The finest level each candidate may hold, in the candidates' order.
-pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) -> Vec<u32> {
+/// The candidates' indices, most important first (equal importances in the candidates'
+/// order): the order the budget is shared in, and its reverse the order levels are dropped.
+pub fn most_important_first(candidates: &[TextureCandidate<'_>]) -> Vec<usize> {
     let mut order: Vec<usize> = (0..candidates.len()).collect();
     order.sort_by(|&a, &b| {
         candidates[b]
@@ -29,18 +30,29 @@ pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) ->
             .total_cmp(&candidates[a].importance)
             .then(a.cmp(&b))
     });
+    order
+}
+
+/// The finest level each candidate may hold, in the candidates' order.
+pub fn share_texture_budget(candidates: &[TextureCandidate<'_>], budget: u64) -> Vec<u32> {
+    let order = most_important_first(candidates);
     let mut remaining: f64 = candidates.iter().map(|c| c.importance.max(0.0)).sum();
+    // Counted, not read off `remaining`: a sum of importances less each one in turn
+    // rounds to a few ulps above or below 0, and whether the tiles out of view get a share
+    // must not flip with it from frame to frame.
+    let visible = candidates.iter().filter(|c| c.importance > 0.0).count();
     let mut pool = budget;
     let mut levels = vec![0u32; candidates.len()];
     for (served, &i) in order.iter().enumerate() {
         let candidate = &candidates[i];
         let importance = candidate.importance.max(0.0);
-        let offer = if remaining > 0.0 && importance > 0.0 {
+        let offer = if served + 1 == visible {
+            // The last visible tile may take all that is left.
+            pool
+        } else if served < visible {
             ((pool as f64) * (importance / remaining).min(1.0)).floor() as u64
-        } else if remaining > 0.0 {
-            0
         } else {
-            // Only tiles of importance 0 are left: share evenly.
+            // Only tiles out of view are left: they share what the visible ones left evenly.
             pool / (order.len() - served) as u64
         };
         let level = candidate
@@ -112,5 +124,29 @@ mod tests {
         let tiles = [candidate(0.0), candidate(1.0), candidate(0.0)];
         assert_eq!(share_texture_budget(&tiles, 1000 + 600), vec![2, 3, 2]);
         assert_eq!(share_texture_budget(&tiles, 1000), vec![0, 3, 0]);
+    }
+
+    #[test]
+    fn rounding_in_the_importances_never_decides_the_tiles_out_of_view() {
+        // 0.3 + 0.2 + 0.1, less each in turn, leaves 2.8e-17 rather than 0; the tiles out of
+        // view must get their share all the same.
+        let left = [0.3, 0.2, 0.1]
+            .iter()
+            .fold(0.1 + 0.2 + 0.3, |r: f64, i| r - i);
+        assert!(left > 0.0, "{left}");
+        let tiles = [
+            candidate(0.0),
+            candidate(0.1),
+            candidate(0.2),
+            candidate(0.3),
+            candidate(0.0),
+        ];
+        assert_eq!(share_texture_budget(&tiles, 5000), vec![3, 3, 3, 3, 3]);
+        // The same share whatever the visible importances add up to.
+        let scaled: Vec<_> = [0.0, 0.1, 0.2, 0.3, 0.0]
+            .iter()
+            .map(|&i| candidate(i * 0.7))
+            .collect();
+        assert_eq!(share_texture_budget(&scaled, 5000), vec![3, 3, 3, 3, 3]);
     }
 }

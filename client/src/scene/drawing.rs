@@ -90,6 +90,15 @@ impl Scene {
         }
     }
 
+    /// Sets how many texture levels a frame uploads at most
+    /// ([`RenderConfig::uploads_per_frame`]) and returns the number it replaces; the method
+    /// and everything else stay as they are.
+    pub fn set_uploads_per_frame(&mut self, uploads: usize) -> usize {
+        self.rendering.as_mut().map_or(uploads, |r| {
+            std::mem::replace(&mut r.config.uploads_per_frame, uploads)
+        })
+    }
+
     /// Draws later frames with `config`'s method and settings; a different budget mode
     /// starts the frame-rate controller again. Resident tiles stay. Nothing happens without
     /// rendering.

@@ -39,7 +39,9 @@ use crate::lod::plan::{Candidate, FramePlan, Layout, LodSettings};
 use crate::memory::{LeastLimit, TileBytes};
 use crate::method::{self, CrackFiller, LodMethod, MethodConfig, MethodInput, MethodKind};
 use crate::page::{self, Decision, PagerConfig, PagerView};
-use crate::render::textures::{TextureCandidate, extra_costs, share_texture_budget};
+use crate::render::textures::{
+    TextureCandidate, extra_costs, most_important_first, share_texture_budget,
+};
 use crate::render::{Camera, Gpu, RenderStats, Renderer};
 use crate::requests::{FailureKind, FetchEvent, Fetcher, Want};
 use std::collections::{HashMap, HashSet};

@@ -52,14 +52,7 @@ impl Scene {
             .map(|(&l, c)| c.extra_cost.get(l as usize).copied().unwrap_or(0))
             .sum();
         if spent > budget {
-            let mut by_importance: Vec<usize> = (0..indices.len()).collect();
-            by_importance.sort_by(|&a, &b| {
-                candidates[a]
-                    .importance
-                    .total_cmp(&candidates[b].importance)
-                    .then(b.cmp(&a))
-            });
-            for k in by_importance {
+            for k in most_important_first(&candidates).into_iter().rev() {
                 if spent <= budget {
                     break;
                 }
@@ -70,8 +63,12 @@ impl Scene {
                 }
             }
         }
+        // The most important tiles first: their levels are asked for sooner and take the
+        // frame's uploads before tiles out of view.
+        let order = most_important_first(&candidates);
         let mut uploads = 0;
-        for (k, (&i, &target)) in indices.iter().zip(&targets).enumerate() {
+        for (rank, &k) in order.iter().enumerate() {
+            let (i, target) = (indices[k], targets[k]);
             r.texture_target[i] = target.max(keep[k]);
             let Some(tile) = &mut self.tiles[i] else {
                 continue;
@@ -91,7 +88,7 @@ impl Scene {
                     .is_none_or(|l| tile.textures.len() < l)
             {
                 let next = tile.textures.len() as u32;
-                let priority = (frame << 20) | (1 << 19) | (candidates.len() as u64 - 1);
+                let priority = (frame << 20) | (1 << 19) | (rank as u64).min((1 << 19) - 1);
                 if let Some(blob) = tile.texture_blobs.get(next as usize) {
                     fetcher.request_texture(id, next, blob.clone(), priority);
                 }
