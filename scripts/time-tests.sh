@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # How long the two test tiers take here, each from a fresh clone of this commit (a new
 # target directory: the build is part of the time), written stamped into
-# docs/benchmarks/test-times.md and put into the README's generated block.
+# docs/benchmarks/test-times.md.
 #
 #   bash scripts/time-tests.sh            # both tiers (the full one needs the data kit)
 #   TIERS=default bash scripts/time-tests.sh
@@ -53,4 +53,3 @@ done
   printf '%s\n' "${rows[@]}"
 } >docs/benchmarks/test-times.md
 echo "docs/benchmarks/test-times.md written"
-bash scripts/insert-generated.sh README.md docs/benchmarks/test-times.md

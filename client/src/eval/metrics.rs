@@ -123,10 +123,13 @@ pub fn screen_space_error(
     if stats.terrain_pixels > 0 {
         stats.mean_px = sum / stats.terrain_pixels as f64;
     }
-    let mut largest = errors.clone();
-    largest.sort_unstable_by(|a, b| b.total_cmp(a));
-    for (kept, error) in stats.largest_px.iter_mut().zip(largest) {
-        *kept = error;
+    // The largest few, without sorting them all: partition them to the front, then sort
+    // those (the percentiles below reorder `errors` anyway).
+    let kept = LARGEST.min(errors.len());
+    if kept > 0 {
+        errors.select_nth_unstable_by(kept - 1, |a, b| b.total_cmp(a));
+        errors[..kept].sort_unstable_by(|a, b| b.total_cmp(a));
+        stats.largest_px[..kept].copy_from_slice(&errors[..kept]);
     }
     stats.p95_px = percentile(&mut errors, 95.0);
     stats.p99_px = percentile(&mut errors, 99.0);
