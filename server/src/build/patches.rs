@@ -353,7 +353,7 @@ pub fn build(
     }
 
     // Bodies, each against its parent's cut and heights.
-    let node_heights = |id: TileId, cut: &Cut| -> HashMap<(u32, u32, u32), i32> {
+    let node_heights = |id: TileId, cut: &Cut| -> quadtree::NodeHeights {
         cut.leaves()
             .into_iter()
             .map(|(l, i, j)| {
@@ -373,7 +373,7 @@ pub fn build(
     for (level, info) in manifest.levels.iter().enumerate() {
         let level = level as u32;
         let columns = info.grid.columns;
-        let parents: HashMap<TileId, HashMap<(u32, u32, u32), i32>> = if level < top {
+        let parents: HashMap<TileId, quadtree::NodeHeights> = if level < top {
             let above = &manifest.levels[level as usize + 1].grid;
             (0..above.columns * above.rows)
                 .into_par_iter()

@@ -4,10 +4,9 @@
 //! tests compare with the full-resolution heights; and the bytes a patch's mesh holds.
 
 use super::VERTEX_BYTES;
-use std::collections::HashMap;
 use std::sync::Arc;
 use terrain_shared::TileId;
-use terrain_shared::quadtree::{self, Parent, PatchData, PatchEntry, Tree, Vertex};
+use terrain_shared::quadtree::{self, FastMap, Parent, PatchData, PatchEntry, Tree, Vertex};
 
 /// What the method will hold for patch bodies of `body_bytes` together, estimated from
 /// their size alone (a body spends about 2 bytes an active vertex, which becomes a vertex,
@@ -162,7 +161,7 @@ pub(super) fn build_mesh(
             (p[1] + quarter.1 as f32 * extent) / 2.0,
         ]
     };
-    let mut index_of: HashMap<Vertex, u32> = HashMap::new();
+    let mut index_of: FastMap<Vertex, u32> = FastMap::default();
     let mut vertices: Vec<f32> = Vec::new();
     let push = |v: Vertex, flange: bool, vertices: &mut Vec<f32>| -> u32 {
         let [x, y] = v.position(tree, far);
@@ -231,7 +230,7 @@ pub(super) fn build_mesh(
     }
     let surface = triangles.len() as u32;
     let ring = quadtree::border_loop(&data.cut);
-    let mut feet = HashMap::new();
+    let mut feet = FastMap::default();
     for v in &ring {
         let k = push(*v, true, &mut vertices);
         feet.insert(*v, k);

@@ -379,8 +379,8 @@ impl QuadtreePatches {
                     let data = if made.id.level == 0 {
                         Arc::new(PatchData {
                             cut: data.cut.clone(),
-                            nodes: HashMap::new(),
-                            border: HashMap::new(),
+                            nodes: Default::default(),
+                            border: Default::default(),
                         })
                     } else {
                         data
