@@ -82,7 +82,7 @@ if [ -n "${TERRAIN_DATA_DIR:-}" ]; then
   serve himalaya_4097 "$kit/himalaya_4097/g10g_himalaya_4097.png"
   data+=(--data "himalaya_4097=$url")
   "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget" \
-    --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches \
+    --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches --block-grids \
     | tee "$work/accuracy-puget.txt"
   # The quadtree patches without geomorphing, for the popping figure with it on and off.
   "$bin/terrain-client" bench accuracy --server "$puget" --out "$docs/accuracy-puget-no-morph" \
@@ -123,6 +123,10 @@ section() { # DATASET DIR
   echo
   cat "$2/summary.md"
   echo
+  if [ -f "$2/block-grids.md" ]; then
+    cat "$2/block-grids.md"
+    echo
+  fi
   for chart in error-vs-triangles error-vs-frame-time error-vs-bytes popping cracks-vs-budget fillers-vs-budget used-vs-needed; do
     [ -f "$2/$chart.png" ] || continue
     echo "![$chart](evaluation/${2#docs/evaluation/}/$chart.png)"

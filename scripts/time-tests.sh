@@ -44,14 +44,24 @@ for tier in ${TIERS:-default full}; do
   # The log stays (cargo's build times and each test binary's are in it).
   mkdir -p out && cp "$log" "out/test-times-$tier.log"
   [ "$ok" = passed ] || tail -n 40 "$log"
-  rows+=("| $tier | \`$( [ "$tier" = full ] && echo "bash .ci/run" || echo "bash scripts/test.sh" )\` | $build | $ok | $(( seconds / 60 )) min $(( seconds % 60 )) s | $passed | $failed | $not_run |")
+  # Stamped from the clone: the commit that ran, not this checkout's edits.
+  stamp=$(cd "$work/clone" && stamp_line)
+  rows+=("| $tier | \`$( [ "$tier" = full ] && echo "bash .ci/run" || echo "bash scripts/test.sh" )\` | $stamp | $build | $ok | $(( seconds / 60 )) min $(( seconds % 60 )) s | $passed | $failed | $not_run |")
+done
+table=docs/benchmarks/test-times.md
+# A tier not run this time keeps its row from the last run that timed it.
+for tier in default full; do
+  case " ${TIERS:-default full} " in *" $tier "*) continue ;; esac
+  old=$(grep "^| $tier | " "$table" 2>/dev/null || true)
+  [ -n "$old" ] && rows+=("$old")
 done
 {
   echo "<!-- written by \`bash scripts/time-tests.sh\`; do not edit -->"
-  echo "Run: $(stamp_line); each tier from a fresh clone, its build included."
+  echo "Each tier from a fresh clone of the commit named, its build included; each row stamped by its own run."
   echo
-  echo "| tier | command | build | result | time | tests passed | failed | NOT RUN lines |"
-  echo "|---|---|---|---|---:|---:|---:|---:|"
-  printf '%s\n' "${rows[@]}"
-} >docs/benchmarks/test-times.md
+  echo "| tier | command | run | build | result | time | tests passed | failed | NOT RUN lines |"
+  echo "|---|---|---|---|---|---:|---:|---:|---:|"
+  printf '%s\n' "${rows[@]}" | sort
+} >"$table"
+bash scripts/insert-generated.sh README.md "$table"
 echo "docs/benchmarks/test-times.md written"

@@ -791,8 +791,7 @@ pub struct MeshCounts {
 impl MeshCounts {
     /// The counts of `cut`'s triangulation, `triangles` ([`triangulate`] of it).
     pub fn of(cut: &Cut, triangles: &[[Vertex; 3]]) -> MeshCounts {
-        let distinct: FastSet<Vertex> =
-            triangles.iter().flatten().copied().collect();
+        let distinct: FastSet<Vertex> = triangles.iter().flatten().copied().collect();
         MeshCounts {
             vertices: distinct.len() as u32,
             triangles: triangles.len() as u32,

@@ -228,8 +228,140 @@ impl Refinement {
     }
 }
 
+/// What regular grids need per block, beside the oracle: for a tile cut into square
+/// blocks of `block` cells, each block drawn as its own regular grid at the coarsest step
+/// that keeps every sample of the block within `threshold_px` at `ppm_of_block(column,
+/// row)` (the block's pixels per metre, at its own nearest point), the triangles of the
+/// blocks' grids summed. `geomipmap` takes power-of-two steps (a GeoMipMap level), `strip`
+/// any step (a strip mask: a grid of every `s`th sample and the last). Seams between blocks
+/// of different steps are not counted: this is a floor for selection by block, the finer the
+/// block the nearer the oracle. Zero for bad input (as [`rtin_triangles`]) or a `block`
+/// that does not divide `n - 1`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BlockGrids {
+    pub geomipmap: u64,
+    pub strip: u64,
+}
+
+pub fn block_grid_triangles(
+    heights: &[f32],
+    n: u32,
+    block: u32,
+    ppm_of_block: impl Fn(u32, u32) -> f64,
+    threshold_px: f64,
+) -> BlockGrids {
+    let cells = n.saturating_sub(1);
+    let square = (n as usize).checked_mul(n as usize);
+    if n < 3 || !cells.is_power_of_two() || square != Some(heights.len()) {
+        return BlockGrids::default();
+    }
+    if block == 0 || block > cells || !cells.is_multiple_of(block) {
+        return BlockGrids::default();
+    }
+    let h = |c: u32, r: u32| heights[(r * n + c) as usize];
+    let blocks = cells / block;
+    let mut out = BlockGrids::default();
+    for br in 0..blocks {
+        for bc in 0..blocks {
+            let (c0, r0) = (bc * block, br * block);
+            let limit = (threshold_px / ppm_of_block(bc, br)) as f32;
+            // Whether a grid of step `s` (cells from the block's corner, the last one
+            // shorter) keeps every sample of the block within the limit.
+            let within = |s: u32| -> bool {
+                let cell = |x: u32| {
+                    let a = if x == block {
+                        (block - 1) / s * s
+                    } else {
+                        x / s * s
+                    };
+                    (a, (a + s).min(block))
+                };
+                for r in 0..=block {
+                    let (ra, rb) = cell(r);
+                    let v = (r - ra) as f32 / (rb - ra) as f32;
+                    for c in 0..=block {
+                        let (ca, cb) = cell(c);
+                        let u = (c - ca) as f32 / (cb - ca) as f32;
+                        let z = terrain_shared::mask::cell_height(
+                            h(c0 + ca, r0 + ra),
+                            h(c0 + cb, r0 + ra),
+                            h(c0 + ca, r0 + rb),
+                            h(c0 + cb, r0 + rb),
+                            u,
+                            v,
+                        );
+                        if (z - h(c0 + c, r0 + r)).abs() > limit {
+                            return false;
+                        }
+                    }
+                }
+                true
+            };
+            let grid = |s: u32| 2 * u64::from(block.div_ceil(s)).pow(2);
+            let mut s = block;
+            while s > 1 && !within(s) {
+                s /= 2;
+            }
+            out.geomipmap += grid(s);
+            let mut s = block;
+            while s > 1 && !within(s) {
+                s -= 1;
+            }
+            out.strip += grid(s);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn block_grids_keep_a_plane_coarse_and_refine_only_the_block_with_a_spike() {
+        let n = 17;
+        let plane: Vec<f32> = (0..n * n)
+            .map(|i| (i % n) as f32 * 0.5 + (i / n) as f32)
+            .collect();
+        for block in [16, 8, 4, 2] {
+            let blocks = u64::from(16 / block).pow(2);
+            let g = block_grid_triangles(&plane, n, block, |_, _| 1.0, 0.01);
+            assert_eq!(
+                g,
+                BlockGrids {
+                    geomipmap: 2 * blocks,
+                    strip: 2 * blocks
+                },
+                "{block}"
+            );
+        }
+        // A spike of 10 m at (5, 5): with blocks of 4 only the block holding it refines,
+        // to full resolution (4 x 4 cells); the other 15 stay at one cell.
+        let mut spike = plane.clone();
+        spike[(5 * n + 5) as usize] += 10.0;
+        let g = block_grid_triangles(&spike, n, 4, |_, _| 1.0, 1.0);
+        assert_eq!(g.geomipmap, 15 * 2 + 2 * 16);
+        // A strip mask of step 3 keeps samples 0, 3 and 4 of the block (4 cells as 2):
+        // sample 1 of the block, the spike's, is off the grid, so it goes to step 1 too.
+        assert_eq!(g.strip, 15 * 2 + 2 * 16);
+        // Far away (a tenth of a pixel a metre) the spike is within the threshold.
+        let far = block_grid_triangles(&spike, n, 4, |_, _| 0.05, 1.0);
+        assert_eq!(
+            far,
+            BlockGrids {
+                geomipmap: 32,
+                strip: 32
+            }
+        );
+        // Bad input counts nothing.
+        assert_eq!(
+            block_grid_triangles(&spike, n, 3, |_, _| 1.0, 1.0),
+            BlockGrids::default()
+        );
+        assert_eq!(
+            block_grid_triangles(&spike[1..], n, 4, |_, _| 1.0, 1.0),
+            BlockGrids::default()
+        );
+    }
     use super::*;
     use std::collections::{BTreeSet, HashMap, HashSet};
     use std::time::Instant;

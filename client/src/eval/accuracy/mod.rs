@@ -107,6 +107,13 @@ pub struct AccuracyArgs {
     /// marked: green where it fills a crack, red where it leaks, blue the holes left.
     #[arg(long)]
     pub images: bool,
+    /// Also count, per camera, what regular grids chosen per block of a tile would need
+    /// (blocks of 128 down to 4 cells, each at the coarsest GeoMipMap level or strip-mask
+    /// step within the threshold at its own nearest point) against the oracle, into
+    /// OUT/block-grids.md: how near the oracle a regular-grid method can come by choosing
+    /// per block. Slow (every block of every full-resolution tile in view, every step).
+    #[arg(long)]
+    pub block_grids: bool,
 }
 
 impl AccuracyArgs {
@@ -132,6 +139,7 @@ impl AccuracyArgs {
             popping_frames: 40,
             popping_halvings: 1.0,
             images: false,
+            block_grids: false,
         }
     }
 }
@@ -391,10 +399,19 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     thresholds.sort_by(f64::total_cmp);
     thresholds.dedup();
     let (mut reference_triangles, mut reference_ms) = (Vec::new(), Vec::new());
+    let mut block_grids = Vec::new();
     for (i, camera) in cameras.iter().enumerate() {
         let (reference, report) = session.reference(camera)?;
         reference_errors.push(session.own_error(&reference, camera, lod.max_error_px));
         let viewport = [args.size.0, args.size.1];
+        if args.block_grids {
+            block_grids.push(block_grid_counts(
+                &session.scene,
+                camera,
+                viewport,
+                lod.max_error_px,
+            ));
+        }
         oracle.push(
             thresholds
                 .iter()
@@ -521,7 +538,113 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     };
     session.close();
     write_outputs(args, &mut report)?;
+    if !block_grids.is_empty() {
+        let path = args.out.join("block-grids.md");
+        let table = block_grids_markdown(&report, &block_grids);
+        println!("{table}");
+        std::fs::write(&path, table).map_err(|source| FlightError::Write {
+            path: path.clone(),
+            source,
+        })?;
+        report.files.push(path);
+    }
     Ok(report)
+}
+
+/// The blocks [`block_grid_counts`] cuts tiles into, cells.
+const BLOCKS: [u32; 6] = [128, 64, 32, 16, 8, 4];
+
+/// Per block size of [`BLOCKS`] smaller than a tile, what regular grids chosen per block need
+/// for `camera`'s frame ([`super::oracle::block_grid_triangles`]), over the tiles the oracle
+/// counts ([`oracle_triangles`]), each block's pixels per metre at its own box.
+pub fn block_grid_counts(
+    scene: &crate::scene::Scene,
+    camera: &Camera,
+    viewport: [u32; 2],
+    threshold_px: f64,
+) -> Vec<(u32, super::oracle::BlockGrids)> {
+    let projection = crate::lod::plan::error_projection(camera, viewport);
+    let mut totals: Vec<(u32, super::oracle::BlockGrids)> = Vec::new();
+    for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
+        for block in BLOCKS.into_iter().filter(|&b| b < n) {
+            let ppm = |bc: u32, br: u32| {
+                let (c0, r0) = (bc * block, br * block);
+                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                for r in r0..=r0 + block {
+                    for &h in &samples[(r * n + c0) as usize..=(r * n + c0 + block) as usize] {
+                        lo = lo.min(h);
+                        hi = hi.max(h);
+                    }
+                }
+                let at = |c: u32, r: u32, h: f32| {
+                    [
+                        x0 + f64::from(c) * spacing[0],
+                        y0 + f64::from(r) * spacing[1],
+                        f64::from(h),
+                    ]
+                };
+                projection.pixels_per_metre(
+                    at(c0, r0, lo),
+                    at(c0 + block, r0 + block, hi),
+                    threshold_px,
+                )
+            };
+            let counts = super::oracle::block_grid_triangles(samples, n, block, ppm, threshold_px);
+            match totals.iter_mut().find(|(b, _)| *b == block) {
+                Some((_, t)) => {
+                    t.geomipmap += counts.geomipmap;
+                    t.strip += counts.strip;
+                }
+                None => totals.push((block, counts)),
+            }
+        }
+    });
+    totals
+}
+
+/// The table of OUT/block-grids.md: per block size, the regular grids' triangles summed over
+/// the cameras against the oracle's at the threshold.
+fn block_grids_markdown(
+    report: &AccuracyReport,
+    per_camera: &[Vec<(u32, super::oracle::BlockGrids)>],
+) -> String {
+    let oracle: u64 = report
+        .oracle
+        .iter()
+        .filter_map(|c| {
+            c.iter()
+                .find(|(t, _)| *t == report.threshold_px)
+                .map(|(_, n)| *n)
+        })
+        .sum();
+    let ratio = |n: u64| n as f64 / oracle.max(1) as f64;
+    let mut out = format!(
+        "Regular grids chosen per block against the oracle ({}, {}x{}, {} cameras, {} px; the \
+         oracle: {oracle} triangles summed over the cameras, as are the counts below). Each block at the coarsest GeoMipMap \
+         level (power-of-two step) or strip-mask step within the threshold at its own nearest \
+         point; seams not counted.\n\n\
+         | block (cells) | GeoMipMap levels | times the oracle | strip masks | times the oracle |\n\
+         |---:|---:|---:|---:|---:|\n",
+        report.dataset, report.size.0, report.size.1, report.cameras, report.threshold_px
+    );
+    for block in BLOCKS {
+        let (mut geomipmap, mut strip, mut seen) = (0, 0, false);
+        for camera in per_camera {
+            if let Some((_, c)) = camera.iter().find(|(b, _)| *b == block) {
+                geomipmap += c.geomipmap;
+                strip += c.strip;
+                seen = true;
+            }
+        }
+        if seen {
+            out += &format!(
+                "| {block} | {geomipmap} | {:.2} | {strip} | {:.2} |\n",
+                ratio(geomipmap),
+                ratio(strip)
+            );
+        }
+    }
+    out
 }
 
 /// The sweep on `--server` (into `--out`) and on every `--data` database (into
@@ -650,14 +773,38 @@ pub fn oracle_triangles(
     viewport: [u32; 2],
     thresholds_px: &[f64],
 ) -> Vec<u64> {
+    let projection = crate::lod::plan::error_projection(camera, viewport);
+    let mut totals = vec![0; thresholds_px.len()];
+    for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
+        for (total, &threshold_px) in totals.iter_mut().zip(thresholds_px) {
+            let ppm = |c: u32, r: u32| {
+                let p = [
+                    x0 + f64::from(c) * spacing[0],
+                    y0 + f64::from(r) * spacing[1],
+                    f64::from(samples[(r * n + c) as usize]),
+                ];
+                projection.pixels_per_metre(p, p, threshold_px)
+            };
+            *total += super::oracle::rtin_triangles(samples, n, ppm, threshold_px);
+        }
+    });
+    totals
+}
+
+/// Calls `each(origin_m, spacing_m, samples_m, n)` for every resident level-0 tile in
+/// `camera`'s view (by its bounding box, as the methods cull), its heights decoded once.
+fn for_full_resolution_tiles_in_view(
+    scene: &crate::scene::Scene,
+    camera: &Camera,
+    viewport: [u32; 2],
+    mut each: impl FnMut([f64; 2], [f64; 2], &[f32], u32),
+) {
     let manifest = scene.manifest();
     let layout = crate::render::layout::Layout::of(manifest);
-    let projection = crate::lod::plan::error_projection(camera, viewport);
     let frustum = camera.frustum(f64::from(viewport[0]) / f64::from(viewport[1].max(1)));
     let eye = glam::DVec3::from(camera.position);
     let extent = layout.tile_extent_m_at(0);
     let spacing = layout.spacing_at(0);
-    let mut totals = vec![0; thresholds_px.len()];
     for (id, record) in manifest.tiles().filter(|(id, _)| id.level == 0) {
         let [x0, y0] = layout.tile_origin_m(id);
         let lo = Camera::to_render(glam::DVec3::new(x0, y0, f64::from(record.min_m)) - eye);
@@ -670,22 +817,13 @@ pub fn oracle_triangles(
         let Some(heights) = scene.tile_heights(id) else {
             continue;
         };
-        let n = u32::from(heights.width);
-        // Decoded once a tile, counted at every threshold.
-        let samples = heights.to_metres_f32();
-        for (total, &threshold_px) in totals.iter_mut().zip(thresholds_px) {
-            let ppm = |c: u32, r: u32| {
-                let p = [
-                    x0 + f64::from(c) * spacing[0],
-                    y0 + f64::from(r) * spacing[1],
-                    f64::from(samples[(r * n + c) as usize]),
-                ];
-                projection.pixels_per_metre(p, p, threshold_px)
-            };
-            *total += super::oracle::rtin_triangles(&samples, n, ppm, threshold_px);
-        }
+        each(
+            [x0, y0],
+            spacing,
+            &heights.to_metres_f32(),
+            u32::from(heights.width),
+        );
     }
-    totals
 }
 
 /// Means over the cameras, per configuration, with its popping where measured and the
