@@ -12,6 +12,7 @@
 //! configuration), and the charts: error against triangles, error
 //! against frame time, crack pixels against budget, triangles used against needed.
 
+mod blocks;
 mod report;
 
 pub use self::report::{CSV_HEADER, pareto_front, reference_floor, summary_markdown};
@@ -405,7 +406,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         reference_errors.push(session.own_error(&reference, camera, lod.max_error_px));
         let viewport = [args.size.0, args.size.1];
         if args.block_grids {
-            block_grids.push(block_grid_counts(
+            block_grids.push(blocks::block_grid_counts(
                 &session.scene,
                 camera,
                 viewport,
@@ -540,7 +541,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     write_outputs(args, &mut report)?;
     if !block_grids.is_empty() {
         let path = args.out.join("block-grids.md");
-        let table = block_grids_markdown(&report, &block_grids);
+        let table = blocks::block_grids_markdown(&report, &block_grids);
         println!("{table}");
         std::fs::write(&path, table).map_err(|source| FlightError::Write {
             path: path.clone(),
@@ -549,102 +550,6 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
         report.files.push(path);
     }
     Ok(report)
-}
-
-/// The blocks [`block_grid_counts`] cuts tiles into, cells.
-const BLOCKS: [u32; 6] = [128, 64, 32, 16, 8, 4];
-
-/// Per block size of [`BLOCKS`] smaller than a tile, what regular grids chosen per block need
-/// for `camera`'s frame ([`super::oracle::block_grid_triangles`]), over the tiles the oracle
-/// counts ([`oracle_triangles`]), each block's pixels per metre at its own box.
-pub fn block_grid_counts(
-    scene: &crate::scene::Scene,
-    camera: &Camera,
-    viewport: [u32; 2],
-    threshold_px: f64,
-) -> Vec<(u32, super::oracle::BlockGrids)> {
-    let projection = crate::lod::plan::error_projection(camera, viewport);
-    let mut totals: Vec<(u32, super::oracle::BlockGrids)> = Vec::new();
-    for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
-        for block in BLOCKS.into_iter().filter(|&b| b < n) {
-            let ppm = |bc: u32, br: u32| {
-                let (c0, r0) = (bc * block, br * block);
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                for r in r0..=r0 + block {
-                    for &h in &samples[(r * n + c0) as usize..=(r * n + c0 + block) as usize] {
-                        lo = lo.min(h);
-                        hi = hi.max(h);
-                    }
-                }
-                let at = |c: u32, r: u32, h: f32| {
-                    [
-                        x0 + f64::from(c) * spacing[0],
-                        y0 + f64::from(r) * spacing[1],
-                        f64::from(h),
-                    ]
-                };
-                projection.pixels_per_metre(
-                    at(c0, r0, lo),
-                    at(c0 + block, r0 + block, hi),
-                    threshold_px,
-                )
-            };
-            let counts = super::oracle::block_grid_triangles(samples, n, block, ppm, threshold_px);
-            match totals.iter_mut().find(|(b, _)| *b == block) {
-                Some((_, t)) => {
-                    t.geomipmap += counts.geomipmap;
-                    t.strip += counts.strip;
-                }
-                None => totals.push((block, counts)),
-            }
-        }
-    });
-    totals
-}
-
-/// The table of OUT/block-grids.md: per block size, the regular grids' triangles summed over
-/// the cameras against the oracle's at the threshold.
-fn block_grids_markdown(
-    report: &AccuracyReport,
-    per_camera: &[Vec<(u32, super::oracle::BlockGrids)>],
-) -> String {
-    let oracle: u64 = report
-        .oracle
-        .iter()
-        .filter_map(|c| {
-            c.iter()
-                .find(|(t, _)| *t == report.threshold_px)
-                .map(|(_, n)| *n)
-        })
-        .sum();
-    let ratio = |n: u64| n as f64 / oracle.max(1) as f64;
-    let mut out = format!(
-        "Regular grids chosen per block against the oracle ({}, {}x{}, {} cameras, {} px; the \
-         oracle: {oracle} triangles summed over the cameras, as are the counts below). Each block at the coarsest GeoMipMap \
-         level (power-of-two step) or strip-mask step within the threshold at its own nearest \
-         point; seams not counted.\n\n\
-         | block (cells) | GeoMipMap levels | times the oracle | strip masks | times the oracle |\n\
-         |---:|---:|---:|---:|---:|\n",
-        report.dataset, report.size.0, report.size.1, report.cameras, report.threshold_px
-    );
-    for block in BLOCKS {
-        let (mut geomipmap, mut strip, mut seen) = (0, 0, false);
-        for camera in per_camera {
-            if let Some((_, c)) = camera.iter().find(|(b, _)| *b == block) {
-                geomipmap += c.geomipmap;
-                strip += c.strip;
-                seen = true;
-            }
-        }
-        if seen {
-            out += &format!(
-                "| {block} | {geomipmap} | {:.2} | {strip} | {:.2} |\n",
-                ratio(geomipmap),
-                ratio(strip)
-            );
-        }
-    }
-    out
 }
 
 /// The sweep on `--server` (into `--out`) and on every `--data` database (into
