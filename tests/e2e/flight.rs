@@ -21,13 +21,26 @@ fn runtime() -> tokio::runtime::Runtime {
         .expect("tokio runtime")
 }
 
-/// A paging-only flight (no GPU) over the default path.
+/// A paging-only flight (no GPU) over the default path, each frame as soon as a request
+/// finishes (`fly --no-wait`): the same frames as a flight paced in wall-clock time, in the
+/// time the server takes.
 fn paging_flight(server: &str, out: &Path, memory: Option<u64>) -> FlightArgs {
     let mut stream = StreamArgs::new(server, memory.map(MemorySize));
     stream.concurrency = 4;
     FlightArgs {
         no_render: true,
+        no_wait: true,
         ..FlightArgs::new(stream, out)
+    }
+}
+
+/// [`paging_flight`] paced at its frame rate in wall-clock time, for a test that does
+/// something to the server at a moment of the flight (an outage, a rebuild) or that needs
+/// the pager's wall-clock wait before a failed tile is asked for again.
+fn paced_paging_flight(server: &str, out: &Path, memory: Option<u64>) -> FlightArgs {
+    FlightArgs {
+        no_wait: false,
+        ..paging_flight(server, out, memory)
     }
 }
 
@@ -143,6 +156,42 @@ fn a_flight_over_jacksboro_with_ample_memory_converges_to_the_whole_pyramid() {
     assert!(chart.width() >= 800 && chart.height() >= 600);
 }
 
+/// `fly --no-wait` flies the frames a flight paced in wall-clock time flies: the same
+/// count, each at the same place of the path, and it converges as that one does.
+#[test]
+fn a_flight_without_waiting_flies_the_frames_of_a_paced_one() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (server, manifest) = jacksboro_server(tmp.path());
+    let fly_to = |name: &str, args: FlightArgs| {
+        let summary = runtime().block_on(fly(&args)).expect("flight");
+        let rows = read_csv(&summary.csv);
+        let last = rows.last().expect("frames");
+        println!("{name}: {} frames in {} s", rows.len(), last["wall_s"]);
+        assert_eq!(
+            number(last, "resident_tiles"),
+            manifest.tile_count() as u64,
+            "{name}"
+        );
+        assert_eq!(number(last, "in_flight"), 0, "{name}");
+        rows
+    };
+    let limit = Some(64 << 20);
+    let paced = fly_to(
+        "paced",
+        paced_paging_flight(server.base_url(), &tmp.path().join("paced"), limit),
+    );
+    let quick = fly_to(
+        "no wait",
+        paging_flight(server.base_url(), &tmp.path().join("quick"), limit),
+    );
+    assert_eq!(quick.len(), paced.len());
+    for (q, p) in quick.iter().zip(&paced) {
+        for column in ["frame", "x_m", "y_m", "current_x", "current_y"] {
+            assert_eq!(q[column], p[column], "{column} at frame {}", p["frame"]);
+        }
+    }
+}
+
 #[test]
 fn a_tight_budget_keeps_resident_bytes_under_the_limit_on_every_frame() {
     tight_budget_flight(false);
@@ -227,7 +276,7 @@ fn a_server_stopped_mid_flight_and_started_again_is_recovered_from() {
     let mut server = RestartableServer::start(&report.out);
     // Room for ten of level 0's twelve tiles: the square can reach two belts (nine tiles)
     // but not the whole grid, so the lap keeps fetching and evicting all along.
-    let args = paging_flight(
+    let args = paced_paging_flight(
         &server.base_url(),
         &tmp.path().join("flight"),
         Some(budget_for_level_0_tiles(&report.manifest, 10)),
@@ -437,7 +486,7 @@ fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests()
     let server = RestartableServer::start(&report.out);
 
     let summary = runtime()
-        .block_on(fly(&paging_flight(
+        .block_on(fly(&paced_paging_flight(
             &server.base_url(),
             &tmp.path().join("flight"),
             Some(64 << 20),
@@ -484,7 +533,7 @@ fn a_tile_corrupt_at_its_source_is_given_up_after_a_bounded_number_of_requests()
 fn fly_through_a_rebuild(tmp: &Path, rebuilt: &str) -> terrain_client::flight::FlightSummary {
     let report = build_jacksboro(tmp);
     let mut server = RestartableServer::start(&report.out);
-    let args = paging_flight(
+    let args = paced_paging_flight(
         &server.base_url(),
         &tmp.join("flight"),
         Some(budget_for_level_0_tiles(&report.manifest, 10)),

@@ -105,6 +105,14 @@ pub struct FlightArgs {
     /// Page and stream only: no GPU, no frames.
     #[arg(long)]
     pub no_render: bool,
+    /// With --no-render, do not pace frames in wall-clock time: a frame follows the one
+    /// before as soon as a request finishes (at once when none is running, at the latest
+    /// 1/fps later). The path's clock still advances 1/fps a frame, so the flight flies the
+    /// same frames in the time the server takes to answer; its download rate is then not
+    /// a viewer's, and a tile that failed, asked for again after a wait in wall-clock
+    /// time, may not be before the flight ends. For tests and quick checks of paging.
+    #[arg(long, requires = "no_render")]
+    pub no_wait: bool,
     /// Write every Nth frame to OUT/frames as PNG (0: none). The last frame is always written.
     #[arg(long, default_value_t = 30)]
     pub frame_every: u64,
@@ -123,6 +131,7 @@ impl FlightArgs {
             no_nearest_when_outside: false,
             quiet: true,
             no_render: false,
+            no_wait: false,
             frame_every: 30,
             render: RenderArgs::default(),
         }

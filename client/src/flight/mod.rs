@@ -6,7 +6,8 @@
 //! [`Scene::draw`] (culling, importance, triangle budget, masks, render). The path's clock
 //! advances `1 / --fps` per frame, whatever the frame took, so every run flies the same
 //! frames; how long a frame took is measured and drives the frame-rate controller. Without
-//! rendering (`--no-render`) frames are paced at `--fps` in wall-clock time.
+//! rendering (`--no-render`) frames are paced at `--fps` in wall-clock time, or with
+//! `--no-wait` each as soon as a request finishes (at the latest at that pace).
 //!
 //! Outputs (`--out`): `flight.csv` (one row per frame, columns in [`CSV_HEADER`]),
 //! `flight.png` (memory, tiles, belts, download rate), `render.png` (target and obtained
@@ -249,7 +250,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     // A failure that stops the flight; the frames flown so far are still written.
     let mut stopped: Option<FlightError> = None;
     let started = Instant::now();
-    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.fps));
+    let period = Duration::from_secs_f64(1.0 / args.fps);
+    let mut ticker = tokio::time::interval(period);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // Grown as frames are flown, not reserved for the whole path up front.
     let mut records = Vec::new();
@@ -264,6 +266,11 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     for frame in 0..frames {
         if target.is_some() {
             // Rendering sets the pace; let the runtime's tasks run between frames.
+            tokio::task::yield_now().await;
+        } else if args.no_wait {
+            if frame > 0 {
+                fetcher.next_finished(period).await;
+            }
             tokio::task::yield_now().await;
         } else {
             ticker.tick().await;

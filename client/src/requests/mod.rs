@@ -30,7 +30,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 use terrain_shared::{Heights, Manifest, TileId, routes};
-use tokio::sync::mpsc;
+use tokio::sync::{Notify, mpsc};
 use tokio::task::JoinHandle;
 
 /// Requests running at once: the same as `terrain-client fetch`, for the same reason (keeps a
@@ -189,6 +189,8 @@ pub struct Fetcher {
     textures: HashMap<(TileId, u32), terrain_shared::Blob>,
     finished_sender: mpsc::UnboundedSender<Finished>,
     finished: mpsc::UnboundedReceiver<Finished>,
+    /// Told each time a request finishes ([`Fetcher::next_finished`]).
+    progress: Arc<Notify>,
     counters: Arc<Counters>,
     next_ticket: u64,
     /// Random per fetcher, so that clients restarted together after an outage do not
@@ -221,6 +223,7 @@ impl Fetcher {
             textures: HashMap::new(),
             finished_sender,
             finished,
+            progress: Arc::new(Notify::new()),
             counters: Arc::new(Counters::default()),
             next_ticket: 0,
             jitter_seed: std::collections::hash_map::RandomState::new().hash_one(0u64),
@@ -405,6 +408,16 @@ impl Fetcher {
         }
     }
 
+    /// Waits until a running request finishes (one that finished since the last wait
+    /// counts) or `at_most` passes; at once when none is running. What a flight that does
+    /// not pace itself in wall-clock time waits on between frames (`fly --no-wait`).
+    pub async fn next_finished(&self, at_most: Duration) {
+        if self.running.is_empty() {
+            return;
+        }
+        let _ = tokio::time::timeout(at_most, self.progress.notified()).await;
+    }
+
     /// Requests running now (at most the concurrency limit).
     pub fn running_count(&self) -> usize {
         self.running.len()
@@ -442,6 +455,7 @@ impl Fetcher {
             jitter_seed: mix(self.jitter_seed ^ mix(ticket)),
         };
         let sender = self.finished_sender.clone();
+        let progress = Arc::clone(&self.progress);
         let handle = self.runtime.spawn(async move {
             let event = job.run().await;
             // The receiver is gone only when the fetcher is; then nobody wants the result.
@@ -450,6 +464,7 @@ impl Fetcher {
                 ticket,
                 event,
             });
+            progress.notify_one();
         });
         self.running.insert(request, Running { ticket, handle });
     }
