@@ -432,8 +432,27 @@ fn the_accuracy_sweep_over_puget_sound_writes_its_charts_and_error_falls_with_th
         checked.insert(row.config.series());
     }
     assert_eq!(checked.len(), args.variants.list().len(), "{checked:?}");
+    // The summary gives each method at its 1 px setting against the oracle per camera, and
+    // over all cameras the summary's used / oracle.
+    let summary = std::fs::read_to_string(tmp.path().join("accuracy/summary.md")).expect("summary");
     for s in report.summaries.iter().filter(|s| at_one_px(&s.config)) {
         assert!(s.oracle_triangles > 0.0, "{s:?}");
+        if matches!(s.config.knob, Knob::Grid(_)) {
+            continue;
+        }
+        let name = format!("| {} ({}) |", s.config.series(), s.config.knob);
+        let line = summary
+            .lines()
+            .find(|l| l.starts_with(&name))
+            .unwrap_or_else(|| panic!("no per-camera oracle row {name} in\n{summary}"));
+        let cells: Vec<&str> = line.trim_matches('|').split('|').map(str::trim).collect();
+        assert_eq!(cells.len(), 1 + args.cameras as usize + 1, "{line}");
+        let all: f64 = cells.last().expect("cells").parse().expect("a ratio");
+        assert!(
+            (all - s.used_over_oracle).abs() < 0.006,
+            "{line}: {all} against {}",
+            s.used_over_oracle
+        );
     }
 }
 

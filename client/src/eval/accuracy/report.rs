@@ -168,6 +168,7 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
             let _ = writeln!(s);
         }
     }
+    oracle_per_camera(&mut s, report);
     if !report.geometry.is_empty() {
         let _ = writeln!(
             s,
@@ -178,6 +179,73 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
         }
     }
     s
+}
+
+/// The table of triangles over the oracle per camera, for each method at its setting of
+/// the sweep's threshold: the error knob's row at that threshold, the largest budget of a
+/// budgeted method (within its error cap). The projected grids draw the same grid whatever
+/// the scene and are left out.
+fn oracle_per_camera(s: &mut String, report: &AccuracyReport) {
+    let threshold = report.threshold_px;
+    let oracle_of = |camera: u32| {
+        report
+            .oracle
+            .get(camera as usize)
+            .and_then(|c| c.iter().find(|(t, _)| *t == threshold))
+            .map(|(_, n)| *n)
+    };
+    let largest_budget = |series: &str| {
+        report
+            .rows
+            .iter()
+            .filter(|r| r.config.series() == series)
+            .filter_map(|r| match r.config.knob {
+                Knob::Budget(b) => Some(b),
+                _ => None,
+            })
+            .max()
+    };
+    let at_setting = |row: &Row| match row.config.knob {
+        Knob::MaxErrorPx(e) => e == threshold,
+        Knob::Budget(b) => Some(b) == largest_budget(&row.config.series()),
+        Knob::Grid(_) => false,
+    };
+    // (series and setting, per camera (triangles, oracle))
+    let mut lines: Vec<(String, Vec<(u64, u64)>)> = Vec::new();
+    for row in report.rows.iter().filter(|r| at_setting(r)) {
+        let Some(oracle) = oracle_of(row.camera) else {
+            continue;
+        };
+        let name = format!("{} ({})", row.config.series(), row.config.knob);
+        let triangles = row.measured.report.stats.triangles;
+        match lines.iter_mut().find(|(n, _)| *n == name) {
+            Some((_, cameras)) => cameras.push((triangles, oracle)),
+            None => lines.push((name, vec![(triangles, oracle)])),
+        }
+    }
+    if lines.is_empty() {
+        return;
+    }
+    let cameras = lines.iter().map(|(_, c)| c.len()).max().unwrap_or(0);
+    let _ = writeln!(
+        s,
+        "\nTriangles over the oracle per camera, each method at its setting of the {threshold} px threshold:\n"
+    );
+    let _ = write!(s, "| method (setting) |");
+    for k in 0..cameras {
+        let _ = write!(s, " camera {k} |");
+    }
+    let _ = writeln!(s, " all cameras |\n|---|{}---:|", "---:|".repeat(cameras));
+    for (name, per_camera) in &lines {
+        let _ = write!(s, "| {name} |");
+        for &(triangles, oracle) in per_camera {
+            let _ = write!(s, " {:.2} |", triangles as f64 / oracle.max(1) as f64);
+        }
+        let (used, needed) = per_camera
+            .iter()
+            .fold((0, 0), |(u, n), &(t, o)| (u + t, n + o));
+        let _ = writeln!(s, " {:.2} |", used as f64 / needed.max(1) as f64);
+    }
 }
 
 impl std::fmt::Display for AccuracyReport {
