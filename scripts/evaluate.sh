@@ -254,8 +254,8 @@ EOF
     echo
     echo "| tolerance (px) | morphing: colour / depth p99 (%) / jump colour / jump depth (%) | no morphing: the same | triangles on / off |"
     echo "|---:|---:|---:|---:|"
-    paste -d'|' <(grep '^| quadtree-patches ' "$docs/accuracy-puget/summary.md") \
-      <(grep '^| quadtree-patches ' "$docs/accuracy-puget-no-morph/summary.md") |
+    paste -d'|' <(grep '^| quadtree-patches | ' "$docs/accuracy-puget/summary.md") \
+      <(grep '^| quadtree-patches | ' "$docs/accuracy-puget-no-morph/summary.md") |
       awk -F"|" '{ printf "| %s | %s | %s | %s / %s |\n", $3, $21, $44, $4, $27 }'
     echo
     echo "![popping without morphing](evaluation/accuracy-puget-no-morph/popping.png)"
