@@ -258,45 +258,23 @@ pub fn block_grid_triangles(
     if block == 0 || block > cells || !cells.is_multiple_of(block) {
         return BlockGrids::default();
     }
-    let h = |c: u32, r: u32| heights[(r * n + c) as usize];
     let blocks = cells / block;
     let mut out = BlockGrids::default();
     for br in 0..blocks {
         for bc in 0..blocks {
             let (c0, r0) = (bc * block, br * block);
             let limit = (threshold_px / ppm_of_block(bc, br)) as f32;
-            // Whether a grid of step `s` (cells from the block's corner, the last one
-            // shorter) keeps every sample of the block within the limit.
-            let within = |s: u32| -> bool {
-                let cell = |x: u32| {
-                    let a = if x == block {
-                        (block - 1) / s * s
-                    } else {
-                        x / s * s
-                    };
-                    (a, (a + s).min(block))
-                };
-                for r in 0..=block {
-                    let (ra, rb) = cell(r);
-                    let v = (r - ra) as f32 / (rb - ra) as f32;
-                    for c in 0..=block {
-                        let (ca, cb) = cell(c);
-                        let u = (c - ca) as f32 / (cb - ca) as f32;
-                        let z = terrain_shared::mask::cell_height(
-                            h(c0 + ca, r0 + ra),
-                            h(c0 + cb, r0 + ra),
-                            h(c0 + ca, r0 + rb),
-                            h(c0 + cb, r0 + rb),
-                            u,
-                            v,
-                        );
-                        if (z - h(c0 + c, r0 + r)).abs() > limit {
-                            return false;
-                        }
-                    }
-                }
-                true
-            };
+            // The block as a tile of its own: a grid of step `s` from its corner (the last
+            // cell shorter) is its strip mask of level `s - 1`, whose error the masks' own
+            // measure gives.
+            let mut own = Vec::with_capacity(((block + 1) * (block + 1)) as usize);
+            for r in r0..=r0 + block {
+                own.extend_from_slice(
+                    &heights[(r * n + c0) as usize..=(r * n + c0 + block) as usize],
+                );
+            }
+            let within =
+                |s: u32| terrain_shared::mask::max_vertical_error(&own, block + 1, s - 1) <= limit;
             let grid = |s: u32| 2 * u64::from(block.div_ceil(s)).pow(2);
             let mut s = block;
             while s > 1 && !within(s) {
@@ -343,6 +321,18 @@ mod tests {
         // A strip mask of step 3 keeps samples 0, 3 and 4 of the block (4 cells as 2):
         // sample 1 of the block, the spike's, is off the grid, so it goes to step 1 too.
         assert_eq!(g.strip, 15 * 2 + 2 * 16);
+        // A ridge along column 2 of a 4-cell tile, its slopes linear: a grid of every 2nd
+        // sample holds it exactly (2 x 2 cells), one of every 3rd or 4th does not.
+        let ridge: Vec<f32> = (0..25)
+            .map(|i: i32| 10.0 - 5.0 * ((i % 5) - 2).abs() as f32)
+            .collect();
+        assert_eq!(
+            block_grid_triangles(&ridge, 5, 4, |_, _| 1.0, 1.0),
+            BlockGrids {
+                geomipmap: 8,
+                strip: 8
+            }
+        );
         // Far away (a tenth of a pixel a metre) the spike is within the threshold.
         let far = block_grid_triangles(&spike, n, 4, |_, _| 0.05, 1.0);
         assert_eq!(
