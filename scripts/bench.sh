@@ -86,15 +86,7 @@ capture manifest "curl URL/v1/manifest.json, identity and gzip" bash -c '
   echo "|---|---:|---:|---:|---:|---:|"
   awk -v t="$tiles" -v i="$identity" -v g="$gzip" "BEGIN { printf \"| manifest.json | %d | %d | %.1f | %d | %.1f |\n\", t, i, (t ? i / t : 0), g, (t ? g / t : 0) }"
 ' manifest "$out/db/himalaya_4097" "$url"
-echo "== levels: the himalaya flight at 16 MiB, a pyramid against level 0 alone"
-"$bin/terrain-client" bench levels --server "$url" --memory 16MiB --out "$out/levels"
-cp "$out/levels/levels.png" docs/images/levels-himalaya-16MiB.png
-{
-  echo "<!-- written by \`bash scripts/bench.sh\` (\`terrain-client bench levels --server URL --memory 16MiB\`); do not edit -->"
-  echo "Run: $(stamp_line)."
-  echo
-  cat "$out/levels/levels.md"
-} >docs/benchmarks/levels.md
+SERVER="$url" OUT="$out" bash scripts/bench-levels.sh
 captured+=(docs/benchmarks/levels.md)
 kill "$server"; wait "$server" 2>/dev/null || true
 

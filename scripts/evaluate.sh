@@ -272,6 +272,23 @@ EOF
     cat "$docs/grids/grids.md"
     echo
   fi
+  if [ -f docs/benchmarks/levels.md ]; then
+    echo "## Bytes against the byte oracle: the himalaya levels flight"
+    echo
+    echo "\`scripts/bench-levels.sh\` (also a section of \`scripts/bench.sh\`, which writes the file shown here:"
+    echo "\`docs/benchmarks/levels.md\`, not rerun by this script) flies the default himalaya_4097"
+    echo "flight at 16 MiB, 480x270, as a pyramid of levels (each way of sharing the limit) and as level"
+    echo "0 alone. The **byte oracle** is, at every frame, the fewest whole tiles that draw the view"
+    echo "within 1 px: the level choice of the client run over the whole pyramid, each visible part"
+    echo "from the coarsest tile whose builder-measured deviation from full resolution projects within"
+    echo "the threshold at its box's nearest point (\`Scene::bytes_needed\`). Held: those tiles as the"
+    echo "pager counts them at their coarsest texture; downloaded: every tile the oracle needed at any"
+    echo "frame, once (blob and coarsest texture). Textures are counted at their coarsest level, so the"
+    echo "oracle is a floor where the screen resolves finer ones."
+    echo
+    sed '/^<!--/d' docs/benchmarks/levels.md
+    echo
+  fi
   echo "## Stability matrix"
   echo
   echo "Each run streams its own scene along the scenario's cameras (paging, fetching, textures"

@@ -101,15 +101,16 @@ pub struct SlotInfo {
     pub colour: [u32; 4],
 }
 
-/// `Counters` of [`GRID`]: pixels ray cast, of them those with an error past the threshold,
-/// those whose ray hit the terrain.
+/// `Counters` of [`GRID`]: pixels whose ray was walked (it enters the terrain's box), pixels
+/// the grid covered with an error past the threshold, pixels whose ray hit the terrain, and
+/// pixels the error buffer marks (past the threshold, or not covered by the grid).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable, Default)]
 pub struct GridCounters {
     pub rays: u32,
     pub errors: u32,
     pub hits: u32,
-    pub unused: u32,
+    pub marked: u32,
 }
 
 /// Entry points of [`TERRAIN`].

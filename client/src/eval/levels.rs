@@ -81,6 +81,21 @@ pub struct Sample {
     pub mean_error_px: f64,
     pub max_error_px: f64,
     pub above_threshold_pct: f64,
+    /// The byte oracle at this frame ([`OracleFrame`]).
+    pub oracle: OracleFrame,
+}
+
+/// The byte oracle at a frame of the flight: the fewest bytes of whole tiles that draw the
+/// view within the threshold ([`crate::scene::Scene::bytes_needed`]: the coarsest tile of
+/// each visible part whose builder-measured deviation from full resolution projects within
+/// it), held at that frame, and downloaded by then (each tile the oracle needed at any frame
+/// so far, once: its blob and coarsest texture level). Textures are counted at their
+/// coarsest level, so the oracle is a floor where the screen resolves finer ones.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct OracleFrame {
+    pub tiles: usize,
+    pub held_bytes: u64,
+    pub downloaded_bytes: u64,
 }
 
 /// One flight's samples.
@@ -92,6 +107,10 @@ pub struct FlightResult {
     pub downloaded_bytes: u64,
     pub peak_resident_bytes: u64,
     pub memory_limit: u64,
+    /// The byte oracle's downloads over the whole flight, and its largest held bytes at a
+    /// frame.
+    pub oracle_downloaded_bytes: u64,
+    pub oracle_peak_held_bytes: u64,
 }
 
 impl FlightResult {
@@ -111,6 +130,17 @@ impl FlightResult {
     pub fn median_mean_error_px(&self) -> f64 {
         let mut errors: Vec<f64> = self.settled().map(|s| s.mean_error_px).collect();
         median(&mut errors)
+    }
+
+    /// Median over the sampled frames after the first second of the bytes held over the
+    /// oracle's at the same frame.
+    pub fn median_held_over_oracle(&self) -> f64 {
+        let mut r: Vec<f64> = self
+            .settled()
+            .filter(|s| s.oracle.held_bytes > 0)
+            .map(|s| s.resident_bytes as f64 / s.oracle.held_bytes as f64)
+            .collect();
+        median(&mut r)
     }
 
     /// Median coverage after the first second, percent.
@@ -157,7 +187,9 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
     let mut kept: Vec<(Paging, Vec<Kept>, u32, u64, u64)> = Vec::new();
     let mut dataset = String::new();
     let mut adapter = String::new();
-    for paging in variants {
+    // Every frame's camera (the same in each flight), for the byte oracle.
+    let mut cameras: Vec<Camera> = Vec::new();
+    for (k, paging) in variants.into_iter().enumerate() {
         let mut session = Session::open(&args.server, Some(limit), config, args.size).await?;
         dataset = session.manifest.dataset.clone();
         adapter = session.gpu.description();
@@ -184,6 +216,9 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
                 yaw,
                 crate::render::camera::DEFAULT_PITCH_DEG.to_radians(),
             );
+            if k == 0 {
+                cameras.push(camera);
+            }
             session.update(position).await?;
             session.draw(&camera);
             peak = peak.max(session.scene.resident_bytes());
@@ -212,9 +247,9 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
         kept.push((paging, samples, frames, downloaded, peak));
     }
 
-    // The references: the whole database, level 0 at full resolution.
+    // The references: the whole database (every level, for the byte oracle), drawn from
+    // level 0 at full resolution.
     let mut whole = Session::open(&args.server, None, config, args.size).await?;
-    whole.scene.use_levels(false);
     let first = kept
         .first()
         .and_then(|k| k.1.first())
@@ -229,6 +264,29 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
             "the whole database did not load within 15 minutes".into(),
         ));
     }
+    // The byte oracle at every frame, and its downloads so far.
+    let viewport = [args.size.0, args.size.1];
+    let mut fetched = std::collections::HashSet::new();
+    let mut oracle_downloaded = 0u64;
+    let oracle: Vec<OracleFrame> = cameras
+        .iter()
+        .map(|camera| {
+            let needed = whole
+                .scene
+                .bytes_needed(camera, viewport, args.threshold_px);
+            for (id, bytes) in &needed {
+                if fetched.insert(*id) {
+                    oracle_downloaded += bytes.downloaded;
+                }
+            }
+            OracleFrame {
+                tiles: needed.len(),
+                held_bytes: needed.iter().map(|(_, b)| b.held).sum(),
+                downloaded_bytes: oracle_downloaded,
+            }
+        })
+        .collect();
+    let oracle_peak = oracle.iter().map(|o| o.held_bytes).max().unwrap_or(0);
     let count = kept.first().map_or(0, |k| k.1.len());
     let bar = super::progress("references", count as u64);
     let mut results: Vec<FlightResult> = kept
@@ -240,6 +298,8 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
             downloaded_bytes: *downloaded,
             peak_resident_bytes: *peak,
             memory_limit: limit,
+            oracle_downloaded_bytes: oracle_downloaded,
+            oracle_peak_held_bytes: oracle_peak,
         })
         .collect();
     for i in 0..count {
@@ -273,6 +333,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
                 mean_error_px: m.error.mean_px,
                 max_error_px: m.error.max_px,
                 above_threshold_pct: 100.0 * m.error.share_above(),
+                oracle: oracle.get(k.frame as usize).copied().unwrap_or_default(),
             });
         }
         bar.inc(1);
@@ -297,13 +358,13 @@ fn write(args: &LevelsArgs, report: &mut LevelsReport) -> Result<(), FlightError
     };
     std::fs::create_dir_all(out).map_err(write_err(out))?;
     let mut csv = String::from(
-        "paging,frame,time_s,downloaded_bytes,resident_bytes,coverage_pct,mean_error_px,max_error_px,above_threshold_pct\n",
+        "paging,frame,time_s,downloaded_bytes,resident_bytes,coverage_pct,mean_error_px,max_error_px,above_threshold_pct,oracle_tiles,oracle_held_bytes,oracle_downloaded_bytes\n",
     );
     for f in &report.flights {
         for s in &f.samples {
             let _ = writeln!(
                 csv,
-                "{},{},{:.3},{},{},{:.3},{:.4},{:.3},{:.3}",
+                "{},{},{:.3},{},{},{:.3},{:.4},{:.3},{:.3},{},{},{}",
                 f.paging.name(),
                 s.frame,
                 s.time_s,
@@ -312,7 +373,10 @@ fn write(args: &LevelsArgs, report: &mut LevelsReport) -> Result<(), FlightError
                 s.coverage_pct,
                 s.mean_error_px,
                 s.max_error_px,
-                s.above_threshold_pct
+                s.above_threshold_pct,
+                s.oracle.tiles,
+                s.oracle.held_bytes,
+                s.oracle.downloaded_bytes
             );
         }
     }
@@ -375,22 +439,32 @@ impl LevelsReport {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "| paging | downloaded (MiB) | peak counted / limit (MiB) | coverage after 1 s: min / median (%) | mean error after 1 s, median (px) | sampled frames |"
+            "| paging | downloaded (MiB) | over the byte oracle's | peak counted / limit (MiB) | held over the oracle's, median after 1 s | coverage after 1 s: min / median (%) | mean error after 1 s, median (px) | sampled frames |"
         );
-        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|");
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for f in &self.flights {
             let _ = writeln!(
                 s,
-                "| {} | {:.1} | {:.1} / {:.1} | {:.2} / {:.2} | {:.3} | {} of {} |",
+                "| {} | {:.1} | {:.2}x | {:.1} / {:.1} | {:.2}x | {:.2} / {:.2} | {:.3} | {} of {} |",
                 f.paging.name(),
                 f.downloaded_bytes as f64 / crate::memory::MIB,
+                f.downloaded_bytes as f64 / f.oracle_downloaded_bytes.max(1) as f64,
                 f.peak_resident_bytes as f64 / crate::memory::MIB,
                 f.memory_limit as f64 / crate::memory::MIB,
+                f.median_held_over_oracle(),
                 f.min_coverage_pct(),
                 f.median_coverage_pct(),
                 f.median_mean_error_px(),
                 f.samples.len(),
                 f.frames
+            );
+        }
+        if let Some(f) = self.flights.first() {
+            let _ = writeln!(
+                s,
+                "\nThe byte oracle over the same flight: {:.1} MiB downloaded, at most {:.1} MiB held at a frame.",
+                f.oracle_downloaded_bytes as f64 / crate::memory::MIB,
+                f.oracle_peak_held_bytes as f64 / crate::memory::MIB,
             );
         }
         s

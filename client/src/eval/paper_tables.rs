@@ -213,7 +213,7 @@ pub async fn run(args: &GridsArgs) -> Result<GridsReport, FlightError> {
     }
     let _ = writeln!(
         s,
-        "\n(Löffler et al., Table 2: the visible pixels without ray casting; error pixels are those the grid's bound marks past the threshold, which ray casting redraws.)\n\n| grid | error pixels (%) uniform | non-uniform | mean error (px) uniform | non-uniform | max error (px) uniform | non-uniform | with ray casting: p99 / max (px), ray cast (%) |\n|---|---:|---:|---:|---:|---:|---:|---:|"
+        "\n(Löffler et al., Table 2: the visible pixels without ray casting; error pixels are those the grid draws with an error past the threshold, which ray casting redraws; ray cast: the pixels whose ray is walked, those and the uncovered ones whose ray enters the terrain's box.)\n\n| grid | error pixels (%) uniform | non-uniform | mean error (px) uniform | non-uniform | max error (px) uniform | non-uniform | with ray casting: p99 / max (px), ray cast (%) |\n|---|---:|---:|---:|---:|---:|---:|---:|"
     );
     for row in &LOEFFLER_TABLES {
         let (u, n) = (row_of(&runs[0], row.grid), row_of(&runs[1], row.grid));

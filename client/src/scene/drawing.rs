@@ -204,6 +204,52 @@ impl Scene {
         self.rendering.as_ref().map(|r| r.renderer.read_depth())
     }
 
+    /// The byte oracle of a view: the tiles the level choice ([`crate::lod::levels::choose`])
+    /// draws for `camera` on `viewport` when the whole pyramid is resident, the coarsest of
+    /// each visible part within `threshold_px` of full resolution by its builder-measured
+    /// deviation, and what they cost: held as the pager counts a tile at its coarsest
+    /// texture ([`expected_tile_bytes`] with the method's share), and downloaded (tile blob
+    /// and coarsest texture level). A tile not resident is passed over for its children, so
+    /// the answer is the oracle's only when every tile is resident.
+    pub fn bytes_needed(
+        &self,
+        camera: &Camera,
+        viewport: [u32; 2],
+        threshold_px: f64,
+    ) -> Vec<(TileId, NeededBytes)> {
+        let chosen = crate::lod::levels::choose(
+            &self.manifest,
+            &self.layout,
+            self.manifest.level_count(),
+            camera,
+            viewport,
+            threshold_px,
+            |id| {
+                let tile = self.tiles.get(self.manifest.index(id)?)?.as_ref()?;
+                let record = self.manifest.tile(id)?;
+                Some(crate::lod::levels::Held {
+                    min_m: f64::from(record.min_m),
+                    max_m: f64::from(record.max_m),
+                    deviation_m: tile.error_minima.first().copied().unwrap_or(0.0),
+                })
+            },
+        );
+        chosen
+            .into_iter()
+            .filter_map(|id| {
+                let i = self.manifest.index(id)?;
+                let record = self.manifest.tile(id)?;
+                Some((
+                    id,
+                    NeededBytes {
+                        held: self.expected_bytes[i],
+                        downloaded: record.bytes + record.coarsest_texture_bytes,
+                    },
+                ))
+            })
+            .collect()
+    }
+
     /// Plans and renders a frame seen from `camera` into `target`, then feeds its time to
     /// the frame-rate controller. `frame_started` is when the frame's work began, so that
     /// the controller sees the whole frame: for frames drawn back to back (a flight), the

@@ -660,6 +660,15 @@ impl Scene {
     }
 }
 
+/// What a tile of the byte oracle costs ([`Scene::bytes_needed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NeededBytes {
+    /// Held, as the pager counts the tile at its coarsest texture.
+    pub held: u64,
+    /// Downloaded: the tile blob and its coarsest texture level.
+    pub downloaded: u64,
+}
+
 /// What a tile holds once resident at its coarsest texture, known from the manifest before
 /// it is fetched: decoded codes and the coarsest level's bytes, plus, when rendering, its GPU
 /// samples (16-bit codes, [`crate::render::mesh`]) and the coarsest level as RGBA, `gpu_texture_copies` times
@@ -795,6 +804,67 @@ mod tests {
         assert_eq!(scene.surface_height(25.0, 5.0), None, "tile 1 not resident");
         assert_eq!(scene.ground_under([11.0, 9.0, 100.0]), Some(8.0));
         assert_eq!(scene.ground_under([31.0, 9.0, 100.0]), None);
+    }
+
+    /// The byte oracle: the coarsest resident tile whose deviation projects within the
+    /// threshold, else its children; what each costs.
+    #[test]
+    fn the_byte_oracle_takes_the_coarsest_tile_within_the_threshold() {
+        let mut scene = scene(1 << 20);
+        arrive(&mut scene, 0, [0; 9]);
+        arrive(&mut scene, 1, [0; 9]);
+        let near = Camera::looking_at([25.0, 10.0, 30.0], [25.0, 10.0, 0.0]);
+        let far = Camera::looking_at([25.0, 10.0, 100_000.0], [25.0, 10.0, 0.0]);
+        let needed = |scene: &Scene, camera: &Camera| {
+            let mut ids: Vec<(TileId, NeededBytes)> = scene.bytes_needed(camera, [640, 360], 1.0);
+            ids.sort_by_key(|(id, _)| (id.level, id.x, id.y));
+            ids
+        };
+        // Without the level-1 tile, its children, near or far.
+        let level_0 = NeededBytes {
+            held: expected_tile_bytes(
+                scene.manifest(),
+                scene.manifest().tile(TileId::new(0, 0)).expect("tile"),
+                0,
+            )
+            .total(),
+            downloaded: 7 + 2,
+        };
+        for camera in [&near, &far] {
+            assert_eq!(
+                needed(&scene, camera),
+                vec![(TileId::new(0, 0), level_0), (TileId::new(1, 0), level_0)]
+            );
+        }
+        // The level-1 tile, 5 m from full resolution: enough from 100 km (0.02 px), not
+        // from 30 m.
+        scene
+            .deliver(FetchEvent::Tile {
+                id: TileId::at(1, 0, 0),
+                heights: heights([0; 9]),
+                heights_bytes: 7,
+                mask_errors_m: vec![5.0, 5.0],
+                texture: vec![Blob::of(b"tx")],
+                coarsest_texture: bytes::Bytes::from_static(b"tx"),
+                attempts: 1,
+                elapsed: std::time::Duration::ZERO,
+                decode: std::time::Duration::ZERO,
+            })
+            .expect("delivered");
+        assert_eq!(
+            needed(&scene, &far)
+                .iter()
+                .map(|(id, _)| *id)
+                .collect::<Vec<_>>(),
+            vec![TileId::at(1, 0, 0)]
+        );
+        assert_eq!(
+            needed(&scene, &near)
+                .iter()
+                .map(|(id, _)| *id)
+                .collect::<Vec<_>>(),
+            vec![TileId::new(0, 0), TileId::new(1, 0)]
+        );
     }
 
     #[test]

@@ -310,8 +310,9 @@ pub struct Summary {
     /// ([`super::popping`]); `None` when popping was not measured.
     pub popping: Option<Popping>,
     /// The projective grid's shares of the frame's pixels, percent, mean over the cameras:
-    /// those the grid drew with an error past the threshold, and those ray cast (those and
-    /// the ones no grid triangle covered). `None` for the other methods.
+    /// those the grid drew with an error past the threshold, and those whose ray was walked
+    /// (of those and the ones no grid triangle covered, the rays that enter the terrain's
+    /// box). `None` for the other methods.
     pub error_pixels_pct: Option<f64>,
     pub ray_cast_pct: Option<f64>,
 }

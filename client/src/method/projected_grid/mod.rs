@@ -11,11 +11,12 @@
 //!
 //! - **Persistent grid mapping** (`pgm`): a uniform grid; nothing bounds its error.
 //! - **Error-bounded projective grid** (`projective-grid`): the grid warped so its cells
-//!   come out square on the ground ([`geometry::warp_tables`]); each vertex's
-//!   object-space error from the min/max pyramids turned into pixels and written, with the
-//!   colour, to an error buffer; a second pass casts rays through the heights in the pixels
-//!   the buffer marks (past the threshold, or not covered by the grid), replacing colour and
-//!   depth. Its counters (pixels ray cast, pixels past the threshold) are read back on
+//!   come out square on the ground ([`geometry::warp_tables`]); each pixel's error, the
+//!   grid's height at the point it draws against the surface's own there (the finest
+//!   resident tile's triangles, widened by its distance from full resolution) turned into
+//!   pixels, is written with the colour to an error buffer; a second pass casts rays through
+//!   the heights in the pixels the buffer marks (past the threshold, or not covered by the
+//!   grid), replacing colour and depth. Its counters (pixels ray cast, pixels past the threshold) are read back on
 //!   request ([`super::LodMethod::frame_measures`]).
 //!
 //! Knobs: the grid's size ([`GridSettings::size`]); the error threshold
@@ -786,6 +787,7 @@ impl LodMethod for ProjectedGrid {
                 "error_pixels_pct",
                 100.0 * f64::from(counters.errors) / pixels,
             ),
+            ("marked_pct", 100.0 * f64::from(counters.marked) / pixels),
             ("ray_cast_pct", 100.0 * f64::from(counters.rays) / pixels),
             ("ray_hit_pct", 100.0 * f64::from(counters.hits) / pixels),
         ]
