@@ -208,7 +208,9 @@ fn oracle_per_camera(s: &mut String, report: &AccuracyReport) {
     let at_setting = |row: &Row| match row.config.knob {
         Knob::MaxErrorPx(e) => e == threshold,
         Knob::Budget(b) => Some(b) == largest_budget(&row.config.series()),
-        Knob::Grid(_) => false,
+        // The projective grid is drawn within the sweep's threshold at every grid size;
+        // persistent grid mapping has no threshold.
+        Knob::Grid(_) => row.config.method == crate::method::MethodKind::ProjectiveGrid,
     };
     // (series and setting, per camera (triangles, oracle))
     let mut lines: Vec<(String, Vec<(u64, u64)>)> = Vec::new();
