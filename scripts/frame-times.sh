@@ -50,6 +50,7 @@ for name in "${!dems[@]}"; do
   [ -n "${urls[$name]}" ] || { echo "error: the server of $name did not start; see $out/$name.log" >&2; exit 1; }
 done
 
+mkdir -p "$out/runs"
 for round in $(seq "$rounds"); do
   for which in before after; do
     bin=$after_bin; [ "$which" = before ] && bin=$before_bin
