@@ -32,10 +32,12 @@ if [ -z "$url" ]; then
 fi
 echo "== levels: the himalaya flight at 16 MiB, a pyramid against level 0 alone, against the byte oracle"
 "$bin/terrain-client" bench levels --server "$url" --memory 16MiB --out "$out/levels"
+# The stamp before this run writes into the tree, so that it names the commit as it was.
+stamp=$(stamp_line)
 cp "$out/levels/levels.png" docs/images/levels-himalaya-16MiB.png
 {
   echo "<!-- written by \`bash scripts/bench.sh\` or \`bash scripts/bench-levels.sh\` (\`terrain-client bench levels --server URL --memory 16MiB\`); do not edit -->"
-  echo "Run: $(stamp_line)."
+  echo "Run: $stamp."
   echo
   cat "$out/levels/levels.md"
 } >docs/benchmarks/levels.md
