@@ -764,12 +764,16 @@ mod tests {
     }
 
     fn arrive(scene: &mut Scene, x: u32, codes: [i32; 9]) {
+        arrive_with_errors(scene, TileId::new(x, 0), codes, vec![0.0; 2]);
+    }
+
+    fn arrive_with_errors(scene: &mut Scene, id: TileId, codes: [i32; 9], errors_m: Vec<f32>) {
         scene
             .deliver(FetchEvent::Tile {
-                id: TileId::new(x, 0),
+                id,
                 heights: heights(codes),
                 heights_bytes: 7,
-                mask_errors_m: vec![0.0; 2],
+                mask_errors_m: errors_m,
                 texture: vec![Blob::of(b"tx")],
                 coarsest_texture: bytes::Bytes::from_static(b"tx"),
                 attempts: 1,
@@ -838,19 +842,7 @@ mod tests {
         }
         // The level-1 tile, 5 m from full resolution: enough from 100 km (0.02 px), not
         // from 30 m.
-        scene
-            .deliver(FetchEvent::Tile {
-                id: TileId::at(1, 0, 0),
-                heights: heights([0; 9]),
-                heights_bytes: 7,
-                mask_errors_m: vec![5.0, 5.0],
-                texture: vec![Blob::of(b"tx")],
-                coarsest_texture: bytes::Bytes::from_static(b"tx"),
-                attempts: 1,
-                elapsed: std::time::Duration::ZERO,
-                decode: std::time::Duration::ZERO,
-            })
-            .expect("delivered");
+        arrive_with_errors(&mut scene, TileId::at(1, 0, 0), [0; 9], vec![5.0, 5.0]);
         assert_eq!(
             needed(&scene, &far)
                 .iter()
