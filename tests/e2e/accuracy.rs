@@ -511,6 +511,13 @@ fn geomipmaps_keep_every_pixel_of_the_puget_sound_flight_within_the_threshold() 
         }
     }
     assert!(exact_cameras >= 6, "the floor excuses at most two cameras");
+    // The summary's guarantee table says the same of every camera.
+    let guarantees = accuracy::guarantees(&report);
+    let [g] = guarantees.as_slice() else {
+        panic!("one method at its setting: {guarantees:?}");
+    };
+    println!("{g:?}");
+    assert_eq!((g.cameras_held, g.cameras), (8, 8), "{g:?}");
     let geometry = &report.geometry[0].1;
     println!("geomipmap: {geometry}");
     assert!(geometry.gpu.sample_buffers <= geometry.gpu.tiles);

@@ -193,6 +193,16 @@ fn hold_the_projective_grid_guarantee(server: &TestServer) {
                 "{:.2}x the oracle's triangles",
                 summary.used_over_oracle
             );
+            // The summary's guarantee table: every camera holds it, within twice the oracle.
+            let guarantees = accuracy::guarantees(&report);
+            let [g] = guarantees.as_slice() else {
+                panic!("one method at its setting: {guarantees:?}");
+            };
+            assert_eq!(g.cameras_held, 8, "{g:?}");
+            assert!(
+                (g.over_oracle - summary.used_over_oracle).abs() < 1e-9,
+                "{g:?}"
+            );
         }
         for row in &report.rows {
             let m = &row.measured;

@@ -15,7 +15,9 @@
 mod blocks;
 mod report;
 
-pub use self::report::{CSV_HEADER, pareto_front, reference_floor, summary_markdown};
+pub use self::report::{
+    CSV_HEADER, Guarantee, guarantees, pareto_front, reference_floor, summary_markdown,
+};
 use self::report::{write_images, write_outputs};
 
 use super::Variants;
