@@ -76,6 +76,8 @@ pub struct Sample {
     /// Bytes downloaded since the flight began, at this frame.
     pub downloaded_bytes: u64,
     pub resident_bytes: u64,
+    /// Of `resident_bytes`, the tiles' own (what the byte oracle's held bytes count).
+    pub tile_bytes: u64,
     /// Share of the reference's terrain pixels the frame draws, percent.
     pub coverage_pct: f64,
     pub mean_error_px: f64,
@@ -132,13 +134,13 @@ impl FlightResult {
         median(&mut errors)
     }
 
-    /// Median over the sampled frames after the first second of the bytes held over the
-    /// oracle's at the same frame.
+    /// Median over the sampled frames after the first second of the tiles' bytes held over
+    /// the oracle's at the same frame.
     pub fn median_held_over_oracle(&self) -> f64 {
         let mut r: Vec<f64> = self
             .settled()
             .filter(|s| s.oracle.held_bytes > 0)
-            .map(|s| s.resident_bytes as f64 / s.oracle.held_bytes as f64)
+            .map(|s| s.tile_bytes as f64 / s.oracle.held_bytes as f64)
             .collect();
         median(&mut r)
     }
@@ -168,6 +170,7 @@ struct Kept {
     depth: Vec<f32>,
     downloaded_bytes: u64,
     resident_bytes: u64,
+    tile_bytes: u64,
 }
 
 /// Runs the comparison. Must run inside a multi-threaded tokio runtime.
@@ -235,6 +238,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
                     depth,
                     downloaded_bytes: session.fetcher.stats().bytes_downloaded,
                     resident_bytes: session.scene.resident_bytes(),
+                    tile_bytes: session.scene.tile_bytes(),
                 });
             }
             bar.inc(1);
@@ -329,6 +333,7 @@ pub async fn run(args: &LevelsArgs) -> Result<LevelsReport, FlightError> {
                 time_s: k.time_s,
                 downloaded_bytes: k.downloaded_bytes,
                 resident_bytes: k.resident_bytes,
+                tile_bytes: k.tile_bytes,
                 coverage_pct: 100.0 * m.coverage(),
                 mean_error_px: m.error.mean_px,
                 max_error_px: m.error.max_px,
@@ -439,7 +444,7 @@ impl LevelsReport {
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "| paging | downloaded (MiB) | over the byte oracle's | peak counted / limit (MiB) | held over the oracle's, median after 1 s | coverage after 1 s: min / median (%) | mean error after 1 s, median (px) | sampled frames |"
+            "| paging | downloaded (MiB) | over the byte oracle's | peak counted / limit (MiB) | tiles held over the oracle's, median after 1 s | coverage after 1 s: min / median (%) | mean error after 1 s, median (px) | sampled frames |"
         );
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for f in &self.flights {

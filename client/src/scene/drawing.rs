@@ -204,6 +204,25 @@ impl Scene {
         self.rendering.as_ref().map(|r| r.renderer.read_depth())
     }
 
+    /// What the level choice ([`crate::lod::levels::choose`]) knows of resident tile `id`:
+    /// its bounds and its own surface's deviation from full resolution. `None` when not
+    /// resident.
+    /// (An associated function of the parts it reads, so that [`Scene::draw`] can call it
+    /// while it holds the rendering state.)
+    fn held_for_choice(
+        manifest: &Manifest,
+        tiles: &[Option<ResidentTile>],
+        id: TileId,
+    ) -> Option<crate::lod::levels::Held> {
+        let tile = tiles.get(manifest.index(id)?)?.as_ref()?;
+        let record = manifest.tile(id)?;
+        Some(crate::lod::levels::Held {
+            min_m: f64::from(record.min_m),
+            max_m: f64::from(record.max_m),
+            deviation_m: tile.error_minima.first().copied().unwrap_or(0.0),
+        })
+    }
+
     /// The byte oracle of a view: the tiles the level choice ([`crate::lod::levels::choose`])
     /// draws for `camera` on `viewport` when the whole pyramid is resident, the coarsest of
     /// each visible part within `threshold_px` of full resolution by its builder-measured
@@ -224,15 +243,7 @@ impl Scene {
             camera,
             viewport,
             threshold_px,
-            |id| {
-                let tile = self.tiles.get(self.manifest.index(id)?)?.as_ref()?;
-                let record = self.manifest.tile(id)?;
-                Some(crate::lod::levels::Held {
-                    min_m: f64::from(record.min_m),
-                    max_m: f64::from(record.max_m),
-                    deviation_m: tile.error_minima.first().copied().unwrap_or(0.0),
-                })
-            },
+            |id| Self::held_for_choice(&self.manifest, &self.tiles, id),
         );
         chosen
             .into_iter()
@@ -279,13 +290,9 @@ impl Scene {
             r.config.lod.max_error_px,
             |id| {
                 let i = self.manifest.index(id)?;
-                let tile = self.tiles[i].as_ref()?;
-                let record = self.manifest.tile(id)?;
-                (self.in_square[i] || !r.config.square_only).then(|| crate::lod::levels::Held {
-                    min_m: f64::from(record.min_m),
-                    max_m: f64::from(record.max_m),
-                    deviation_m: tile.error_minima.first().copied().unwrap_or(0.0),
-                })
+                (self.in_square[i] || !r.config.square_only)
+                    .then(|| Self::held_for_choice(&self.manifest, &self.tiles, id))
+                    .flatten()
             },
         );
         let seams = crate::lod::levels::seams(&chosen);

@@ -469,12 +469,17 @@ impl Scene {
     /// samples and texture copies as charged) and the method's shared bytes (index sets,
     /// buffers of its own). The pager and the texture budget keep this under the limit.
     pub fn resident_bytes(&self) -> u64 {
-        let tiles: u64 = self.tiles.iter().flatten().map(|t| t.bytes.total()).sum();
-        tiles
+        self.tile_bytes()
             + self
                 .rendering
                 .as_ref()
                 .map_or(0, |r| r.method.shared_bytes().total())
+    }
+
+    /// Bytes the scene holds for its resident tiles alone, as the memory limit counts them
+    /// ([`Scene::resident_bytes`] without the method's shared bytes).
+    pub fn tile_bytes(&self) -> u64 {
+        self.tiles.iter().flatten().map(|t| t.bytes.total()).sum()
     }
 
     /// Measures of the last frame only the method knows ([`LodMethod::frame_measures`]);

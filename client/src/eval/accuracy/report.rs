@@ -239,7 +239,8 @@ pub struct Guarantee {
     /// The largest maximum error past the larger of the threshold and the floor (0 when
     /// every camera keeps it).
     pub worst_excess_px: f64,
-    /// Triangles over the oracle's, summed over the cameras.
+    /// Triangles over the oracle's, summed over the cameras (the summary's
+    /// `used_over_oracle`).
     pub over_oracle: f64,
 }
 
@@ -253,7 +254,6 @@ pub fn guarantees(report: &AccuracyReport) -> Vec<Guarantee> {
         .into_iter()
         .map(|(name, rows)| {
             let (mut held, mut worst_p99, mut worst_excess) = (0, 0.0f64, 0.0f64);
-            let (mut used, mut needed) = (0u64, 0u64);
             for row in &rows {
                 let e = &row.measured.measures.error;
                 let floor = report
@@ -266,18 +266,22 @@ pub fn guarantees(report: &AccuracyReport) -> Vec<Guarantee> {
                 }
                 worst_p99 = worst_p99.max(e.p99_px);
                 worst_excess = worst_excess.max(e.max_px - allowed);
-                if let Some(oracle) = oracle_of(report, row.camera) {
-                    used += row.measured.report.stats.triangles;
-                    needed += oracle;
-                }
             }
+            // The summary's ratio over the same rows.
+            let over_oracle = rows.first().map_or(0.0, |row| {
+                report
+                    .summaries
+                    .iter()
+                    .find(|s| s.config == row.config)
+                    .map_or(0.0, |s| s.used_over_oracle)
+            });
             Guarantee {
                 name,
                 cameras: rows.len(),
                 cameras_held: held,
                 worst_p99_px: worst_p99,
                 worst_excess_px: worst_excess,
-                over_oracle: used as f64 / needed.max(1) as f64,
+                over_oracle,
             }
         })
         .collect()
