@@ -283,7 +283,8 @@ EOF
     echo "from the coarsest tile whose builder-measured deviation from full resolution projects within"
     echo "the threshold at its box's nearest point (\`Scene::bytes_needed\`). Held: those tiles as the"
     echo "pager counts them at their coarsest texture; downloaded: every tile the oracle needed at any"
-    echo "frame, once (blob and coarsest texture). Textures are counted at their coarsest level, so the"
+    echo "frame, once (blob and coarsest texture). The flights' held bytes set against it are their"
+    echo "tiles' own, the method's shared bytes apart. Textures are counted at their coarsest level, so the"
     echo "oracle is a floor where the screen resolves finer ones."
     echo
     sed '/^<!--/d' docs/benchmarks/levels.md
