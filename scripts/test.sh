@@ -9,7 +9,10 @@
 # REQUIRE_GPU=1 for render tests without a Vulkan adapter, and REQUIRE_BROWSER=1 for the
 # browser tests (MapLibre and Cesium in headless Chromium) without Chromium and the npm
 # packages, which viewer/setup.sh installs here when it can (apt-get, npm ci), and for the
-# windowed client's check (scripts/view-check.sh) without Xvfb and Weston.
+# windowed client's check (scripts/view-check.sh) without Xvfb and Weston; and
+# REQUIRE_STORE=1 for the scale-out tests (tests/e2e/scale.rs) without SeaweedFS's weed
+# and nginx, which scripts/scale-setup.sh installs when it can (pip into a virtual
+# environment, apt-get).
 #
 # Two tiers: the default runs every test but the longest flights, which say NOT RUN;
 # TERRAIN_TEST_TIER=full (set by .ci/run) runs them too, and checks that the client and the
@@ -45,6 +48,14 @@ if ! bash viewer/setup.sh; then
     exit 1
   fi
   echo "note: viewer/setup.sh failed: the browser tests will say NOT RUN"
+fi
+
+if ! bash scripts/scale-setup.sh; then
+  if [ "${REQUIRE_STORE:-}" = 1 ]; then
+    echo "error: REQUIRE_STORE=1 but scripts/scale-setup.sh failed" >&2
+    exit 1
+  fi
+  echo "note: scripts/scale-setup.sh failed: the object-store and replica tests will say NOT RUN"
 fi
 
 cargo build --release --workspace --locked

@@ -80,6 +80,8 @@ pub enum DbError {
     Patches { pack: PathBuf, message: String },
     #[error("the web tiles in {pack} are damaged: {message}")]
     Web { pack: PathBuf, message: String },
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
     #[error("the tile blob of tile {id} in {pack} is damaged: {source}")]
     TileBlob {
         pack: PathBuf,
@@ -95,35 +97,52 @@ pub enum Verify {
     SizesOnly,
 }
 
-/// One stored object ready to send: the bytes (a slice of the map), its content hash and
-/// that hash as a strong entity tag (`"hash"`), made once here rather than per request.
+/// One stored object ready to send: its bytes (a slice of the map, for a database opened
+/// from a directory), its content hash and that hash as a strong entity tag (`"hash"`),
+/// made once here rather than per request.
 #[derive(Debug, Clone)]
 pub struct StoredBlob {
+    /// The mapped bytes of a database opened from a directory; empty for a database in an
+    /// object store, whose blobs are only read with [`StoredBlob::fetch`].
     pub bytes: Bytes,
+    /// The blob's length, wherever it lies.
+    pub len: u64,
     pub hash: String,
     /// `None` when the hash is not a valid tag (only in a damaged manifest).
     pub etag: Option<axum::http::HeaderValue>,
-    /// Where the bytes lie in their pack: what [`StoredBlob::read`] reads.
-    place: Option<Place>,
+    /// Where the bytes lie: what [`StoredBlob::read`] and [`StoredBlob::fetch`] read.
+    place: Place,
 }
 
-/// A blob's pack file (kept open) and its offset there.
+/// Where a blob's bytes are read from when served.
 #[derive(Debug, Clone)]
-struct Place {
-    pack: Arc<PackFile>,
-    offset: u64,
-    /// Whether the bytes read are checked against the hash: when the database was opened
-    /// with [`Verify::Hashes`], so that a mismatch means the pack changed since (opened
-    /// with [`Verify::SizesOnly`], as `serve --no-verify`, a damaged blob is served as
-    /// it is, and the client's hash check catches it).
-    check_hash: bool,
+enum Place {
+    /// Held in memory (an index read whole at open).
+    Memory,
+    /// A local pack file (kept open) and the blob's offset there.
+    Local {
+        pack: Arc<PackFile>,
+        offset: u64,
+        /// Whether the bytes read are checked against the hash: when the database was
+        /// opened with [`Verify::Hashes`], so that a mismatch means the pack changed since
+        /// (opened with [`Verify::SizesOnly`], as `serve --no-verify`, a damaged blob is
+        /// served as it is, and the client's hash check catches it).
+        check_hash: bool,
+    },
+    /// An object in a store, read by range through the store's cache, always checked.
+    Store {
+        source: Arc<crate::store::StoreSource>,
+        object: Arc<object_store::path::Path>,
+        offset: u64,
+    },
 }
 
-/// A pack file held open by an opened database.
+/// A pack file held open by an opened database, and the cache its blobs are read through.
 #[derive(Debug)]
 struct PackFile {
     path: PathBuf,
     file: File,
+    cache: Arc<crate::store::BlobCache>,
 }
 
 /// A pack whose file changed after the database opened (truncated, rewritten in place):
@@ -145,22 +164,33 @@ impl StoredBlob {
     /// since the database opened is an error, never a dead process or the wrong bytes under
     /// the right tag.
     pub fn read(&self) -> Result<Bytes, PackChanged> {
-        let Some(place) = &self.place else {
-            return Ok(self.bytes.clone());
+        let (pack, offset, check_hash) = match &self.place {
+            Place::Memory => return Ok(self.bytes.clone()),
+            Place::Local {
+                pack,
+                offset,
+                check_hash,
+            } => (pack, *offset, *check_hash),
+            Place::Store { object, .. } => {
+                return Err(PackChanged {
+                    pack: PathBuf::from(object.to_string()),
+                    reason: "a blob in an object store is read with fetch".to_string(),
+                });
+            }
         };
         let changed = |reason: String| PackChanged {
-            pack: place.pack.path.clone(),
+            pack: pack.path.clone(),
             reason,
         };
         let mut body = vec![0u8; self.bytes.len()];
-        read_exact_at(&place.pack.file, &mut body, place.offset).map_err(|e| {
+        read_exact_at(&pack.file, &mut body, offset).map_err(|e| {
             changed(format!(
                 "{} bytes at offset {} could not be read: {e}",
                 body.len(),
-                place.offset
+                offset
             ))
         })?;
-        let found = if place.check_hash {
+        let found = if check_hash {
             content_hash(&body)
         } else {
             self.hash.clone()
@@ -169,11 +199,39 @@ impl StoredBlob {
             return Err(changed(format!(
                 "the {} bytes at offset {} hash to {found}, not {}",
                 body.len(),
-                place.offset,
+                offset,
                 self.hash
             )));
         }
         Ok(Bytes::from(body))
+    }
+
+    /// The blob's bytes for a response, wherever they lie: [`StoredBlob::read`] for a local
+    /// pack; for a store, a ranged GET through the server's cache, checked against the hash
+    /// before it is kept or sent.
+    pub async fn fetch(&self) -> Result<Bytes, crate::store::ReadError> {
+        match &self.place {
+            Place::Store {
+                source,
+                object,
+                offset,
+            } => source.read(object, *offset, self.len, &self.hash).await,
+            Place::Local { pack, .. } => {
+                let cache = &pack.cache;
+                cache
+                    .get_or_load(&self.hash, async {
+                        cache.loads.inc();
+                        let bytes = self.read().map_err(|e| {
+                            cache.load_errors.inc();
+                            crate::store::ReadError::PackChanged(Arc::new(e))
+                        })?;
+                        cache.loaded_bytes.inc_by(bytes.len() as u64);
+                        Ok(bytes)
+                    })
+                    .await
+            }
+            Place::Memory => Ok(self.bytes.clone()),
+        }
     }
 }
 
@@ -233,10 +291,23 @@ pub fn strong_etag(hash: &str) -> Option<axum::http::HeaderValue> {
     axum::http::HeaderValue::from_str(&tag).ok()
 }
 
+/// Where an opened database lies.
+#[derive(Debug, Clone)]
+pub enum Origin {
+    Dir(PathBuf),
+    Store {
+        source: Arc<crate::store::StoreSource>,
+        version: String,
+    },
+}
+
 /// An opened, checked database. Cheap to share behind an `Arc`.
 #[derive(Debug)]
 pub struct TileDb {
-    dir: PathBuf,
+    origin: Origin,
+    /// The cache of hot blobs every blob is served through (shared with the next version
+    /// opened on a reload).
+    cache: Arc<crate::store::BlobCache>,
     manifest: Manifest,
     manifest_json: Bytes,
     /// The manifest gzipped once at open, served to clients that accept gzip.
@@ -256,19 +327,36 @@ impl TileDb {
     /// Opens the database in `dir`, checking pack sizes and, with [`Verify::Hashes`], every hash.
     /// A directory holding [`BUILDING_LOCK`] is refused ([`DbError::BeingBuilt`]).
     pub fn open(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
+        TileDb::open_with_cache(dir, verify, Arc::new(crate::store::BlobCache::new(0)))
+    }
+
+    /// [`TileDb::open`], its blobs served through `cache` (the server's cache of hot blobs).
+    pub fn open_with_cache(
+        dir: &Path,
+        verify: Verify,
+        cache: Arc<crate::store::BlobCache>,
+    ) -> Result<TileDb, DbError> {
         if std::fs::symlink_metadata(dir.join(BUILDING_LOCK)).is_ok() {
             return Err(DbError::BeingBuilt(dir.to_path_buf()));
         }
-        TileDb::open_unchecked(dir, verify)
+        TileDb::open_unchecked(dir, verify, cache)
     }
 
     /// [`TileDb::open`] of the database this build is writing: the builder reads back what
     /// it wrote (for the web tiles) while its lock is still held.
     pub(crate) fn open_being_built(writer_dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
-        TileDb::open_unchecked(writer_dir, verify)
+        TileDb::open_unchecked(
+            writer_dir,
+            verify,
+            Arc::new(crate::store::BlobCache::new(0)),
+        )
     }
 
-    fn open_unchecked(dir: &Path, verify: Verify) -> Result<TileDb, DbError> {
+    fn open_unchecked(
+        dir: &Path,
+        verify: Verify,
+        cache: Arc<crate::store::BlobCache>,
+    ) -> Result<TileDb, DbError> {
         let manifest_path = dir.join(MANIFEST_FILE);
         let manifest_json = std::fs::read(&manifest_path).map_err(|source| DbError::Io {
             path: manifest_path.clone(),
@@ -280,9 +368,9 @@ impl TileDb {
         })?;
 
         let heights_path = dir.join(HEIGHTS_PACK);
-        let heights_pack = map_file(&heights_path)?;
+        let heights_pack = map_file(&heights_path, &cache)?;
         let textures_path = dir.join(TEXTURES_PACK);
-        let textures_pack = map_file(&textures_path)?;
+        let textures_pack = map_file(&textures_path, &cache)?;
 
         let heights = slice_pack(
             &heights_pack,
@@ -332,18 +420,44 @@ impl TileDb {
 
         let patches = match &manifest.patches {
             None => None,
-            Some(info) => Some(open_patches(dir, &manifest, info, verify)?),
+            Some(info) => Some(open_patches(dir, &manifest, info, verify, &cache)?),
         };
         let web = match &manifest.web {
             None => None,
-            Some(info) => Some(open_web(dir, info, verify)?),
+            Some(info) => Some(open_web(dir, info, verify, &cache)?),
         };
+        TileDb::assemble(
+            Origin::Dir(dir.to_path_buf()),
+            cache,
+            &manifest_path,
+            manifest,
+            manifest_json,
+            heights,
+            textures,
+            patches,
+            web,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        origin: Origin,
+        cache: Arc<crate::store::BlobCache>,
+        manifest_path: &Path,
+        manifest: Manifest,
+        manifest_json: Vec<u8>,
+        heights: Vec<StoredBlob>,
+        textures: Vec<Vec<StoredBlob>>,
+        patches: Option<(Vec<StoredBlob>, StoredBlob)>,
+        web: Option<std::collections::HashMap<crate::web::index::Entry, StoredBlob>>,
+    ) -> Result<TileDb, DbError> {
         let manifest_gzip = gzip(&manifest_json).map_err(|source| DbError::Io {
-            path: manifest_path.clone(),
+            path: manifest_path.to_path_buf(),
             source,
         })?;
         Ok(TileDb {
-            dir: dir.to_path_buf(),
+            origin,
+            cache,
             manifest_gzip: Bytes::from(manifest_gzip),
             manifest_etag: strong_etag(&content_hash(&manifest_json)),
             manifest_hash: content_hash(&manifest_json),
@@ -356,8 +470,255 @@ impl TileDb {
         })
     }
 
-    pub fn dir(&self) -> &Path {
-        &self.dir
+    /// Opens content version `version` of the database at `source`'s store location. The
+    /// manifest and the patch and web indexes are read whole, the heights pack once as a
+    /// stream (its tile blobs locate the textures; with [`Verify::Hashes`] each is checked
+    /// on the way), and every pack's size is checked against the manifest. Blobs are then
+    /// read per request ([`StoredBlob::fetch`]), each checked against its hash.
+    pub async fn open_store(
+        source: Arc<crate::store::StoreSource>,
+        version: &str,
+        verify: Verify,
+    ) -> Result<TileDb, DbError> {
+        let url = source.url.clone();
+        let object = |file: &str| url.object(version, file);
+        let shown = |file: &str| PathBuf::from(format!("{url}/v/{version}/{file}"));
+        let manifest_path = shown(MANIFEST_FILE);
+        let manifest_json = source
+            .range(
+                &object(MANIFEST_FILE),
+                0,
+                source.size(&object(MANIFEST_FILE)).await?,
+            )
+            .await?
+            .to_vec();
+        let manifest = Manifest::from_json(&manifest_json).map_err(|source| DbError::Manifest {
+            path: manifest_path.clone(),
+            source,
+        })?;
+        if manifest.content_version != version {
+            return Err(DbError::Manifest {
+                path: manifest_path,
+                source: ManifestError::Inconsistent(format!(
+                    "it is content version {}, stored as {version}",
+                    manifest.content_version
+                )),
+            });
+        }
+        let store_blob =
+            |object: &Arc<object_store::path::Path>, offset: u64, blob: &Blob| StoredBlob {
+                bytes: Bytes::new(),
+                len: blob.bytes,
+                hash: blob.hash.clone(),
+                etag: strong_etag(&blob.hash),
+                place: Place::Store {
+                    source: Arc::clone(&source),
+                    object: Arc::clone(object),
+                    offset,
+                },
+            };
+        let check_size = |pack: &str, expected: u64, found: u64| {
+            if expected == found {
+                Ok(())
+            } else {
+                Err(DbError::PackSize {
+                    pack: shown(pack),
+                    expected,
+                    found,
+                })
+            }
+        };
+
+        // The heights pack, streamed: each tile blob in turn, its head read for the
+        // texture table, then dropped.
+        let heights_object = Arc::new(object(HEIGHTS_PACK));
+        let listed: Vec<(TileId, Blob)> = manifest.tiles().map(|(id, t)| (id, t.blob())).collect();
+        let expected: u64 = listed.iter().map(|(_, b)| b.bytes).sum();
+        check_size(HEIGHTS_PACK, expected, source.size(&heights_object).await?)?;
+        let levels = manifest.texture.levels as usize;
+        let mut heights = Vec::with_capacity(listed.len());
+        let mut texture_blobs: Vec<(TileId, Blob)> = Vec::with_capacity(listed.len() * levels);
+        let mut pending = Vec::<u8>::new();
+        let mut next = 0usize;
+        let mut offset = 0u64;
+        let heights_path = shown(HEIGHTS_PACK);
+        source
+            .stream(&heights_object, |chunk| {
+                pending.extend_from_slice(&chunk);
+                while let Some((id, blob)) = listed.get(next)
+                    && pending.len() as u64 >= blob.bytes
+                {
+                    let bytes: Vec<u8> = pending.drain(..blob.bytes as usize).collect();
+                    if verify == Verify::Hashes {
+                        let found = content_hash(&bytes);
+                        if found != blob.hash {
+                            return Err(DbError::HashMismatch {
+                                pack: heights_path.clone(),
+                                id: *id,
+                                what: "tile blob".to_string(),
+                                expected: blob.hash.clone(),
+                                found,
+                            });
+                        }
+                    }
+                    let head = TileBlob::head(&bytes).map_err(|source| DbError::TileBlob {
+                        pack: heights_path.clone(),
+                        id: *id,
+                        source,
+                    })?;
+                    if head.texture.len() != levels
+                        || head.mask_errors_m.len() != manifest.mask_levels as usize
+                    {
+                        return Err(DbError::TileBlob {
+                            pack: heights_path.clone(),
+                            id: *id,
+                            source: terrain_shared::tile_blob::TileBlobError::TooManyLevels {
+                                mask: head.mask_errors_m.len(),
+                                texture: head.texture.len(),
+                            },
+                        });
+                    }
+                    texture_blobs.extend(head.texture.into_iter().map(|t| (*id, t)));
+                    heights.push(store_blob(&heights_object, offset, blob));
+                    offset += blob.bytes;
+                    next += 1;
+                }
+                Ok(())
+            })
+            .await?;
+        if next != listed.len() || !pending.is_empty() {
+            return Err(DbError::PackSize {
+                pack: heights_path,
+                expected,
+                found: offset + pending.len() as u64,
+            });
+        }
+
+        let textures_object = Arc::new(object(TEXTURES_PACK));
+        let expected: u64 = texture_blobs.iter().map(|(_, b)| b.bytes).sum();
+        check_size(
+            TEXTURES_PACK,
+            expected,
+            source.size(&textures_object).await?,
+        )?;
+        let mut offset = 0u64;
+        let mut flat = texture_blobs.iter().map(|(_, blob)| {
+            let stored = store_blob(&textures_object, offset, blob);
+            offset += blob.bytes;
+            stored
+        });
+        let textures = (0..heights.len())
+            .map(|_| flat.by_ref().take(levels).collect())
+            .collect();
+
+        // An index at the end of a pack, read whole and checked, and the bodies before it.
+        let indexed = async |pack: &str, bodies_bytes: u64, index: &Blob| {
+            let pack_object = Arc::new(object(pack));
+            check_size(
+                pack,
+                bodies_bytes + index.bytes,
+                source.size(&pack_object).await?,
+            )?;
+            let bytes = source
+                .range(&pack_object, bodies_bytes, index.bytes)
+                .await?;
+            let found = content_hash(&bytes);
+            if found != index.hash {
+                return Err(DbError::HashMismatch {
+                    pack: shown(pack),
+                    id: TileId::at(0, 0, 0),
+                    what: format!("{pack} index"),
+                    expected: index.hash.clone(),
+                    found,
+                });
+            }
+            let index_blob = StoredBlob {
+                len: bytes.len() as u64,
+                bytes,
+                hash: index.hash.clone(),
+                etag: strong_etag(&index.hash),
+                place: Place::Memory,
+            };
+            Ok::<_, DbError>((pack_object, index_blob))
+        };
+        let patches =
+            match &manifest.patches {
+                None => None,
+                Some(info) => {
+                    let (pack_object, index) =
+                        indexed(PATCHES_PACK, info.bodies_bytes, &info.index).await?;
+                    let count = manifest.tiles().count();
+                    let entries = terrain_shared::quadtree::decode_index(&index.bytes, count)
+                        .map_err(|e| DbError::Patches {
+                            pack: shown(PATCHES_PACK),
+                            message: e.to_string(),
+                        })?;
+                    let total: u64 = entries.iter().map(|e| u64::from(e.bytes)).sum();
+                    check_size(PATCHES_PACK, info.bodies_bytes, total)?;
+                    let mut offset = 0u64;
+                    let bodies = entries
+                        .iter()
+                        .map(|e| {
+                            let blob = Blob {
+                                hash: e.hash_hex(),
+                                bytes: u64::from(e.bytes),
+                            };
+                            let stored = store_blob(&pack_object, offset, &blob);
+                            offset += blob.bytes;
+                            stored
+                        })
+                        .collect();
+                    Some((bodies, index))
+                }
+            };
+        let web = match &manifest.web {
+            None => None,
+            Some(info) => {
+                let (pack_object, index) = indexed(WEB_PACK, info.tiles_bytes, &info.index).await?;
+                let entries =
+                    crate::web::index::decode(&index.bytes).map_err(|e| DbError::Web {
+                        pack: shown(WEB_PACK),
+                        message: e.to_string(),
+                    })?;
+                let total: u64 = entries.iter().map(|(_, b)| b.bytes).sum();
+                check_size(WEB_PACK, info.tiles_bytes, total)?;
+                let mut offset = 0u64;
+                Some(
+                    entries
+                        .into_iter()
+                        .map(|(entry, blob)| {
+                            let stored = store_blob(&pack_object, offset, &blob);
+                            offset += blob.bytes;
+                            (entry, stored)
+                        })
+                        .collect(),
+                )
+            }
+        };
+        TileDb::assemble(
+            Origin::Store {
+                source: Arc::clone(&source),
+                version: version.to_string(),
+            },
+            Arc::clone(&source.cache),
+            &manifest_path,
+            manifest,
+            manifest_json,
+            heights,
+            textures,
+            patches,
+            web,
+        )
+    }
+
+    /// Where the database was opened from.
+    pub fn origin(&self) -> &Origin {
+        &self.origin
+    }
+
+    /// The cache of hot blobs it serves through.
+    pub fn cache(&self) -> &Arc<crate::store::BlobCache> {
+        &self.cache
     }
 
     pub fn manifest(&self) -> &Manifest {
@@ -427,9 +788,10 @@ fn open_patches(
     manifest: &Manifest,
     info: &terrain_shared::manifest::PatchesInfo,
     verify: Verify,
+    cache: &Arc<crate::store::BlobCache>,
 ) -> Result<(Vec<StoredBlob>, StoredBlob), DbError> {
     let path = dir.join(PATCHES_PACK);
-    let pack = map_file(&path)?;
+    let pack = map_file(&path, cache)?;
     let root = TileId::at(0, 0, 0);
     let body_end = info.bodies_bytes as usize;
     if pack.len() as u64 != info.bodies_bytes + info.index.bytes {
@@ -477,9 +839,10 @@ fn open_web(
     dir: &Path,
     info: &terrain_shared::manifest::WebInfo,
     verify: Verify,
+    cache: &Arc<crate::store::BlobCache>,
 ) -> Result<std::collections::HashMap<crate::web::index::Entry, StoredBlob>, DbError> {
     let path = dir.join(WEB_PACK);
-    let pack = map_file(&path)?;
+    let pack = map_file(&path, cache)?;
     let root = TileId::at(0, 0, 0);
     let tiles_end = info.tiles_bytes as usize;
     if pack.len() as u64 != info.tiles_bytes + info.index.bytes {
@@ -518,7 +881,7 @@ fn open_web(
 /// Maps a pack read-only, keeping the file open for [`StoredBlob::read`]. An empty file
 /// cannot be mapped and needs no map.
 #[allow(unsafe_code)]
-fn map_file(path: &Path) -> Result<MappedPack, DbError> {
+fn map_file(path: &Path, cache: &Arc<crate::store::BlobCache>) -> Result<MappedPack, DbError> {
     let io = |source| DbError::Io {
         path: path.to_path_buf(),
         source,
@@ -540,6 +903,7 @@ fn map_file(path: &Path) -> Result<MappedPack, DbError> {
         file: Arc::new(PackFile {
             path: path.to_path_buf(),
             file,
+            cache: Arc::clone(cache),
         }),
         base: 0,
     })
@@ -565,7 +929,7 @@ fn slice_pack(
     let mut out = Vec::with_capacity(listed.len());
     for (id, what, blob) in listed {
         let bytes = pack.map.slice(offset..offset + blob.bytes as usize);
-        let place = Place {
+        let place = Place::Local {
             pack: Arc::clone(&pack.file),
             offset: pack.base + offset as u64,
             check_hash: verify == Verify::Hashes,
@@ -585,9 +949,10 @@ fn slice_pack(
         }
         out.push(StoredBlob {
             bytes,
+            len: blob.bytes,
             hash: blob.hash.clone(),
             etag: strong_etag(&blob.hash),
-            place: Some(place),
+            place,
         });
     }
     Ok(out)

@@ -5,6 +5,7 @@
 //!   writes a database through [`db::DbWriter`].
 //! - [`db`] is the database on disk: its layout, the atomic writer and the read side.
 //! - [`http`] serves an opened [`db::TileDb`] over HTTP.
+//! - [`store`] keeps a database in an object store (S3): publishing, the pointer, the cache.
 //! - [`web`] makes the tiles MapLibre and Cesium read; [`export`] writes them as PMTiles.
 //!
 //! The binary (`src/main.rs`) only parses arguments and maps errors to exit codes.
@@ -13,6 +14,7 @@ pub mod build;
 pub mod db;
 pub mod export;
 pub mod http;
+pub mod store;
 pub mod web;
 
 /// Writes `text` to stdout and flushes it. A closed stdout (`terrain-server build … | head

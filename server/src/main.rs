@@ -19,6 +19,9 @@ enum Command {
     Build(terrain_server::build::BuildArgs),
     /// Serve a tile database over HTTP.
     Serve(terrain_server::http::ServeArgs),
+    /// Upload a finished database to an object store (s3://bucket/prefix) and point the
+    /// location at it; `serve s3://bucket/prefix` then serves it, and picks up later ones.
+    Publish(terrain_server::store::PublishArgs),
     /// Write a database's XYZ pyramid (Terrarium heights by default) as a PMTiles archive.
     Export(terrain_server::export::ExportArgs),
 }
@@ -38,6 +41,7 @@ fn main() -> ExitCode {
         Command::Build(args) => terrain_server::build::run_cli(args),
         Command::Serve(args) => terrain_server::http::run_cli(args),
         Command::Export(args) => terrain_server::export::run_cli(args),
+        Command::Publish(args) => terrain_server::store::run_publish_cli(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

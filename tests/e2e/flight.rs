@@ -10,7 +10,7 @@ use terrain_client::requests::FetcherConfig;
 use terrain_client::scene::Scene;
 use terrain_server::build::{BuildOptions, build};
 use terrain_shared::{Manifest, TileId};
-use terrain_tests::data::{build_jacksboro, jacksboro};
+use terrain_tests::data::{budget_for_level_0_tiles, build_jacksboro, jacksboro, tile_bytes};
 use terrain_tests::proxy::{Fault, FaultPlan, FaultyProxy};
 use terrain_tests::server::{RestartableServer, TestServer};
 
@@ -74,29 +74,6 @@ fn number(row: &std::collections::HashMap<String, String>, column: &str) -> u64 
     row[column]
         .parse()
         .unwrap_or_else(|e| panic!("{column} = {:?}: {e}", row[column]))
-}
-
-/// Bytes the client holds for a resident tile of any level: decoded codes (4 bytes each),
-/// its table of mask errors (an `f32` per mask level, from its tile blob) and the coarsest
-/// texture level.
-fn tile_bytes(manifest: &Manifest, id: TileId) -> u64 {
-    let record = manifest.tile(id).expect("in grid");
-    4 * u64::from(manifest.tile_size).pow(2)
-        + 4 * u64::from(manifest.mask_levels)
-        + record.coarsest_texture_bytes
-}
-
-/// A memory budget (`--memory`, before the flight's 10% margin) with room for every tile of
-/// the levels above level 0 and for `tiles` tiles of level 0 the size of tile (0, 0): the
-/// pager shares the limit out coarsest level first (`page::level_shares`), so each coarser
-/// level takes what it needs whole and level 0 gets room for `tiles`.
-fn budget_for_level_0_tiles(manifest: &Manifest, tiles: u64) -> u64 {
-    let coarser: u64 = manifest
-        .tiles()
-        .filter(|(id, _)| id.level > 0)
-        .map(|(id, _)| tile_bytes(manifest, id))
-        .sum();
-    (coarser + tiles * tile_bytes(manifest, TileId::new(0, 0))) * 10 / 9
 }
 
 fn jacksboro_server(dir: &Path) -> (TestServer, Manifest) {

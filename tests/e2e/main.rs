@@ -18,4 +18,5 @@ mod patches;
 mod reload;
 mod render;
 mod round_trip;
+mod scale;
 mod web;

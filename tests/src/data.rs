@@ -110,3 +110,26 @@ pub fn run_binary(name: &str, args: &[&std::ffi::OsStr]) -> (bool, String, Strin
         String::from_utf8_lossy(&output.stderr).into_owned(),
     )
 }
+
+/// Bytes the client holds for a resident tile of any level: decoded codes (4 bytes each),
+/// its table of mask errors (an `f32` per mask level, from its tile blob) and the coarsest
+/// texture level.
+pub fn tile_bytes(manifest: &terrain_shared::Manifest, id: terrain_shared::TileId) -> u64 {
+    let record = manifest.tile(id).expect("in grid");
+    4 * u64::from(manifest.tile_size).pow(2)
+        + 4 * u64::from(manifest.mask_levels)
+        + record.coarsest_texture_bytes
+}
+
+/// A memory budget (`--memory`, before the flight's 10% margin) with room for every tile of
+/// the levels above level 0 and for `tiles` tiles of level 0 the size of tile (0, 0): the
+/// pager shares the limit out coarsest level first (`page::level_shares`), so each coarser
+/// level takes what it needs whole and level 0 gets room for `tiles`.
+pub fn budget_for_level_0_tiles(manifest: &terrain_shared::Manifest, tiles: u64) -> u64 {
+    let coarser: u64 = manifest
+        .tiles()
+        .filter(|(id, _)| id.level > 0)
+        .map(|(id, _)| tile_bytes(manifest, id))
+        .sum();
+    (coarser + tiles * tile_bytes(manifest, terrain_shared::TileId::new(0, 0))) * 10 / 9
+}

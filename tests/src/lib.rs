@@ -5,6 +5,7 @@ pub mod data;
 pub mod fixtures;
 pub mod golden;
 pub mod proxy;
+pub mod scale;
 pub mod server;
 pub mod stamp;
 pub mod synthetic;

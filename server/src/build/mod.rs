@@ -66,9 +66,12 @@ pub struct BuildArgs {
     /// How the texture image sits on the raster (default: dataset.json's, else edge-aligned).
     #[arg(long, value_enum)]
     pub texture_registration: Option<Registration>,
-    /// Output directory. Default: db/NAME, NAME being the dataset name.
-    #[arg(long, short)]
-    pub out: Option<PathBuf>,
+    /// Output: a directory, or an object-store location `s3://bucket/prefix` (the database is
+    /// built in a temporary directory, uploaded as its content version, packs first and
+    /// manifest last, then the location's pointer is moved to it; credentials and endpoint
+    /// from the AWS_* environment variables). Default: db/NAME, NAME being the dataset name.
+    #[arg(long, short, value_name = "DIR|s3://BUCKET/PREFIX", value_parser = crate::store::Location::parse)]
+    pub out: Option<crate::store::Location>,
     /// Replace an existing database at the output path.
     #[arg(long)]
     pub force: bool,
@@ -227,7 +230,9 @@ impl BuildOptions {
         };
         let name = args.name.clone();
         let out = match &args.out {
-            Some(out) => out.clone(),
+            Some(crate::store::Location::Dir(out)) => out.clone(),
+            // Built in a temporary directory, then published (`run_cli`).
+            Some(crate::store::Location::Store(_)) => std::env::temp_dir().join("terrain-build"),
             None => {
                 Path::new("db").join(name.clone().unwrap_or_else(|| default_name(&args.heights)))
             }
@@ -857,7 +862,19 @@ fn read_texture(path: &Path, max_samples: u64) -> Result<image::RgbImage, BuildE
 
 /// Runs `terrain-server build`: progress bar, Ctrl-C cancels cleanly, summary at the end.
 pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
-    let options = BuildOptions::from_args(&args)?;
+    let mut options = BuildOptions::from_args(&args)?;
+    // A build for a store is written to a temporary directory first, removed at the end.
+    let scratch = match &args.out {
+        Some(crate::store::Location::Store(_)) => {
+            let dir = tempfile::Builder::new()
+                .prefix("terrain-build-")
+                .tempdir()
+                .context("cannot make a temporary directory for the build")?;
+            options.out = dir.path().join("db");
+            Some(dir)
+        }
+        _ => None,
+    };
     let cancel = std::sync::Arc::new(AtomicBool::new(false));
     {
         let cancel = cancel.clone();
@@ -886,6 +903,56 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
         .with_context(|| format!("building {}", options.heights.display()))?;
     bar.finish_and_clear();
     crate::print_stdout(&Summary(&report).to_string()).context("cannot write to stdout")?;
+    if let (Some(crate::store::Location::Store(url)), Some(_dir)) = (&args.out, &scratch) {
+        publish_cli(&report.out, url, args.quiet)?;
+    }
+    Ok(())
+}
+
+/// Uploads the database built in `dir` to `url` with a progress bar, and says what it did.
+pub fn publish_cli(dir: &Path, url: &crate::store::StoreUrl, quiet: bool) -> anyhow::Result<()> {
+    let total: u64 = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read {}", dir.display()))?
+        .flatten()
+        .filter_map(|e| e.metadata().ok())
+        .map(|m| m.len())
+        .sum();
+    let bar = if quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(total)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} uploading [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} ({bytes_per_sec}, {eta} left)",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let started = std::time::Instant::now();
+    let published = runtime.block_on(async {
+        let store = crate::store::connect(url)?;
+        crate::store::publish(&*store, dir, url, &|n| bar.set_position(n)).await
+    });
+    bar.finish_and_clear();
+    let published = published.with_context(|| format!("publishing to {url}"))?;
+    let text = if published.already_there {
+        format!(
+            "published {url}: content version {} was already there; the pointer names it\n",
+            published.version
+        )
+    } else {
+        format!(
+            "published {url}: content version {}, {:.1} MiB uploaded in {:.1} s; the pointer names it\n",
+            published.version,
+            published.uploaded_bytes as f64 / (1024.0 * 1024.0),
+            started.elapsed().as_secs_f64()
+        )
+    };
+    crate::print_stdout(&text).context("cannot write to stdout")?;
     Ok(())
 }
 

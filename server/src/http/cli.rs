@@ -22,8 +22,17 @@ pub const DEFAULT_RELOAD_POLL: Duration = Duration::from_secs(2);
 /// Arguments of `terrain-server serve`.
 #[derive(clap::Args, Debug)]
 pub struct ServeArgs {
-    /// Tile database directory, as written by `terrain-server build`.
-    pub db: PathBuf,
+    /// Tile database: a directory written by `terrain-server build`, or an object-store
+    /// location `s3://bucket/prefix` that `build --out s3://…` published to (credentials,
+    /// region and endpoint from the AWS_* environment variables: AWS_ACCESS_KEY_ID,
+    /// AWS_SECRET_ACCESS_KEY, AWS_REGION, AWS_ENDPOINT, AWS_ALLOW_HTTP=true for plain HTTP).
+    #[arg(value_name = "DB", value_parser = crate::store::Location::parse)]
+    pub db: crate::store::Location,
+    /// Bytes of blobs kept in memory for the next requests (the hot tiles), whether read
+    /// from an object store or from the directory's packs: a hit costs neither a read nor a
+    /// hash check. 0 keeps none. Counted and reported in /metrics.
+    #[arg(long, value_name = "BYTES", default_value_t = crate::store::DEFAULT_CACHE_BYTES)]
+    pub cache_bytes: u64,
     /// Address to listen on. Port 0 picks a free port; the line on stdout names it.
     #[arg(long, default_value = DEFAULT_ADDR)]
     pub addr: SocketAddr,
@@ -142,12 +151,36 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
     } else {
         Verify::Hashes
     };
+    let mut runtime = tokio::runtime::Builder::new_multi_thread();
+    runtime.enable_all();
+    if args.worker_threads > 0 {
+        runtime.worker_threads(args.worker_threads);
+    }
+    let runtime = runtime.build().context("cannot start the async runtime")?;
+
     let started = std::time::Instant::now();
-    let db = TileDb::open(&args.db, verify)
-        .with_context(|| format!("cannot serve {}", args.db.display()))?;
+    let cache = Arc::new(crate::store::BlobCache::new(args.cache_bytes));
+    let opened = match &args.db {
+        crate::store::Location::Dir(dir) => {
+            TileDb::open_with_cache(dir, verify, Arc::clone(&cache)).map_err(anyhow::Error::from)
+        }
+        crate::store::Location::Store(url) => {
+            let store = crate::store::connect(url)?;
+            let source = Arc::new(crate::store::StoreSource {
+                store,
+                url: url.clone(),
+                cache: Arc::clone(&cache),
+            });
+            runtime.block_on(async {
+                let version = crate::store::current_version(&*source.store, url).await?;
+                anyhow::Ok(TileDb::open_store(source, &version, verify).await?)
+            })
+        }
+    };
+    let db = opened.with_context(|| format!("cannot serve {}", args.db))?;
     let manifest = db.manifest();
     tracing::info!(
-        db = %args.db.display(),
+        db = %args.db,
         dataset = %manifest.dataset,
         content_version = %manifest.content_version,
         tiles = manifest.tile_count(),
@@ -168,17 +201,12 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
         tracing::info!("no web tiles in this database: the MapLibre and Cesium routes answer 404");
     }
     let mut state = AppState::with_verify(db, verify);
+    let from_store = matches!(args.db, crate::store::Location::Store(_));
+    state.metrics.register_cache(cache, from_store);
     state.public_url = args.public_url.clone();
     state.viewer = args.viewer.clone();
     let state = Arc::new(state);
     let options = args.options();
-
-    let mut runtime = tokio::runtime::Builder::new_multi_thread();
-    runtime.enable_all();
-    if args.worker_threads > 0 {
-        runtime.worker_threads(args.worker_threads);
-    }
-    let runtime = runtime.build().context("cannot start the async runtime")?;
     runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind(args.addr)
             .await

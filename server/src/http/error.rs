@@ -80,6 +80,9 @@ pub enum HttpError {
     Overloaded,
     #[error("the request took longer than {0:?}")]
     Timeout(Duration),
+    /// The object store behind the server did not answer for a blob not in its cache.
+    #[error("the tile store is unavailable; retry shortly: {0}")]
+    StoreUnavailable(String),
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -102,7 +105,9 @@ impl HttpError {
             HttpError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             // 503 rather than 408 for a timeout: 408 says the *client* was too slow to send
             // its request, while here the server was too slow to answer it.
-            HttpError::Overloaded | HttpError::Timeout(_) => StatusCode::SERVICE_UNAVAILABLE,
+            HttpError::Overloaded | HttpError::Timeout(_) | HttpError::StoreUnavailable(_) => {
+                StatusCode::SERVICE_UNAVAILABLE
+            }
             HttpError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -133,7 +138,10 @@ impl IntoResponse for HttpError {
         // Errors describe this server's state at this moment (a stale version, overload),
         // not a resource: no cache should keep them.
         headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
-        if matches!(self, HttpError::Overloaded | HttpError::Timeout(_)) {
+        if matches!(
+            self,
+            HttpError::Overloaded | HttpError::Timeout(_) | HttpError::StoreUnavailable(_)
+        ) {
             headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
         }
         if matches!(self, HttpError::MethodNotAllowed) {

@@ -11,7 +11,13 @@
 //! - `http_response_body_bytes_total{route,status}`: body bytes handed to the connection
 //!   (after gzip, so the manifest counts what went on the wire);
 //! - `http_requests_in_flight`: requests between routing and the end of their body;
-//! - `database_reloads_total`: rebuilt databases put in place of the one served.
+//! - `database_reloads_total`: rebuilt databases put in place of the one served;
+//! - the cache of hot blobs ([`crate::store::BlobCache`]): `blob_cache_requests_total`
+//!   (blob bodies asked of it), its loads on a miss (`store_gets_total`,
+//!   `store_get_errors_total`, `store_read_bytes_total` for a database in an object store;
+//!   `pack_reads_total`, `pack_read_errors_total`, `pack_read_bytes_total` for a
+//!   directory), and the gauges `blob_cache_bytes` (held), `blob_cache_capacity_bytes` and
+//!   `blob_cache_hit_ratio` (1 - loads / requests, since the start).
 
 use super::AppState;
 use axum::body::{Body, HttpBody};
@@ -87,6 +93,16 @@ pub struct Metrics {
     latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
     in_flight: Gauge,
     reloads: Counter,
+    cache: Option<CacheGauges>,
+}
+
+/// The gauges of a store's cache, set from it each time the metrics are read.
+#[derive(Debug)]
+struct CacheGauges {
+    cache: Arc<crate::store::BlobCache>,
+    held: Gauge,
+    capacity: Gauge,
+    hit_ratio: Gauge<f64, std::sync::atomic::AtomicU64>,
 }
 
 impl Default for Metrics {
@@ -144,7 +160,69 @@ impl Metrics {
             body_bytes,
             latency,
             in_flight,
+            cache: None,
         }
+    }
+
+    /// Reports the counters and gauges of the cache of hot blobs: its loads named for what
+    /// they are, GETs to an object store (`from_store`) or reads of a local pack.
+    pub fn register_cache(&mut self, cache: Arc<crate::store::BlobCache>, from_store: bool) {
+        let r = &mut self.registry;
+        let (loads, errors, bytes) = if from_store {
+            (
+                (
+                    "store_gets",
+                    "Ranged GETs sent to the object store (cache misses)",
+                ),
+                (
+                    "store_get_errors",
+                    "GETs to the object store that failed after retries",
+                ),
+                ("store_read_bytes", "Bytes read from the object store"),
+            )
+        } else {
+            (
+                (
+                    "pack_reads",
+                    "Blobs read from the local packs (cache misses)",
+                ),
+                (
+                    "pack_read_errors",
+                    "Reads of the local packs that failed (a pack changed)",
+                ),
+                ("pack_read_bytes", "Bytes read from the local packs"),
+            )
+        };
+        r.register(
+            "blob_cache_requests",
+            "Blob bodies asked of the cache of hot blobs",
+            cache.requests.clone(),
+        );
+        r.register(loads.0, loads.1, cache.loads.clone());
+        r.register(errors.0, errors.1, cache.load_errors.clone());
+        r.register(bytes.0, bytes.1, cache.loaded_bytes.clone());
+        let gauges = CacheGauges {
+            cache,
+            held: Gauge::default(),
+            capacity: Gauge::default(),
+            hit_ratio: Gauge::default(),
+        };
+        r.register(
+            "blob_cache_bytes",
+            "Bytes the cache of hot blobs holds",
+            gauges.held.clone(),
+        );
+        r.register(
+            "blob_cache_capacity_bytes",
+            "The cache's limit in bytes (serve --cache-bytes)",
+            gauges.capacity.clone(),
+        );
+        r.register(
+            "blob_cache_hit_ratio",
+            "Blob requests answered without a load, since the start",
+            gauges.hit_ratio.clone(),
+        );
+        self.cache = Some(gauges);
     }
 
     /// The whole registry in the OpenMetrics text format.
@@ -174,6 +252,18 @@ impl Metrics {
     }
 
     pub fn encode(&self) -> Result<String, std::fmt::Error> {
+        if let Some(store) = &self.cache {
+            let requests = store.cache.requests.get();
+            let gets = store.cache.loads.get();
+            store.held.set(store.cache.held() as i64);
+            store.capacity.set(store.cache.capacity() as i64);
+            let ratio = if requests == 0 {
+                0.0
+            } else {
+                1.0 - gets.min(requests) as f64 / requests as f64
+            };
+            store.hit_ratio.set(ratio);
+        }
         let mut text = String::new();
         prometheus_client::encoding::text::encode(&mut text, &self.registry)?;
         Ok(text)

@@ -52,6 +52,11 @@ use tower_http::cors::{Any, CorsLayer};
 pub struct AppState {
     /// The database served now; [`AppState::reload`] puts a rebuilt one in its place.
     db: RwLock<Arc<TileDb>>,
+    /// For a database in an object store, the version served before the last reload: still
+    /// answered to requests that name it (a client, or a cache, mid-flight on the old
+    /// manifest), since the store keeps it. A local directory's old version is closed
+    /// instead, so that its disk space is freed.
+    previous: RwLock<Option<Arc<TileDb>>>,
     /// How a database is checked when it is opened again.
     verify: Verify,
     pub metrics: Metrics,
@@ -82,6 +87,7 @@ impl AppState {
     pub fn with_verify(db: TileDb, verify: Verify) -> AppState {
         AppState {
             db: RwLock::new(Arc::new(db)),
+            previous: RwLock::new(None),
             verify,
             metrics: Metrics::new(),
             public_url: None,
@@ -100,24 +106,64 @@ impl AppState {
         )
     }
 
-    /// Opens the database directory again and serves what it holds now, when its content
-    /// version differs (a build with `--force` replaced it). On an error (the directory
-    /// missing, a build's lock in it, a damaged pack) the database served stays.
-    pub fn reload(&self) -> Result<Reloaded, crate::db::DbError> {
+    /// The database a request naming `content_version` is answered from: the one served,
+    /// or (for a store) the one served before the last reload.
+    pub fn db_for(&self, content_version: &str) -> Result<Arc<TileDb>, HttpError> {
+        let current = self.db();
+        if current.manifest().content_version == content_version {
+            return Ok(current);
+        }
+        let previous = self
+            .previous
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone();
+        if let Some(previous) = previous
+            && previous.manifest().content_version == content_version
+        {
+            return Ok(previous);
+        }
+        check_content_version(&current, content_version).map(|()| current)
+    }
+
+    /// Opens the database again (the directory, or the version the store's pointer names)
+    /// and serves what it holds now, when its content version differs. On an error (the
+    /// directory missing, a build's lock in it, a damaged pack, the store down) the database
+    /// served stays.
+    pub async fn reload(&self) -> Result<Reloaded, crate::db::DbError> {
         // What is needed of the database served, and no reference to it held past here:
         // once the swap below is done, the last request that took it closes its packs.
-        let (dir, from) = {
+        let (origin, from) = {
             let current = self.db();
             (
-                current.dir().to_path_buf(),
+                current.origin().clone(),
                 current.manifest().content_version.clone(),
             )
         };
-        let fresh = TileDb::open(&dir, self.verify)?;
+        let fresh = match origin {
+            crate::db::Origin::Dir(dir) => {
+                let verify = self.verify;
+                let cache = Arc::clone(self.db().cache());
+                tokio::task::spawn_blocking(move || TileDb::open_with_cache(&dir, verify, cache))
+                    .await
+                    .map_err(|e| crate::db::DbError::Io {
+                        path: std::path::PathBuf::from("(reload)"),
+                        source: std::io::Error::other(e.to_string()),
+                    })??
+            }
+            crate::db::Origin::Store { source, .. } => {
+                let version = crate::store::current_version(&*source.store, &source.url).await?;
+                if version == from {
+                    return Ok(Reloaded::Unchanged);
+                }
+                TileDb::open_store(source, &version, self.verify).await?
+            }
+        };
         let to = fresh.manifest().content_version.clone();
         if from == to {
             return Ok(Reloaded::Unchanged);
         }
+        let keep_previous = matches!(fresh.origin(), crate::db::Origin::Store { .. });
         // Counted before the new version can be seen, so whoever sees it sees the count.
         self.metrics.reloaded();
         let replaced = std::mem::replace(
@@ -129,7 +175,20 @@ impl AppState {
         );
         // Outside the lock: unmapping the old packs (when no request holds them) does not
         // hold up the requests taking the new database.
-        drop(replaced);
+        let kept = if keep_previous {
+            Some(replaced)
+        } else {
+            drop(replaced);
+            None
+        };
+        let dropped = std::mem::replace(
+            &mut *self
+                .previous
+                .write()
+                .unwrap_or_else(std::sync::PoisonError::into_inner),
+            kept,
+        );
+        drop(dropped);
         Ok(Reloaded::Replaced { from, to })
     }
 }

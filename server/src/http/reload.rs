@@ -9,6 +9,10 @@
 //! - **a poll** of the manifest's identity (device, inode, size, modification time) every
 //!   `--reload-poll` seconds: a `stat`, nothing read.
 //!
+//! A database in an object store ([`crate::store`]) is polled by reading its pointer
+//! object every `--reload-poll` seconds (a GET of a few bytes); the version it served
+//! before stays answered to requests that name it.
+//!
 //! A request takes the database once ([`AppState::db`]), so requests already running end
 //! with the old one; when the last of them ends the old packs are closed and unmapped, and
 //! the disk space of the deleted files is freed. A reload that fails (a directory missing
@@ -48,8 +52,13 @@ fn identity(path: &Path) -> Option<Identity> {
 /// Reloads `state`'s database on SIGHUP and, with `poll`, whenever its manifest file
 /// changes. Runs until the runtime ends.
 pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
-    let manifest: PathBuf = state.db().dir().join("manifest.json");
-    let mut seen = identity(&manifest);
+    // A directory's manifest file, watched by its identity; a store's pointer is read at
+    // every poll instead (the reload compares the version it names with the one served).
+    let manifest: Option<PathBuf> = match state.db().origin() {
+        crate::db::Origin::Dir(dir) => Some(dir.join("manifest.json")),
+        crate::db::Origin::Store { .. } => None,
+    };
+    let mut seen = manifest.as_deref().and_then(identity);
     #[cfg(unix)]
     let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
         Ok(signal) => Some(signal),
@@ -70,7 +79,12 @@ pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
         let why = tokio::select! {
             () = hangup_received => "SIGHUP received",
             () = sleep_or_forever(poll) => {
-                let now = identity(&manifest);
+                let Some(manifest) = &manifest else {
+                    // A store: the pointer is read by the reload itself.
+                    poll_store(&state).await;
+                    continue;
+                };
+                let now = identity(manifest);
                 // Missing for the moment (a build renaming its directory into place), or
                 // the file already served: nothing to do.
                 if now.is_none() || now == seen {
@@ -80,21 +94,44 @@ pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
             }
         };
         // Seen whatever the outcome: a damaged rebuild is tried once, not every poll.
-        seen = identity(&manifest);
-        let reloading = Arc::clone(&state);
-        match tokio::task::spawn_blocking(move || reloading.reload()).await {
-            Ok(Ok(Reloaded::Replaced { from, to })) => {
+        seen = manifest.as_deref().and_then(identity);
+        match state.reload().await {
+            Ok(Reloaded::Replaced { from, to }) => {
                 tracing::info!(why, from = %from, to = %to, "serving the rebuilt database");
             }
-            Ok(Ok(Reloaded::Unchanged)) => {
+            Ok(Reloaded::Unchanged) => {
                 tracing::info!(why, "the database is the one served; nothing reloaded");
             }
-            Ok(Err(error)) => tracing::warn!(
+            Err(error) => tracing::warn!(
                 why,
                 error = %format!("{:#}", anyhow::Error::new(error)),
                 "cannot open the database again; still serving the one before"
             ),
-            Err(error) => tracing::error!(%error, "the reload task failed"),
+        }
+    }
+}
+
+/// One poll of a store's pointer: a new version is opened and served; a store that does
+/// not answer is logged once per outage, not once per poll.
+async fn poll_store(state: &AppState) {
+    static FAILING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    match state.reload().await {
+        Ok(Reloaded::Replaced { from, to }) => {
+            tracing::info!(from = %from, to = %to, "the store's pointer names a new version: serving it");
+            FAILING.store(false, std::sync::atomic::Ordering::Relaxed);
+        }
+        Ok(Reloaded::Unchanged) => {
+            if FAILING.swap(false, std::sync::atomic::Ordering::Relaxed) {
+                tracing::info!("the object store answers again");
+            }
+        }
+        Err(error) => {
+            if !FAILING.swap(true, std::sync::atomic::Ordering::Relaxed) {
+                tracing::warn!(
+                    error = %format!("{:#}", anyhow::Error::new(error)),
+                    "cannot read the store's pointer; still serving the version before"
+                );
+            }
         }
     }
 }

@@ -192,11 +192,10 @@ pub(super) async fn heights(
     check_canonical(&uri, HEIGHTS_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     super::check_in_grid(&db, id)?;
     let blob = db.heights(id).ok_or_else(|| super::outside_grid(&db, id))?;
-    stored_entity(&conditional, blob, HEIGHTS_CONTENT_TYPE, TILE_CACHE_CONTROL)
+    stored_entity(&conditional, blob, HEIGHTS_CONTENT_TYPE, TILE_CACHE_CONTROL).await
 }
 
 pub(super) async fn patch(
@@ -208,11 +207,10 @@ pub(super) async fn patch(
     check_canonical(&uri, PATCH_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     super::check_in_grid(&db, id)?;
     let blob = db.patch(id).ok_or(HttpError::NoPatches)?;
-    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
+    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL).await
 }
 
 pub(super) async fn patch_index(
@@ -223,10 +221,9 @@ pub(super) async fn patch_index(
 ) -> Result<Response, HttpError> {
     check_canonical(&uri, PATCH_INDEX_SPELLING)?;
     let Path(path) = path.map_err(malformed_path)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     let blob = db.patch_index().ok_or(HttpError::NoPatches)?;
-    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL)
+    stored_entity(&conditional, blob, PATCH_CONTENT_TYPE, TILE_CACHE_CONTROL).await
 }
 
 pub(super) async fn texture(
@@ -239,8 +236,7 @@ pub(super) async fn texture(
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile(&path.level, &path.x, &path.y)?;
     let level = parse_number("texture level", &path.mip)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     super::check_in_grid(&db, id)?;
     let manifest = db.manifest();
     let blob = db.texture(id, level).ok_or(HttpError::NoSuchTextureLevel {
@@ -249,7 +245,7 @@ pub(super) async fn texture(
         last: manifest.texture.levels.saturating_sub(1),
     })?;
     let content_type = manifest.texture.format.content_type();
-    stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL)
+    stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL).await
 }
 
 /// A level-0 tile URL of the single-level API: checked like any tile URL, then a permanent
@@ -267,8 +263,7 @@ pub(super) async fn legacy_tile(
     check_canonical(&uri, spelling)?;
     let Path(path) = path.map_err(malformed_path)?;
     let id = parse_tile("0", &path.x, &path.y)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     super::check_in_grid(&db, id)?;
     let cv = &path.content_version;
     let location = match &path.mip {
@@ -323,26 +318,50 @@ pub(super) fn entity(
     }
 }
 
-/// [`entity`] for a blob of the database, read from its pack only when a body is sent
-/// ([`StoredBlob::read`]): a pack changed under the server gives a 500 naming it, and a
-/// line in the log, instead of a dead process or a 200 with an empty body.
-pub(super) fn stored_entity(
+/// [`entity`] for a blob of the database, read only when a body is sent
+/// ([`StoredBlob::fetch`]): a local pack changed under the server, or a store's object
+/// changed, gives a 500 naming it; a store that does not answer gives a 503 with
+/// `Retry-After`; either way a line in the log, never a dead process or the wrong bytes.
+pub(super) async fn stored_entity(
     conditional: &Conditional,
     blob: &StoredBlob,
     content_type: &'static str,
     cache_control: &'static str,
 ) -> Result<Response, HttpError> {
-    entity_with(
+    let body = if conditional_matches(conditional, blob.etag.as_ref()) {
+        Bytes::new()
+    } else {
+        blob.fetch().await.map_err(|error| {
+            tracing::error!("{error}");
+            match error {
+                crate::store::ReadError::Unavailable { .. } => {
+                    HttpError::StoreUnavailable(error.to_string())
+                }
+                _ => HttpError::Internal(error.to_string()),
+            }
+        })?
+    };
+    Ok(entity(
         conditional,
+        &body,
         blob.etag.as_ref(),
         content_type,
         cache_control,
-        || blob.read(),
-    )
-    .map_err(|changed| {
-        tracing::error!("{changed}");
-        HttpError::Internal(changed.to_string())
-    })
+    ))
+}
+
+/// Whether `If-None-Match` matches `etag`: the answer is a 304 without a body.
+fn conditional_matches(conditional: &Conditional, etag: Option<&HeaderValue>) -> bool {
+    // The tag was made when the database opened; it is parsed only to answer an
+    // `If-None-Match`. A damaged manifest's blob without a valid tag is still served.
+    match (etag, &conditional.0) {
+        (Some(etag), Some(if_none_match)) => etag
+            .to_str()
+            .ok()
+            .and_then(|tag| tag.parse::<ETag>().ok())
+            .is_some_and(|tag| !if_none_match.precondition_passes(&tag)),
+        _ => false,
+    }
 }
 
 fn entity_with<E>(
@@ -352,16 +371,7 @@ fn entity_with<E>(
     cache_control: &'static str,
     body: impl FnOnce() -> Result<Bytes, E>,
 ) -> Result<Response, E> {
-    // The tag was made when the database opened; it is parsed only to answer an
-    // `If-None-Match`. A damaged manifest's blob without a valid tag is still served.
-    let not_modified = match (etag, &conditional.0) {
-        (Some(etag), Some(if_none_match)) => etag
-            .to_str()
-            .ok()
-            .and_then(|tag| tag.parse::<ETag>().ok())
-            .is_some_and(|tag| !if_none_match.precondition_passes(&tag)),
-        _ => false,
-    };
+    let not_modified = conditional_matches(conditional, etag);
     let mut response = if not_modified {
         // RFC 9110 section 15.4.5: a 304 repeats the validators and caching headers of the 200,
         // but carries no body and no Content-Type.

@@ -235,8 +235,7 @@ pub(super) async fn tile(
             canonical: spelling,
         })?;
     let y = super::routes::parse_number("y coordinate", y)?;
-    let db = state.db();
-    super::check_content_version(&db, &path.content_version)?;
+    let db = state.db_for(&path.content_version)?;
     let info = web_info(&db)?;
     let entry = Entry { kind, z, x, y };
     let blob = db.web_tile(entry).ok_or(HttpError::NoWebTile {
@@ -253,7 +252,7 @@ pub(super) async fn tile(
         Kind::QuantizedMesh => QUANTIZED_MESH_CONTENT_TYPE,
         _ => "image/png",
     };
-    let mut response = stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL)?;
+    let mut response = stored_entity(&conditional, blob, content_type, TILE_CACHE_CONTROL).await?;
     if kind == Kind::QuantizedMesh && response.status() == axum::http::StatusCode::OK {
         response
             .headers_mut()

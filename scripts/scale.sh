@@ -1,0 +1,161 @@
+#!/usr/bin/env bash
+# Serving at scale, on this machine: a SeaweedFS object store, a build written to it, two
+# (or --replicas N) stateless `terrain-server serve s3://…` replicas and nginx caching in
+# front, then two flights through nginx (cold cache, then warm). Prints what the store, the
+# replicas' caches and nginx's cache did, and writes OUT/summary.md (stamped with the commit
+# and the machine).
+#
+#   bash scripts/scale.sh                       # the bundled jacksboro sample
+#   bash scripts/scale.sh DEM [--memory 16MiB] [--replicas 2] [--out out/scale] [--keep]
+#
+# DEM is any input `terrain-server build` takes (for example the data kit's
+# himalaya_4097/himalaya_4097.png). --keep leaves everything running until Ctrl-C, to look
+# around (the store's S3 endpoint, each replica's /metrics, nginx) by hand.
+# Installs weed and nginx when missing (scripts/scale-setup.sh).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+ARGS="$*"
+DEM=tests/fixtures/jacksboro/jacksboro_fault_dem.png
+MEMORY=16MiB
+REPLICAS=2
+OUT=out/scale
+KEEP=0
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --memory) MEMORY="$2"; shift 2 ;;
+    --replicas) REPLICAS="$2"; shift 2 ;;
+    --out) OUT="$2"; shift 2 ;;
+    --keep) KEEP=1; shift ;;
+    -h|--help) sed -n '2,13p' "$0"; exit 0 ;;
+    -*) echo "scale.sh: unknown option $1 (see --help)" >&2; exit 64 ;;
+    *) DEM="$1"; shift ;;
+  esac
+done
+[ -e "$DEM" ] || { echo "scale.sh: $DEM does not exist" >&2; exit 66; }
+say() { printf '[scale] %s\n' "$*"; }
+
+tools=$(bash scripts/scale-setup.sh)
+WEED=$(sed -n 's/^weed: \([^ ]*\).*/\1/p' <<<"$tools")
+NGINX=$(sed -n 's/^nginx: \([^ ]*\).*/\1/p' <<<"$tools")
+cargo build --release --locked -p terrain-server -p terrain-client -q
+SERVER=target/release/terrain-server
+CLIENT=target/release/terrain-client
+source scripts/stamp.sh
+
+rm -rf "$OUT"
+mkdir -p "$OUT"/store "$OUT"/nginx
+OUT=$(cd "$OUT" && pwd)
+pids=()
+cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; wait 2>/dev/null || true; }
+trap cleanup EXIT
+
+# Loopback ports: SeaweedFS also takes each port + 10000 for gRPC.
+read -r MASTER VOLUME FILER S3 ADMIN NGINX_PORT < <(python3 - <<'EOF'
+import socket
+ports = []
+while len(ports) < 6:
+    s = socket.socket(); s.bind(("127.0.0.1", 0)); p = s.getsockname()[1]
+    if p >= 55000:
+        s.close(); continue
+    try:
+        t = socket.socket(); t.bind(("127.0.0.1", p + 10000)); t.close()
+    except OSError:
+        s.close(); continue
+    if p not in ports: ports.append(p)
+    s.close()
+print(*ports)
+EOF
+)
+export AWS_ACCESS_KEY_ID=terrain AWS_SECRET_ACCESS_KEY=terrain-local-secret AWS_REGION=us-east-1
+export AWS_ENDPOINT="http://127.0.0.1:$S3" AWS_ALLOW_HTTP=true
+NAME=$(basename "${DEM%.*}")
+URL="s3://tiles/$NAME"
+
+say "object store: weed mini, S3 on $AWS_ENDPOINT, data in $OUT/store"
+"$WEED" mini -dir="$OUT/store" -ip=127.0.0.1 -ip.bind=127.0.0.1 -master.port="$MASTER" \
+  -volume.port="$VOLUME" -filer.port="$FILER" -s3.port="$S3" -admin.port="$ADMIN" -admin.ui=false \
+  -webdav=false -s3.port.iceberg=0 -s3.port.lance=0 -master.telemetry=false -bucket=tiles \
+  >"$OUT/store.log" 2>&1 &
+pids+=($!)
+for _ in $(seq 300); do curl -s -o /dev/null "$AWS_ENDPOINT/" && break; sleep 0.2; done
+
+say "building $DEM into $URL"
+built=0
+for attempt in 1 2 3 4 5; do
+  if /usr/bin/time -f '%e s, peak RSS %M KiB' -o "$OUT/build.time" \
+      "$SERVER" build "$DEM" --out "$URL" -q >"$OUT/build.txt" 2>"$OUT/build.err"; then
+    built=1; break
+  fi
+  say "the store is not taking writes yet (attempt $attempt): $(tail -n1 "$OUT/build.err")"; sleep 2
+done
+[ "$built" = 1 ] || { cat "$OUT/build.err" >&2; exit 1; }
+cat "$OUT/build.txt"
+
+upstreams=""
+bases=()
+for i in $(seq "$REPLICAS"); do
+  "$SERVER" serve "$URL" --addr 127.0.0.1:0 >"$OUT/replica$i.out" 2>"$OUT/replica$i.log" &
+  pids+=($!)
+  for _ in $(seq 200); do grep -q '^listening on ' "$OUT/replica$i.out" 2>/dev/null && break; sleep 0.05; done
+  base=$(sed -n 's/^listening on //p' "$OUT/replica$i.out")
+  [ -n "$base" ] || { cat "$OUT/replica$i.log" >&2; exit 1; }
+  bases+=("$base")
+  upstreams+="        server ${base#http://} max_fails=1 fail_timeout=2s;"$'\n'
+  say "replica $i: $base"
+done
+
+sed -e "s|@DIR@|$OUT/nginx|g" -e "s|@LISTEN@|127.0.0.1:$NGINX_PORT|" docker/nginx-replicas.conf.in \
+  | awk -v ups="$upstreams" '{ if ($0 == "@UPSTREAMS@") printf "%s", ups; else print }' >"$OUT/nginx/nginx.conf"
+"$NGINX" -p "$OUT/nginx" -c "$OUT/nginx/nginx.conf" -g 'daemon off;' 2>"$OUT/nginx/stderr.log" &
+pids+=($!)
+PROXY="http://127.0.0.1:$NGINX_PORT"
+for _ in $(seq 200); do curl -s -o /dev/null "$PROXY/healthz" && break; sleep 0.05; done
+say "nginx: $PROXY (cache in $OUT/nginx/cache)"
+
+gets() { local n=0; for b in "${bases[@]}"; do
+  n=$((n + $(curl -s "$b/metrics" | awk '$1 == "store_gets_total" {printf "%d", $2}'))); done; echo "$n"; }
+lines() { wc -l <"$OUT/nginx/access.log" 2>/dev/null || echo 0; }
+
+flight() { # name
+  local before_gets before_lines
+  before_gets=$(gets); before_lines=$(lines)
+  "$CLIENT" fly --server "$PROXY" --no-render --memory "$MEMORY" --out "$OUT/$1" -q | tee "$OUT/$1.txt"
+  local after_lines; after_lines=$(lines)
+  local hits; hits=$(tail -n +"$((before_lines + 1))" "$OUT/nginx/access.log" | grep -c '^HIT ' || true)
+  echo "$1|$((after_lines - before_lines))|$hits|$(( $(gets) - before_gets ))|$(grep -o '[0-9]* failures' "$OUT/$1.txt" | head -n1)" >>"$OUT/flights.txt"
+}
+say "flight 1 through nginx, cold cache"
+flight cold
+say "flight 2 through nginx, warm cache"
+flight warm
+
+{
+  echo "# Serving at scale: $NAME"
+  echo
+  echo "$(stamp_line); \`bash scripts/scale.sh $*\`"
+  echo
+  echo "Build to the store: $(cat "$OUT/build.time"); $(grep '^published' "$OUT/build.txt")"
+  echo
+  echo "| flight | client requests through nginx | nginx cache hits | GETs to the store | client failures |"
+  echo "|---|---:|---:|---:|---|"
+  while IFS='|' read -r name requests hits g failures; do
+    echo "| $name | $requests | $hits | $g | $failures |"
+  done <"$OUT/flights.txt"
+  echo
+  echo "Each replica's store metrics at the end:"
+  echo
+  echo '```'
+  i=0
+  for b in "${bases[@]}"; do
+    i=$((i + 1))
+    curl -s "$b/metrics" | grep -E '^(store|blob_cache)_' | sed "s/^/replica $i: /"
+  done
+  echo '```'
+} >"$OUT/summary.md"
+cat "$OUT/summary.md"
+
+if [ "$KEEP" = 1 ]; then
+  say "running until Ctrl-C: nginx $PROXY, replicas ${bases[*]}, S3 $AWS_ENDPOINT"
+  wait
+fi

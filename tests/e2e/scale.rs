@@ -1,0 +1,437 @@
+//! Serving past one machine, run here for real: the database published to a SeaweedFS
+//! object store, `serve s3://…` replicas reading it by range through their caches, and
+//! nginx with `proxy_cache` in front of them (`terrain_tests::scale`).
+
+use std::ffi::OsStr;
+use std::path::Path;
+use std::time::{Duration, Instant};
+use terrain_client::flight::{FlightArgs, FlightSummary, StreamArgs, fly};
+use terrain_client::memory::MemorySize;
+use terrain_server::db::{TileDb, Verify};
+use terrain_shared::{Manifest, TileId, routes};
+use terrain_tests::data::{jacksboro, kit_file};
+use terrain_tests::fixtures::{Options, database};
+use terrain_tests::scale::{
+    BUCKET, Nginx, ObjectStore, Replica, get, metric, server_command, tools,
+};
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime")
+}
+
+/// `terrain-server publish DB s3://tiles/NAME`: the location's URL.
+fn publish(store: &ObjectStore, db: &Path, name: &str) -> String {
+    let url = format!("s3://{BUCKET}/{name}");
+    let out = server_command(
+        store,
+        &[
+            OsStr::new("publish"),
+            db.as_os_str(),
+            OsStr::new(&url),
+            OsStr::new("--quiet"),
+        ],
+    );
+    assert!(out.contains("the pointer names it"), "{out}");
+    url
+}
+
+/// Every URL of the database: heights, every texture level, patches and their index, web tiles.
+fn every_url(db: &TileDb) -> Vec<String> {
+    let manifest = db.manifest();
+    let cv = &manifest.content_version;
+    let mut urls = Vec::new();
+    for (id, _) in manifest.tiles() {
+        urls.push(routes::heights(cv, id));
+        for level in 0..manifest.texture.levels {
+            urls.push(routes::texture(cv, id, level));
+        }
+        if manifest.patches.is_some() {
+            urls.push(routes::patch(cv, id));
+        }
+    }
+    if manifest.patches.is_some() {
+        urls.push(routes::patch_index(cv));
+    }
+    for (entry, _) in db.web_tiles() {
+        urls.push(terrain_server::http::web::tile_path(cv, *entry));
+    }
+    urls
+}
+
+/// Publishes `dir` to a store, serves it from the directory and from the store, and checks
+/// every URL gives the same status, entity tag and bytes from both.
+fn byte_identical(test: &str, dir: &Path) {
+    let Some(tools) = tools(test) else { return };
+    let store = ObjectStore::start(&tools);
+    let url = publish(&store, dir, test);
+    let local = Replica::start(&store, &dir.to_string_lossy(), &[]);
+    let remote = Replica::start(&store, &url, &[]);
+    let db = TileDb::open(dir, Verify::SizesOnly).expect("opens");
+    let urls = every_url(&db);
+    let mut bytes = 0usize;
+    for path in &urls {
+        let (status_a, headers_a, body_a) = get(&format!("{}{path}", local.base));
+        let (status_b, headers_b, body_b) = get(&format!("{}{path}", remote.base));
+        assert_eq!(status_a, 200, "{path} from the directory");
+        assert_eq!(status_b, 200, "{path} from the store: {}", remote.log());
+        assert_eq!(headers_a.get("etag"), headers_b.get("etag"), "{path}");
+        assert_eq!(
+            headers_a.get("content-type"),
+            headers_b.get("content-type"),
+            "{path}"
+        );
+        assert!(body_a == body_b, "{path}: the bytes differ");
+        bytes += body_b.len();
+    }
+    let manifest = |base: &str| get(&format!("{base}{}", routes::MANIFEST)).2;
+    assert_eq!(manifest(&local.base), manifest(&remote.base));
+    let metrics = terrain_tests::scale::get_text(&format!("{}/metrics", remote.base));
+    let gets = metric(&metrics, "store_gets_total");
+    let asked = metric(&metrics, "blob_cache_requests_total");
+    // Every body but the patch index's, which is read whole at open and held.
+    let from_store = urls.len() - usize::from(db.manifest().patches.is_some());
+    assert_eq!(asked as usize, from_store, "{metrics}");
+    assert!(gets >= 1.0 && gets <= asked, "{metrics}");
+    println!(
+        "{test}: {} URLs, {bytes} bytes, identical from the directory and from the store ({gets} GETs)",
+        urls.len()
+    );
+}
+
+#[test]
+fn every_tile_of_jacksboro_is_byte_identical_from_the_directory_and_from_the_store() {
+    byte_identical("jacksboro", &database(&jacksboro(), Options::WithPatches));
+}
+
+#[test]
+fn every_tile_of_puget_sound_is_byte_identical_from_the_directory_and_from_the_store() {
+    let test = "puget_sound_from_the_store";
+    let Some(png) = kit_file(test, "puget_sound_1k/ps_height_1k.png") else {
+        return;
+    };
+    byte_identical(test, &database(&png, Options::Defaults));
+}
+
+/// The topology of `docker-compose.yml`, on loopback: a store, the jacksboro database
+/// published to it, two replicas and nginx in front.
+struct Topology {
+    store: ObjectStore,
+    replicas: Vec<Replica>,
+    nginx: Nginx,
+    manifest: Manifest,
+}
+
+fn topology(tools: &terrain_tests::scale::Tools, name: &str) -> Topology {
+    let store = ObjectStore::start(tools);
+    let dir = database(&jacksboro(), Options::Defaults);
+    let url = publish(&store, &dir, name);
+    let replicas: Vec<Replica> = (0..2)
+        .map(|_| Replica::start(&store, &url, &["--reload-poll", "0.2"]))
+        .collect();
+    let nginx = Nginx::start(tools, &replicas.iter().map(|r| r.addr).collect::<Vec<_>>());
+    let manifest = TileDb::open(&dir, Verify::SizesOnly)
+        .expect("opens")
+        .manifest()
+        .clone();
+    Topology {
+        store,
+        replicas,
+        nginx,
+        manifest,
+    }
+}
+
+/// A flight that pages jacksboro in room for about three level-0 tiles, so that tiles are
+/// evicted and asked for again: paced in wall-clock time, through `base`.
+fn tight_flight(base: &str, out: &Path, manifest: &Manifest) -> FlightArgs {
+    let budget = terrain_tests::data::budget_for_level_0_tiles(manifest, 3);
+    let mut stream = StreamArgs::new(base, Some(MemorySize(budget)));
+    stream.concurrency = 2;
+    FlightArgs {
+        no_render: true,
+        ..FlightArgs::new(stream, out)
+    }
+}
+
+/// No tile given up, the same content throughout, and the square whole at the still end.
+fn assert_nothing_lost(summary: &FlightSummary) {
+    assert!(summary.unavailable.is_empty(), "{summary}");
+    assert!(summary.content_changes.is_empty(), "{summary}");
+    assert!(summary.final_complete_belts >= 1, "{summary}");
+    assert!(summary.tiles_fetched >= 1, "{summary}");
+}
+
+#[test]
+fn replicas_behind_nginx_share_the_requests_and_a_replica_killed_mid_flight_loses_nothing() {
+    let Some(tools) = tools("replicas behind nginx") else {
+        return;
+    };
+    let mut t = topology(&tools, "replicas");
+    let cv = t.manifest.content_version.clone();
+
+    // A MISS, then a HIT, keyed on the URL; the second never reaches a replica.
+    let path = routes::heights(&cv, TileId::new(0, 0));
+    let (status, first, body) = get(&format!("{}{path}", t.nginx.base));
+    assert_eq!(status, 200);
+    assert_eq!(first["x-cache-status"], "MISS");
+    let (_, second, again) = get(&format!("{}{path}", t.nginx.base));
+    assert_eq!(second["x-cache-status"], "HIT");
+    assert_eq!(body, again);
+
+    // Misses spread over both replicas (nginx's round robin).
+    let cv_tiles: Vec<String> = t
+        .manifest
+        .tiles()
+        .map(|(id, _)| routes::texture(&cv, id, 0))
+        .collect();
+    let mut upstreams = std::collections::BTreeSet::new();
+    for path in &cv_tiles {
+        let (status, headers, _) = get(&format!("{}{path}", t.nginx.base));
+        assert_eq!(status, 200, "{path}");
+        upstreams.insert(headers["x-upstream"].to_str().expect("ascii").to_string());
+    }
+    assert_eq!(
+        upstreams.len(),
+        2,
+        "every miss went to one replica: {upstreams:?}"
+    );
+    let served: Vec<f64> = t
+        .replicas
+        .iter()
+        .map(|r| r.metric("blob_cache_requests_total"))
+        .collect();
+    assert!(served.iter().all(|n| *n >= 1.0), "{served:?}");
+
+    // A flight through nginx; one replica killed once the flight is under way.
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let flight = tight_flight(&t.nginx.base, &tmp.path().join("flight"), &t.manifest);
+    let flying = std::thread::spawn(move || runtime().block_on(fly(&flight)));
+    let started = Instant::now();
+    let blobs = |t: &Topology| -> f64 {
+        t.replicas
+            .iter()
+            .map(|r| r.metric("blob_cache_requests_total"))
+            .sum()
+    };
+    let before = blobs(&t);
+    // Under way: a few tiles through nginx to the replicas.
+    while blobs(&t) < before + 3.0 {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the flight sent nothing"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(!flying.is_finished(), "the replica must die mid-flight");
+    let gets_of_the_killed = t.replicas[0].metric("store_gets_total");
+    t.replicas[0].kill();
+    let killed_at = started.elapsed();
+    let survivor_before = t.replicas[1].metric("blob_cache_requests_total");
+    let summary = flying
+        .join()
+        .expect("flight thread")
+        .expect("the flight ends");
+    assert_nothing_lost(&summary);
+    assert_eq!(
+        summary.failures, 0,
+        "nginx retried on the live replica: {summary}"
+    );
+    let survivor_after = t.replicas[1].metric("blob_cache_requests_total");
+    assert!(
+        survivor_after > survivor_before,
+        "the live replica answered after the kill"
+    );
+    // GETs to the store against client requests: nginx's cache and the replicas' own
+    // keep the store's share below one GET a request.
+    let gets = gets_of_the_killed + t.replicas[1].metric("store_gets_total");
+    let log = t.nginx.access_log();
+    let hits = log.iter().filter(|l| l.starts_with("HIT ")).count();
+    assert!(
+        gets >= 1.0 && gets < log.len() as f64,
+        "{gets} GETs for {} requests",
+        log.len()
+    );
+    println!(
+        "replica killed at {:.2} s of the flight; the client fetched {} tiles, 0 failures, {} retries; \
+         {} client requests through nginx ({hits} cache hits), {gets} GETs to the store",
+        killed_at.as_secs_f64(),
+        summary.tiles_fetched,
+        summary.retries,
+        log.len()
+    );
+    drop(t.store);
+}
+
+#[test]
+fn with_the_store_down_cached_tiles_are_served_and_the_rest_fail_cleanly_until_it_returns() {
+    let Some(tools) = tools("store outage") else {
+        return;
+    };
+    let mut t = topology(&tools, "outage");
+    let cv = t.manifest.content_version.clone();
+    let ids: Vec<TileId> = t.manifest.tiles().map(|(id, _)| id).collect();
+    // Half the heights cached by nginx, the other half never asked.
+    let (cached, uncached) = ids.split_at(ids.len() / 2);
+    for id in cached {
+        let (status, _, _) = get(&format!("{}{}", t.nginx.base, routes::heights(&cv, *id)));
+        assert_eq!(status, 200);
+    }
+
+    t.store.stop();
+    for id in cached {
+        let (status, headers, _) = get(&format!("{}{}", t.nginx.base, routes::heights(&cv, *id)));
+        assert_eq!(status, 200, "cached tile {id} with the store down");
+        assert_eq!(headers["x-cache-status"], "HIT");
+    }
+    let path = routes::heights(&cv, uncached[0]);
+    let (status, headers, body) = get(&format!("{}{path}", t.nginx.base));
+    let text = String::from_utf8_lossy(&body);
+    assert_eq!(status, 503, "{text}");
+    assert!(text.contains("store is unavailable"), "{text}");
+    assert_eq!(headers["retry-after"], "1");
+    assert_eq!(headers["cache-control"], "no-store");
+    for replica in &t.replicas {
+        let (status, _, _) = get(&format!("{}/healthz", replica.base));
+        assert_eq!(status, 200, "a replica stays up while its store is down");
+    }
+    let errors: f64 = t
+        .replicas
+        .iter()
+        .map(|r| r.metric("store_get_errors_total"))
+        .sum();
+    assert!(errors >= 1.0);
+
+    // A flight that starts during the outage and goes on after the store returns.
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let flight = tight_flight(&t.nginx.base, &tmp.path().join("flight"), &t.manifest);
+    let flying = std::thread::spawn(move || runtime().block_on(fly(&flight)));
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(!flying.is_finished(), "the store must return mid-flight");
+    t.store.resume();
+    let summary = flying
+        .join()
+        .expect("flight thread")
+        .expect("the flight ends");
+    assert_nothing_lost(&summary);
+    let (status, headers, _) = get(&format!("{}{path}", t.nginx.base));
+    assert_eq!(status, 200, "recovered");
+    assert!(headers["x-cache-status"] == "MISS" || headers["x-cache-status"] == "HIT");
+
+    let requests = summary.tiles_fetched;
+    let gets: f64 = t
+        .replicas
+        .iter()
+        .map(|r| r.metric("store_gets_total"))
+        .sum();
+    println!(
+        "outage: {} client failures retried, {} tiles fetched, nothing given up; \
+         {gets} GETs to the store for the whole test",
+        summary.failures, requests
+    );
+}
+
+#[test]
+fn a_version_published_later_is_served_without_a_restart_and_the_one_before_still_answers() {
+    let Some(tools) = tools("store reload") else {
+        return;
+    };
+    let store = ObjectStore::start(&tools);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let first_dir = database(&jacksboro(), Options::Defaults);
+    let url = publish(&store, &first_dir, "reload");
+    let replica = Replica::start(&store, &url, &["--reload-poll", "0.1"]);
+    let first = TileDb::open(&first_dir, Verify::SizesOnly).expect("opens");
+    let first_cv = first.manifest().content_version.clone();
+    assert_eq!(served_version(&replica.base), first_cv);
+
+    // A second version whose packs are in the store but whose manifest is not (a publish
+    // cut short): not visible.
+    let second_dir = tmp.path().join("second");
+    let options = terrain_server::build::BuildOptions {
+        height_offset: Some(25.0),
+        ..terrain_server::build::BuildOptions::new(jacksboro(), &second_dir)
+    };
+    let second_cv = terrain_server::build::build(
+        &options,
+        &|_, _| {},
+        &std::sync::atomic::AtomicBool::new(false),
+    )
+    .expect("builds")
+    .manifest
+    .content_version;
+    assert_ne!(first_cv, second_cv);
+    let parsed = terrain_server::store::StoreUrl::parse(&url).expect("url");
+    let client = terrain_server::store::connect_with(&parsed, &store.env()).expect("client");
+    runtime().block_on(async {
+        use object_store::ObjectStoreExt as _;
+        let pack = std::fs::read(second_dir.join("heights.pack")).expect("pack");
+        client
+            .put(
+                &parsed.object(&second_cv, "heights.pack"),
+                object_store::PutPayload::from(pack),
+            )
+            .await
+            .expect("put");
+    });
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(
+        served_version(&replica.base),
+        first_cv,
+        "a half-published version"
+    );
+
+    // Published whole: served within a few polls, and the first still answers its URLs.
+    let out = server_command(
+        &store,
+        &[
+            OsStr::new("publish"),
+            second_dir.as_os_str(),
+            OsStr::new(&url),
+            OsStr::new("--quiet"),
+        ],
+    );
+    assert!(out.contains(&second_cv), "{out}");
+    let started = Instant::now();
+    while served_version(&replica.base) != second_cv {
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "never served: {}",
+            replica.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let tile = TileId::new(0, 0);
+    for cv in [&first_cv, &second_cv] {
+        let (status, _, _) = get(&format!("{}{}", replica.base, routes::heights(cv, tile)));
+        assert_eq!(status, 200, "version {cv}");
+    }
+    let (status, _, _) = get(&format!(
+        "{}{}",
+        replica.base,
+        routes::heights("0123456789abcdef", tile)
+    ));
+    assert_eq!(status, 404);
+    assert_eq!(replica.metric("database_reloads_total"), 1.0);
+
+    // Publishing a version again writes nothing: a version once complete is never modified.
+    let again = server_command(
+        &store,
+        &[
+            OsStr::new("publish"),
+            first_dir.as_os_str(),
+            OsStr::new(&url),
+            OsStr::new("--quiet"),
+        ],
+    );
+    assert!(again.contains("was already there"), "{again}");
+}
+
+fn served_version(base: &str) -> String {
+    let (status, _, body) = get(&format!("{base}{}", routes::MANIFEST));
+    assert_eq!(status, 200);
+    let manifest = Manifest::from_json(&body).expect("manifest");
+    manifest.content_version
+}
