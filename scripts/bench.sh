@@ -2,7 +2,9 @@
 # Every benchmark behind BENCHMARKS.md, in one run, on the data kit in $TERRAIN_DATA_DIR.
 # Writes its outputs under ${OUT:-out/bench}, and each bench's output, stamped with the
 # commit, machine and date, into docs/benchmarks/ and BENCHMARKS.md's generated blocks.
-# Needs nginx and wrk for the HTTP comparison (installed here when missing, as root).
+# Needs nginx and wrk for the HTTP comparison (installed here when missing, as root), and
+# SeaweedFS for the object store (scripts/scale-setup.sh). `ONLY=http` runs the databases
+# and the HTTP benchmarks alone.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 : "${TERRAIN_DATA_DIR:?set TERRAIN_DATA_DIR to the data kit (the directory holding himalaya_4097/ and puget_sound_1k/)}"
@@ -44,13 +46,24 @@ capture builder "terrain-server build himalaya_4097 --no-web" \
   /usr/bin/time -o /dev/stdout -f "himalaya_4097 (level 0 and its pyramid, no web tiles): built in %e s wall, peak RSS %M KiB" \
   "$bin/terrain-server" build "$TERRAIN_DATA_DIR/himalaya_4097/g10g_himalaya_4097.png" --out "$out/db/himalaya_4097" --force --quiet --no-web
 
-echo "== builder: levels in bounded memory, with and without voids"
-cargo bench -p terrain-server --bench build_memory -- "$out/build_memory" 2>/dev/null
-echo "== heights codec"
-capture codec "cargo bench -p terrain-server --bench codec" cargo bench -p terrain-server --bench codec
+if [ "${ONLY:-}" != http ]; then
+  echo "== builder: levels in bounded memory, with and without voids"
+  cargo bench -p terrain-server --bench build_memory -- "$out/build_memory" 2>/dev/null
+  echo "== heights codec"
+  capture codec "cargo bench -p terrain-server --bench codec" cargo bench -p terrain-server --bench codec
+fi
 echo "== HTTP: terrain-server against nginx"
 capture http-himalaya "cargo bench -p terrain-server --bench http_vs_nginx -- DB/himalaya_4097" cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/himalaya_4097"
 capture http-puget "cargo bench -p terrain-server --bench http_vs_nginx -- DB/puget_sound_1k" cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/puget_sound_1k"
+echo "== HTTP: from an object store, cold and warm, and behind nginx's cache"
+capture http-store "bash scripts/bench-store.sh DB/himalaya_4097 DB/puget_sound_1k" bash scripts/bench-store.sh "$out/db/himalaya_4097" "$out/db/puget_sound_1k"
+if [ "${ONLY:-}" = http ]; then
+  # `ONLY=http bash scripts/bench.sh`: the databases and the HTTP benchmarks alone.
+  for file in "${captured[@]}"; do
+    bash scripts/insert-generated.sh BENCHMARKS.md "$file"
+  done
+  exit 0
+fi
 echo "== a normal client under connection attacks"
 capture connection-attacks "cargo test --release -p terrain-tests --test load -- --nocapture" cargo test --release -p terrain-tests --test load -- --nocapture
 echo "== pager decision time"

@@ -99,12 +99,13 @@ if ! read -r -t 60 line <&3; then
 fi
 addr=${line#listening on http://}
 
-# Same paths as terrain_shared::routes::heights, cycled per wrk thread as in the benchmark.
+# Every level's tiles, as terrain_shared::routes::heights spells them, cycled per wrk thread as in the benchmark.
 curl -fsS "http://$addr/v1/manifest.json" >"$work/manifest.json"
 {
   echo "local paths = {"
-  jq -r '.content_version as $v | .tiles[] | "  \"/v1/\($v)/tiles/\(.x)/\(.y)/heights\","' \
-    "$work/manifest.json"
+  jq -r '.content_version as $v | .levels | to_entries[] | .key as $l | .value.grid as $g
+         | range(0; $g.rows) as $y | range(0; $g.columns) as $x
+         | "  \"/v1/\($v)/levels/\($l)/tiles/\($x)/\($y)/heights\","' "$work/manifest.json"
   echo "}"
   echo "local i = 0"
   echo "request = function()"
@@ -112,7 +113,7 @@ curl -fsS "http://$addr/v1/manifest.json" >"$work/manifest.json"
   echo "  return wrk.format(\"GET\", paths[i])"
   echo "end"
 } >"$work/cycle.lua"
-tiles=$(jq '.tiles | length' "$work/manifest.json")
+tiles=$(jq '[.levels[].grid | .rows * .columns] | add' "$work/manifest.json")
 
 load() {
   taskset -c "$wrk_cpu" wrk -t2 -c"$connections" -d"$1"s --latency -s "$work/cycle.lua" "http://$addr"

@@ -591,7 +591,9 @@ mod tests {
             Location::parse("db/jacksboro").expect("a directory"),
             Location::Dir(PathBuf::from("db/jacksboro"))
         );
-        let Location::Store(url) = Location::parse("s3://tiles/terrain/jacksboro/").expect("a store") else {
+        let Location::Store(url) =
+            Location::parse("s3://tiles/terrain/jacksboro/").expect("a store")
+        else {
             panic!("not a store");
         };
         assert_eq!(url.bucket, "tiles");

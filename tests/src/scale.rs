@@ -366,6 +366,13 @@ pub struct Nginx {
 impl Nginx {
     pub fn start(tools: &Tools, upstreams: &[SocketAddr]) -> Nginx {
         let dir = tempfile::tempdir().expect("tempdir");
+        // nginx's workers run as an unprivileged user when it is started as root.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt as _;
+            std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755))
+                .expect("chmod");
+        }
         let port = free_port();
         let conf = dir.path().join("nginx.conf");
         std::fs::write(&conf, nginx_conf(dir.path(), port, upstreams)).expect("config");

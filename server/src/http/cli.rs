@@ -69,8 +69,9 @@ pub struct ServeArgs {
     /// this directory under `/view/`; `/` then redirects to it.
     #[arg(long, value_name = "DIR")]
     pub viewer: Option<PathBuf>,
-    /// Seconds between two looks at the database's manifest file: when a build with
-    /// `--force` has replaced the database, the new one is served from then on, without a
+    /// Seconds between two looks at the database's manifest file (for a store, a GET of its
+    /// pointer object): when a build with `--force` has replaced the database, or a build
+    /// published a new version to the store, the new one is served from then on, without a
     /// restart (SIGHUP does the same at once). 0: only on SIGHUP.
     #[arg(long, value_name = "SECONDS", default_value_t = DEFAULT_RELOAD_POLL.as_secs_f64(), value_parser = seconds)]
     pub reload_poll: f64,
