@@ -7,10 +7,12 @@
 #
 #   bash scripts/scale.sh                       # the bundled jacksboro sample
 #   bash scripts/scale.sh DEM [--memory 16MiB] [--replicas 2] [--out out/scale] [--keep]
+#                            [--record docs/benchmarks/scale-NAME.md]
 #
 # DEM is any input `terrain-server build` takes (for example the data kit's
 # himalaya_4097/himalaya_4097.png). --keep leaves everything running until Ctrl-C, to look
-# around (the store's S3 endpoint, each replica's /metrics, nginx) by hand.
+# around (the store's S3 endpoint, each replica's /metrics, nginx) by hand. --record FILE
+# also writes the summary to FILE and puts it into README.md's generated block of that name.
 # Installs weed and nginx when missing (scripts/scale-setup.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,13 +23,15 @@ MEMORY=16MiB
 REPLICAS=2
 OUT=out/scale
 KEEP=0
+RECORD=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --memory) MEMORY="$2"; shift 2 ;;
     --replicas) REPLICAS="$2"; shift 2 ;;
     --out) OUT="$2"; shift 2 ;;
     --keep) KEEP=1; shift ;;
-    -h|--help) sed -n '2,13p' "$0"; exit 0 ;;
+    --record) RECORD="$2"; shift 2 ;;
+    -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
     -*) echo "scale.sh: unknown option $1 (see --help)" >&2; exit 64 ;;
     *) DEM="$1"; shift ;;
   esac
@@ -131,9 +135,9 @@ say "flight 2 through nginx, warm cache"
 flight warm
 
 {
-  echo "# Serving at scale: $NAME"
+  echo "**$NAME** through a SeaweedFS store, $REPLICAS replicas and nginx, flights at $MEMORY:"
   echo
-  echo "$(stamp_line); \`bash scripts/scale.sh $*\`"
+  echo "Run: $(stamp_line)."
   echo
   echo "Build to the store: $(cat "$OUT/build.time"); $(grep '^published' "$OUT/build.txt")"
   echo
@@ -154,6 +158,10 @@ flight warm
   echo '```'
 } >"$OUT/summary.md"
 cat "$OUT/summary.md"
+if [ -n "$RECORD" ]; then
+  { echo "<!-- written by \`bash scripts/scale.sh $ARGS\`; do not edit -->"; cat "$OUT/summary.md"; } >"$RECORD"
+  bash scripts/insert-generated.sh README.md "$RECORD"
+fi
 
 if [ "$KEEP" = 1 ]; then
   say "running until Ctrl-C: nginx $PROXY, replicas ${bases[*]}, S3 $AWS_ENDPOINT"

@@ -1,6 +1,8 @@
 //! `terrain-server export`: a database's XYZ pyramid as one PMTiles v3 archive, for hosting
 //! as a static file (object storage, a CDN) and reading with MapLibre's PMTiles protocol.
-//! Written to a temporary name beside the output and renamed into place when complete.
+//! Written to a temporary name beside the output and renamed into place when complete; or,
+//! for an object-store key (`--pmtiles s3://bucket/key.pmtiles`), written to a temporary file
+//! and uploaded in parts, the object appearing only when the upload completes.
 
 use crate::db::{TileDb, Verify};
 use crate::web::index::Kind;
@@ -12,9 +14,11 @@ use std::path::PathBuf;
 pub struct ExportArgs {
     /// Tile database directory (built from a georeferenced source, with web tiles).
     pub db: PathBuf,
-    /// Write the pyramid as a PMTiles v3 archive to this file.
-    #[arg(long, value_name = "FILE")]
-    pub pmtiles: PathBuf,
+    /// Write the pyramid as a PMTiles v3 archive to this file, or to this object of an
+    /// object store (`s3://bucket/key.pmtiles`, credentials and endpoint from the AWS_*
+    /// environment variables).
+    #[arg(long, value_name = "FILE|s3://BUCKET/KEY", value_parser = crate::store::Location::parse)]
+    pub pmtiles: crate::store::Location,
     /// Which pyramid: the heights as Terrarium or Terrain-RGB PNGs, or the texture.
     #[arg(long, value_enum, default_value_t = Pyramid::Terrarium)]
     pub pyramid: Pyramid,
@@ -39,11 +43,25 @@ pub struct Exported {
 
 /// Writes the archive; see [`ExportArgs`].
 pub fn export(args: &ExportArgs) -> anyhow::Result<Exported> {
-    if args.pmtiles.exists() && !args.force {
-        bail!(
-            "{} exists; give --force to replace it",
-            args.pmtiles.display()
-        );
+    use crate::store::Location;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let exists = match &args.pmtiles {
+        Location::Dir(path) => path.exists(),
+        Location::Store(url) => runtime.block_on(async {
+            use object_store::ObjectStoreExt as _;
+            let store = crate::store::connect(url)?;
+            match store.head(&url.prefix).await {
+                Ok(_) => Ok(true),
+                Err(object_store::Error::NotFound { .. }) => Ok(false),
+                Err(e) => Err(anyhow::Error::new(e).context(format!("cannot look for {url}"))),
+            }
+        })?,
+    };
+    if exists && !args.force {
+        bail!("{} exists; give --force to replace it", args.pmtiles);
     }
     let db = TileDb::open(&args.db, Verify::Hashes)
         .with_context(|| format!("cannot open {}", args.db.display()))?;
@@ -79,10 +97,12 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<Exported> {
         "version": manifest.content_version,
         "tileSize": info.xyz_tile_size,
     });
-    let out = &args.pmtiles;
-    let dir = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
+    let dir = match &args.pmtiles {
+        Location::Dir(out) => match out.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        },
+        Location::Store(_) => std::env::temp_dir(),
     };
     let mut builder = tempfile::Builder::new();
     builder.prefix(".export-").suffix(".pmtiles.part");
@@ -113,8 +133,20 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<Exported> {
         .sync_all()
         .context("cannot sync the archive")?;
     let bytes = tmp.as_file().metadata().map(|m| m.len()).unwrap_or(0);
-    tmp.persist(out)
-        .with_context(|| format!("cannot rename the archive to {}", out.display()))?;
+    match &args.pmtiles {
+        Location::Dir(out) => {
+            tmp.persist(out)
+                .with_context(|| format!("cannot rename the archive to {}", out.display()))?;
+        }
+        Location::Store(url) => {
+            runtime
+                .block_on(async {
+                    let store = crate::store::connect(url)?;
+                    crate::store::upload_file(&*store, tmp.path(), &url.prefix, &|_| {}).await
+                })
+                .with_context(|| format!("cannot upload the archive to {url}"))?;
+        }
+    }
     Ok(Exported {
         tiles: tiles.len(),
         bytes,
@@ -126,7 +158,7 @@ pub fn run_cli(args: ExportArgs) -> anyhow::Result<()> {
     let done = export(&args)?;
     crate::print_stdout(&format!(
         "wrote {} ({} tiles, {:.2} MiB)\n",
-        args.pmtiles.display(),
+        args.pmtiles,
         done.tiles,
         done.bytes as f64 / (1024.0 * 1024.0)
     ))

@@ -40,8 +40,6 @@ use thiserror::Error;
 
 /// The pointer object's name under a location's prefix.
 pub const POINTER: &str = "current";
-/// Default size of a server's cache of hot blobs.
-pub const DEFAULT_CACHE_BYTES: u64 = 256 * 1024 * 1024;
 /// Parts of a multipart upload: S3's minimum part is 5 MiB.
 const PART_BYTES: usize = 8 * 1024 * 1024;
 
@@ -350,8 +348,8 @@ pub async fn publish(
 }
 
 /// Uploads one file in parts (a multipart upload, aborted on error so no part is left
-/// billed), reading it a part at a time.
-async fn upload_file(
+/// billed), reading it a part at a time: the object appears, whole, when it completes.
+pub async fn upload_file(
     store: &dyn ObjectStore,
     path: &Path,
     object: &ObjectPath,

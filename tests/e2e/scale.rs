@@ -71,6 +71,10 @@ fn byte_identical(test: &str, dir: &Path) {
     let remote = Replica::start(&store, &url, &[]);
     let db = TileDb::open(dir, Verify::SizesOnly).expect("opens");
     let urls = every_url(&db);
+    assert!(
+        db.web_tiles().next().is_some(),
+        "{test}: no web tiles to compare"
+    );
     let mut bytes = 0usize;
     for path in &urls {
         let (status_a, headers_a, body_a) = get(&format!("{}{path}", local.base));
@@ -101,9 +105,22 @@ fn byte_identical(test: &str, dir: &Path) {
     );
 }
 
+/// `terrain-server build INPUT --out OUT FLAGS…` as a user runs it (web tiles included when
+/// the input is georeferenced).
+fn cli_build(input: &Path, out: &Path, flags: &[&str]) {
+    let mut args: Vec<&OsStr> = vec![OsStr::new("build"), OsStr::new("--quiet")];
+    args.extend([input.as_os_str(), OsStr::new("--out"), out.as_os_str()]);
+    args.extend(flags.iter().map(OsStr::new));
+    let (ok, _, stderr) = terrain_tests::data::run_binary("terrain-server", &args);
+    assert!(ok, "build {}: {stderr}", input.display());
+}
+
 #[test]
 fn every_tile_of_jacksboro_is_byte_identical_from_the_directory_and_from_the_store() {
-    byte_identical("jacksboro", &database(&jacksboro(), Options::WithPatches));
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    cli_build(&jacksboro(), &db, &["--patches"]);
+    byte_identical("jacksboro", &db);
 }
 
 #[test]
@@ -112,7 +129,10 @@ fn every_tile_of_puget_sound_is_byte_identical_from_the_directory_and_from_the_s
     let Some(png) = kit_file(test, "puget_sound_1k/ps_height_1k.png") else {
         return;
     };
-    byte_identical(test, &database(&png, Options::Defaults));
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    cli_build(&png, &db, &[]);
+    byte_identical(test, &db);
 }
 
 /// The topology of `docker-compose.yml`, on loopback: a store, the jacksboro database
@@ -434,4 +454,54 @@ fn served_version(base: &str) -> String {
     assert_eq!(status, 200);
     let manifest = Manifest::from_json(&body).expect("manifest");
     manifest.content_version
+}
+
+#[test]
+fn a_pmtiles_export_to_the_store_is_the_archive_written_to_a_file() {
+    let Some(tools) = tools("pmtiles export to the store") else {
+        return;
+    };
+    let store = ObjectStore::start(&tools);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let db = tmp.path().join("db");
+    cli_build(&jacksboro(), &db, &[]);
+    let file = tmp.path().join("terrarium.pmtiles");
+    let url = format!("s3://{BUCKET}/exports/terrarium.pmtiles");
+    for out in [file.as_os_str(), OsStr::new(&url)] {
+        let said = server_command(
+            &store,
+            &[
+                OsStr::new("export"),
+                db.as_os_str(),
+                OsStr::new("--pmtiles"),
+                out,
+            ],
+        );
+        assert!(said.starts_with("wrote "), "{said}");
+    }
+    let parsed = terrain_server::store::StoreUrl::parse(&url).expect("url");
+    let client = terrain_server::store::connect_with(&parsed, &store.env()).expect("client");
+    let stored = runtime().block_on(async {
+        use object_store::ObjectStoreExt as _;
+        client
+            .get(&parsed.prefix)
+            .await
+            .expect("get")
+            .bytes()
+            .await
+            .expect("bytes")
+    });
+    let written = std::fs::read(&file).expect("archive");
+    assert!(written.len() > 1000);
+    assert!(stored[..] == written[..], "the stored archive differs");
+    // An existing object is not replaced without --force.
+    let refused =
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .args(["export", &db.to_string_lossy(), "--pmtiles", &url])
+            .envs(store.env())
+            .output()
+            .expect("runs");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("exists; give --force"), "{stderr}");
 }

@@ -31,7 +31,7 @@ pub struct ServeArgs {
     /// Bytes of blobs kept in memory for the next requests (the hot tiles), whether read
     /// from an object store or from the directory's packs: a hit costs neither a read nor a
     /// hash check. 0 keeps none. Counted and reported in /metrics.
-    #[arg(long, value_name = "BYTES", default_value_t = crate::store::DEFAULT_CACHE_BYTES)]
+    #[arg(long, value_name = "SIZE", default_value = "256MiB", value_parser = byte_size)]
     pub cache_bytes: u64,
     /// Address to listen on. Port 0 picks a free port; the line on stdout names it.
     #[arg(long, default_value = DEFAULT_ADDR)]
@@ -228,6 +228,33 @@ pub fn run_cli(args: ServeArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A size in bytes: a whole number, optionally followed by KiB, MiB or GiB.
+fn byte_size(text: &str) -> Result<u64, String> {
+    let trimmed = text.trim();
+    let (number, unit) = match trimmed.find(|c: char| !c.is_ascii_digit()) {
+        Some(at) => trimmed.split_at(at),
+        None => (trimmed, ""),
+    };
+    let scale: u64 = match unit.trim() {
+        "" | "B" => 1,
+        "KiB" => 1 << 10,
+        "MiB" => 1 << 20,
+        "GiB" => 1 << 30,
+        other => {
+            return Err(format!(
+                "{text:?}: unknown unit {other:?} (a number of bytes, or with KiB, MiB or GiB)"
+            ));
+        }
+    };
+    number
+        .parse::<u64>()
+        .ok()
+        .and_then(|n| n.checked_mul(scale))
+        .ok_or_else(|| {
+            format!("{text:?} is not a size (a number of bytes, or with KiB, MiB or GiB)")
+        })
+}
+
 /// A non-negative, finite number of seconds.
 fn seconds(text: &str) -> Result<f64, String> {
     let value: f64 = text
@@ -239,5 +266,22 @@ fn seconds(text: &str) -> Result<f64, String> {
         Err(format!(
             "{text:?} is not a non-negative, finite number of seconds"
         ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::byte_size;
+
+    #[test]
+    fn cache_sizes_take_bytes_or_binary_units() {
+        assert_eq!(byte_size("0"), Ok(0));
+        assert_eq!(byte_size("4096"), Ok(4096));
+        assert_eq!(byte_size("256MiB"), Ok(256 << 20));
+        assert_eq!(byte_size("2 GiB"), Ok(2 << 30));
+        for bad in ["", "MiB", "1.5MiB", "12MB", "-1", "99999999999999GiB"] {
+            let error = byte_size(bad).expect_err(bad);
+            assert!(error.contains(bad), "{bad}: {error}");
+        }
     }
 }
