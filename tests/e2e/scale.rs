@@ -516,3 +516,51 @@ fn a_pmtiles_export_to_the_store_is_the_archive_written_to_a_file() {
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(stderr.contains("exists; give --force"), "{stderr}");
 }
+
+#[test]
+fn an_object_changed_in_the_store_after_a_replica_opened_it_is_a_500_never_its_bytes() {
+    let Some(tools) = tools("a changed object") else {
+        return;
+    };
+    let store = ObjectStore::start(&tools);
+    let dir = database(&jacksboro(), Options::Defaults);
+    let url = publish(&store, &dir, "changed");
+    let replica = Replica::start(&store, &url, &["--cache-bytes", "0"]);
+    let db = TileDb::open(&dir, Verify::SizesOnly).expect("opens");
+    let cv = db.manifest().content_version.clone();
+    let tile = TileId::new(0, 0);
+    let texture = format!("{}{}", replica.base, routes::texture(&cv, tile, 0));
+    let (status, _, before) = get(&texture);
+    assert_eq!(status, 200);
+
+    // Every byte of the textures pack flipped, the size kept: what a store that lost or
+    // rewrote an object would return.
+    let parsed = terrain_server::store::StoreUrl::parse(&url).expect("url");
+    let client = terrain_server::store::connect_with(&parsed, &store.env()).expect("client");
+    let flipped: Vec<u8> = std::fs::read(dir.join("textures.pack"))
+        .expect("pack")
+        .iter()
+        .map(|b| !b)
+        .collect();
+    runtime().block_on(async {
+        use object_store::ObjectStoreExt as _;
+        client
+            .put(
+                &parsed.object(&cv, "textures.pack"),
+                object_store::PutPayload::from(flipped),
+            )
+            .await
+            .expect("put");
+    });
+    let (status, _, body) = get(&texture);
+    let text = String::from_utf8_lossy(&body);
+    assert_eq!(status, 500, "{text}");
+    assert!(
+        text.contains("textures.pack in the object store changed after the server opened it"),
+        "{text}"
+    );
+    assert_ne!(body, before);
+    let (status, _, _) = get(&format!("{}{}", replica.base, routes::heights(&cv, tile)));
+    assert_eq!(status, 200, "the heights pack is untouched");
+    assert!(replica.log().contains("changed after the server opened it"));
+}
