@@ -41,30 +41,11 @@ if [ "$(nproc)" -ge 2 ] && command -v taskset >/dev/null; then
 else
   ON_SERVER=(); ON_WRK=(); placement="unpinned (fewer than 2 CPUs or no taskset)"
 fi
-read -r MASTER VOLUME FILER S3 ADMIN PROXY_PORT < <(python3 - <<'EOF'
-import socket
-ports = []
-while len(ports) < 6:
-    s = socket.socket(); s.bind(("127.0.0.1", 0)); p = s.getsockname()[1]
-    if p >= 55000:
-        s.close(); continue
-    try:
-        t = socket.socket(); t.bind(("127.0.0.1", p + 10000)); t.close()
-    except OSError:
-        s.close(); continue
-    if p not in ports: ports.append(p)
-    s.close()
-print(*ports)
-EOF
-)
-export AWS_ACCESS_KEY_ID=terrain AWS_SECRET_ACCESS_KEY=terrain-bench-secret AWS_REGION=us-east-1
-export AWS_ENDPOINT="http://127.0.0.1:$S3" AWS_ALLOW_HTTP=true
-"$WEED" mini -dir="$work/store" -ip=127.0.0.1 -ip.bind=127.0.0.1 -master.port="$MASTER" \
-  -volume.port="$VOLUME" -filer.port="$FILER" -s3.port="$S3" -admin.port="$ADMIN" -admin.ui=false \
-  -webdav=false -s3.port.iceberg=0 -s3.port.lance=0 -master.telemetry=false -bucket=tiles \
-  >"$work/store.log" 2>&1 &
-pids+=($!)
-for _ in $(seq 300); do curl -s -o /dev/null "$AWS_ENDPOINT/" && break; sleep 0.2; done
+source scripts/lib-store.sh
+start_store "$WEED" "$work/store" "$work/store.log"
+pids+=("$STORE_PID")
+# Taken once the store holds its own ports.
+read -r PROXY_PORT < <(free_ports 1)
 
 serve() { # LOCATION EXTRA... -> sets base to its URL; its pid is the last of pids
   local log="$work/serve.$RANDOM"

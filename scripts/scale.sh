@@ -54,35 +54,15 @@ pids=()
 cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; wait 2>/dev/null || true; }
 trap cleanup EXIT
 
-# Loopback ports: SeaweedFS also takes each port + 10000 for gRPC.
-read -r MASTER VOLUME FILER S3 ADMIN NGINX_PORT < <(python3 - <<'EOF'
-import socket
-ports = []
-while len(ports) < 6:
-    s = socket.socket(); s.bind(("127.0.0.1", 0)); p = s.getsockname()[1]
-    if p >= 55000:
-        s.close(); continue
-    try:
-        t = socket.socket(); t.bind(("127.0.0.1", p + 10000)); t.close()
-    except OSError:
-        s.close(); continue
-    if p not in ports: ports.append(p)
-    s.close()
-print(*ports)
-EOF
-)
-export AWS_ACCESS_KEY_ID=terrain AWS_SECRET_ACCESS_KEY=terrain-local-secret AWS_REGION=us-east-1
-export AWS_ENDPOINT="http://127.0.0.1:$S3" AWS_ALLOW_HTTP=true
+source scripts/lib-store.sh
 NAME=$(basename "${DEM%.*}")
 URL="s3://tiles/$NAME"
 
+start_store "$WEED" "$OUT/store" "$OUT/store.log"
+pids+=("$STORE_PID")
+# Taken once the store holds its own ports.
+read -r NGINX_PORT < <(free_ports 1)
 say "object store: weed mini, S3 on $AWS_ENDPOINT, data in $OUT/store"
-"$WEED" mini -dir="$OUT/store" -ip=127.0.0.1 -ip.bind=127.0.0.1 -master.port="$MASTER" \
-  -volume.port="$VOLUME" -filer.port="$FILER" -s3.port="$S3" -admin.port="$ADMIN" -admin.ui=false \
-  -webdav=false -s3.port.iceberg=0 -s3.port.lance=0 -master.telemetry=false -bucket=tiles \
-  >"$OUT/store.log" 2>&1 &
-pids+=($!)
-for _ in $(seq 300); do curl -s -o /dev/null "$AWS_ENDPOINT/" && break; sleep 0.2; done
 
 say "building $DEM into $URL"
 built=0
