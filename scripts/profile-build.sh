@@ -55,11 +55,13 @@ STAGES = [
     ("web tiles: sampling and reprojecting the pyramid", r"web::(source|build|crs|tiling)"),
     ("heights codec: zstd", r"ZSTD_|zstd"),
     ("heights codec: prediction and framing", r"terrain_shared::(heights|codec|tile_blob)"),
-    ("mask errors (strip-mask error tables)", r"terrain_shared::mask"),
+    # One stage: `build::tiles::stats` computes the strip-mask errors
+    # (`terrain_shared::mask`) with the bounds and roughness, and the inlined frames do not
+    # always say which of them a sample was in.
+    ("tile statistics: strip-mask errors, bounds, roughness", r"terrain_shared::mask|build::tiles"),
     ("textures: colour, mips and JPEG", r"build::texture|jpeg|image::codecs"),
     ("reading the DEM (PNG decode)", r"png::decoder|fdeflate|build::input|inflate"),
     ("no-data voids", r"build::voids"),
-    ("tiles: cutting, bounds, roughness", r"build::tiles"),
     ("levels: the pyramid", r"build::levels"),
     ("quadtree patches", r"build::patches|terrain_shared::quadtree"),
     ("hashing (blake3)", r"blake3"),
