@@ -564,3 +564,71 @@ fn an_object_changed_in_the_store_after_a_replica_opened_it_is_a_500_never_its_b
     assert_eq!(status, 200, "the heights pack is untouched");
     assert!(replica.log().contains("changed after the server opened it"));
 }
+
+#[test]
+fn a_build_written_to_the_store_is_served_as_the_same_version_a_local_build_makes() {
+    let Some(tools) = tools("build to the store") else {
+        return;
+    };
+    let store = ObjectStore::start(&tools);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let url = format!("s3://{BUCKET}/built/jacksboro");
+    let said = server_command(
+        &store,
+        &[
+            OsStr::new("build"),
+            jacksboro().as_os_str(),
+            OsStr::new("--out"),
+            OsStr::new(&url),
+            OsStr::new("--quiet"),
+        ],
+    );
+    assert!(
+        said.contains("published s3://tiles/built/jacksboro"),
+        "{said}"
+    );
+    let local = tmp.path().join("db");
+    cli_build(&jacksboro(), &local, &[]);
+    let version = TileDb::open(&local, Verify::SizesOnly)
+        .expect("opens")
+        .manifest()
+        .content_version
+        .clone();
+    assert!(said.contains(&version), "{said}");
+    // The build's temporary directory is gone.
+    let leftovers: Vec<_> = std::fs::read_dir(std::env::temp_dir())
+        .expect("temp dir")
+        .flatten()
+        .filter(|e| {
+            e.file_name()
+                .to_string_lossy()
+                .starts_with("terrain-build-")
+                && e.path().join("db").join("manifest.json").exists()
+                && std::fs::read_to_string(e.path().join("db").join("manifest.json"))
+                    .is_ok_and(|m| m.contains(&version))
+        })
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+    let replica = Replica::start(&store, &url, &[]);
+    assert_eq!(served_version(&replica.base), version);
+
+    // A location that holds nothing: serve refuses it by name.
+    let output =
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .args([
+                "serve",
+                &format!("s3://{BUCKET}/nothing/here"),
+                "--addr",
+                "127.0.0.1:0",
+            ])
+            .envs(store.env())
+            .output()
+            .expect("runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr
+            .contains("s3://tiles/nothing/here holds no database: nothing/here/current is missing"),
+        "{stderr}"
+    );
+}
