@@ -341,12 +341,16 @@ fn with_the_store_down_cached_tiles_are_served_and_the_rest_fail_cleanly_until_i
     let flying = std::thread::spawn(move || runtime().block_on(fly(&flight)));
     std::thread::sleep(Duration::from_millis(1500));
     assert!(!flying.is_finished(), "the store must return mid-flight");
+    let resuming = Instant::now();
     t.store.resume();
+    let resumed_in = resuming.elapsed();
     let summary = flying
         .join()
         .expect("flight thread")
         .expect("the flight ends");
     assert_nothing_lost(&summary);
+    // The flight met the outage: some request failed, and was asked again.
+    assert!(summary.failures + summary.retries >= 1, "{summary}");
     let (status, headers, _) = get(&format!("{}{path}", t.nginx.base));
     assert_eq!(status, 200, "recovered");
     assert!(headers["x-cache-status"] == "MISS" || headers["x-cache-status"] == "HIT");
@@ -358,9 +362,11 @@ fn with_the_store_down_cached_tiles_are_served_and_the_rest_fail_cleanly_until_i
         .map(|r| r.metric("store_gets_total"))
         .sum();
     println!(
-        "outage: {} client failures retried, {} tiles fetched, nothing given up; \
+        "outage: the store took {:.1} s to return; {} client failures retried, {} tiles fetched, nothing given up; \
          {gets} GETs to the store for the whole test",
-        summary.failures, requests
+        resumed_in.as_secs_f64(),
+        summary.failures,
+        requests
     );
 }
 
