@@ -583,6 +583,15 @@ impl TileDb {
                     offset += blob.bytes;
                     next += 1;
                 }
+                // More bytes than the manifest lists (a store answering other than its
+                // HEAD said): refused at once, never held.
+                if next == listed.len() && !pending.is_empty() {
+                    return Err(DbError::PackSize {
+                        pack: heights_path.clone(),
+                        expected,
+                        found: offset + pending.len() as u64,
+                    });
+                }
                 Ok(())
             })
             .await?;

@@ -524,7 +524,8 @@ impl StoreSource {
             .await
     }
 
-    /// A whole object, streamed: `each` sees its chunks in order. Fails past `limit` bytes.
+    /// A whole object, streamed: `each` sees its chunks in order; an error from `each` ends
+    /// the read there.
     pub async fn stream(
         &self,
         object: &ObjectPath,
