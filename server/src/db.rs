@@ -110,7 +110,7 @@ pub struct StoredBlob {
     pub hash: String,
     /// `None` when the hash is not a valid tag (only in a damaged manifest).
     pub etag: Option<axum::http::HeaderValue>,
-    /// Where the bytes lie: what [`StoredBlob::read`] and [`StoredBlob::fetch`] read.
+    /// Where the bytes lie: what [`StoredBlob::fetch`] reads.
     place: Place,
 }
 
@@ -163,21 +163,12 @@ impl StoredBlob {
     /// hashes, checked against the blob's hash. A pack cut short (or, checked, rewritten)
     /// since the database opened is an error, never a dead process or the wrong bytes under
     /// the right tag.
-    pub fn read(&self) -> Result<Bytes, PackChanged> {
-        let (pack, offset, check_hash) = match &self.place {
-            Place::Memory => return Ok(self.bytes.clone()),
-            Place::Local {
-                pack,
-                offset,
-                check_hash,
-            } => (pack, *offset, *check_hash),
-            Place::Store { object, .. } => {
-                return Err(PackChanged {
-                    pack: PathBuf::from(object.to_string()),
-                    reason: "a blob in an object store is read with fetch".to_string(),
-                });
-            }
-        };
+    fn read_pack(
+        &self,
+        pack: &PackFile,
+        offset: u64,
+        check_hash: bool,
+    ) -> Result<Bytes, PackChanged> {
         let changed = |reason: String| PackChanged {
             pack: pack.path.clone(),
             reason,
@@ -206,9 +197,9 @@ impl StoredBlob {
         Ok(Bytes::from(body))
     }
 
-    /// The blob's bytes for a response, wherever they lie: [`StoredBlob::read`] for a local
-    /// pack; for a store, a ranged GET through the server's cache, checked against the hash
-    /// before it is kept or sent.
+    /// The blob's bytes for a response, wherever they lie, through the server's cache of hot
+    /// blobs: on a miss, a positioned read of a local pack ([`StoredBlob::read_pack`]) or a
+    /// ranged GET of a store's object, checked against the hash before it is kept or sent.
     pub async fn fetch(&self) -> Result<Bytes, crate::store::ReadError> {
         match &self.place {
             Place::Store {
@@ -216,17 +207,15 @@ impl StoredBlob {
                 object,
                 offset,
             } => source.read(object, *offset, self.len, &self.hash).await,
-            Place::Local { pack, .. } => {
-                let cache = &pack.cache;
-                cache
+            Place::Local {
+                pack,
+                offset,
+                check_hash,
+            } => {
+                pack.cache
                     .get_or_load(&self.hash, async {
-                        cache.loads.inc();
-                        let bytes = self.read().map_err(|e| {
-                            cache.load_errors.inc();
-                            crate::store::ReadError::PackChanged(Arc::new(e))
-                        })?;
-                        cache.loaded_bytes.inc_by(bytes.len() as u64);
-                        Ok(bytes)
+                        self.read_pack(pack, *offset, *check_hash)
+                            .map_err(|e| crate::store::ReadError::PackChanged(Arc::new(e)))
                     })
                     .await
             }
@@ -383,23 +372,7 @@ impl TileDb {
         let levels = manifest.texture.levels as usize;
         let mut texture_blobs = Vec::with_capacity(heights.len() * levels);
         for ((id, _), stored) in manifest.tiles().zip(&heights) {
-            let head = TileBlob::head(&stored.bytes).map_err(|source| DbError::TileBlob {
-                pack: heights_path.clone(),
-                id,
-                source,
-            })?;
-            if head.texture.len() != levels
-                || head.mask_errors_m.len() != manifest.mask_levels as usize
-            {
-                return Err(DbError::TileBlob {
-                    pack: heights_path.clone(),
-                    id,
-                    source: terrain_shared::tile_blob::TileBlobError::TooManyLevels {
-                        mask: head.mask_errors_m.len(),
-                        texture: head.texture.len(),
-                    },
-                });
-            }
+            let head = tile_head(&stored.bytes, &manifest, &heights_path, id)?;
             texture_blobs.extend(
                 head.texture
                     .into_iter()
@@ -484,14 +457,7 @@ impl TileDb {
         let object = |file: &str| url.object(version, file);
         let shown = |file: &str| PathBuf::from(format!("{url}/v/{version}/{file}"));
         let manifest_path = shown(MANIFEST_FILE);
-        let manifest_json = source
-            .range(
-                &object(MANIFEST_FILE),
-                0,
-                source.size(&object(MANIFEST_FILE)).await?,
-            )
-            .await?
-            .to_vec();
+        let manifest_json = source.whole(&object(MANIFEST_FILE)).await?.to_vec();
         let manifest = Manifest::from_json(&manifest_json).map_err(|source| DbError::Manifest {
             path: manifest_path.clone(),
             source,
@@ -561,23 +527,7 @@ impl TileDb {
                             });
                         }
                     }
-                    let head = TileBlob::head(&bytes).map_err(|source| DbError::TileBlob {
-                        pack: heights_path.clone(),
-                        id: *id,
-                        source,
-                    })?;
-                    if head.texture.len() != levels
-                        || head.mask_errors_m.len() != manifest.mask_levels as usize
-                    {
-                        return Err(DbError::TileBlob {
-                            pack: heights_path.clone(),
-                            id: *id,
-                            source: terrain_shared::tile_blob::TileBlobError::TooManyLevels {
-                                mask: head.mask_errors_m.len(),
-                                texture: head.texture.len(),
-                            },
-                        });
-                    }
+                    let head = tile_head(&bytes, &manifest, &heights_path, *id)?;
                     texture_blobs.extend(head.texture.into_iter().map(|t| (*id, t)));
                     heights.push(store_blob(&heights_object, offset, blob));
                     offset += blob.bytes;
@@ -790,6 +740,33 @@ impl TileDb {
     }
 }
 
+/// The head of tile `id`'s blob, checked to list the manifest's texture and mask levels:
+/// where its textures lie in the textures pack.
+fn tile_head(
+    bytes: &[u8],
+    manifest: &Manifest,
+    pack: &Path,
+    id: TileId,
+) -> Result<terrain_shared::tile_blob::TileHead, DbError> {
+    let damaged = |source| DbError::TileBlob {
+        pack: pack.to_path_buf(),
+        id,
+        source,
+    };
+    let head = TileBlob::head(bytes).map_err(damaged)?;
+    if head.texture.len() != manifest.texture.levels as usize
+        || head.mask_errors_m.len() != manifest.mask_levels as usize
+    {
+        return Err(damaged(
+            terrain_shared::tile_blob::TileBlobError::TooManyLevels {
+                mask: head.mask_errors_m.len(),
+                texture: head.texture.len(),
+            },
+        ));
+    }
+    Ok(head)
+}
+
 /// Slices `patches.pack`: the index is checked against the manifest, the bodies against
 /// the index's sizes (and hashes, with [`Verify::Hashes`]).
 fn open_patches(
@@ -887,7 +864,7 @@ fn open_web(
     Ok(entries.into_iter().map(|(e, _)| e).zip(tiles).collect())
 }
 
-/// Maps a pack read-only, keeping the file open for [`StoredBlob::read`]. An empty file
+/// Maps a pack read-only, keeping the file open for [`StoredBlob::fetch`]. An empty file
 /// cannot be mapped and needs no map.
 #[allow(unsafe_code)]
 fn map_file(path: &Path, cache: &Arc<crate::store::BlobCache>) -> Result<MappedPack, DbError> {
@@ -902,7 +879,7 @@ fn map_file(path: &Path, cache: &Arc<crate::store::BlobCache>) -> Result<MappedP
         // SAFETY: the map is read-only and the file belongs to a finished database, which
         // nothing writes after the builder's rename (module invariant). It is read only
         // while the database opens (sizes, hashes, indexes) and by callers in this
-        // process; what is served is read with `StoredBlob::read`, so a file truncated
+        // process; what is served is read with `StoredBlob::fetch`, so a file truncated
         // behind the server's back gives an error response, not a SIGBUS.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
         Bytes::from_owner(map)

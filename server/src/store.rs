@@ -403,9 +403,10 @@ pub struct BlobCache {
     /// Loads on a miss: ranged GETs to a store, or reads of a local pack (a load shared by
     /// concurrent requests of the same blob counts once).
     pub loads: Counter,
-    /// Loads that failed (for a store, after its client's retries).
+    /// Loads that failed: unreachable (for a store, after its client's retries), or bytes
+    /// other than their hash names.
     pub load_errors: Counter,
-    /// Bytes loaded.
+    /// Bytes loaded that matched their hash.
     pub loaded_bytes: Counter,
 }
 
@@ -452,17 +453,27 @@ impl BlobCache {
     }
 
     /// The blob `hash`, from the cache or, on a miss, from `load` (once for concurrent
-    /// requests of the same blob). Only what `load` returns `Ok` is kept.
+    /// requests of the same blob), counted here for every kind of load. Only what `load`
+    /// returns `Ok` is kept.
     pub async fn get_or_load<E>(
         &self,
         hash: &str,
         load: impl Future<Output = Result<Bytes, E>>,
     ) -> Result<Bytes, E> {
         self.requests.inc();
+        let counted = async {
+            self.loads.inc();
+            let loaded = load.await;
+            match &loaded {
+                Ok(bytes) => self.loaded_bytes.inc_by(bytes.len() as u64),
+                Err(_) => self.load_errors.inc(),
+            };
+            loaded
+        };
         if self.capacity == 0 {
-            return load.await;
+            return counted.await;
         }
-        self.cache.get_or_insert_async(hash, load).await
+        self.cache.get_or_insert_async(hash, counted).await
     }
 }
 
@@ -484,7 +495,6 @@ impl StoreSource {
         len: u64,
         hash: &str,
     ) -> Result<Bytes, ReadError> {
-        let cache = &self.cache;
         if len == 0 {
             // An empty range is not a valid S3 range request; an empty blob needs no GET.
             let found = terrain_shared::manifest::content_hash(&[]);
@@ -497,18 +507,13 @@ impl StoreSource {
                 })
             };
         }
-        cache
+        self.cache
             .get_or_load(hash, async {
-                cache.loads.inc();
                 let got = self.store.get_range(object, offset..offset + len).await;
-                let bytes = got.map_err(|source| {
-                    cache.load_errors.inc();
-                    ReadError::Unavailable {
-                        object: object.to_string(),
-                        source: Arc::new(source),
-                    }
+                let bytes = got.map_err(|source| ReadError::Unavailable {
+                    object: object.to_string(),
+                    source: Arc::new(source),
                 })?;
-                cache.loaded_bytes.inc_by(bytes.len() as u64);
                 let found = terrain_shared::manifest::content_hash(&bytes);
                 if bytes.len() as u64 != len || found != hash {
                     return Err(ReadError::Changed {
@@ -543,6 +548,18 @@ impl StoreSource {
             each(chunk.map_err(unavailable)?)?;
         }
         Ok(())
+    }
+
+    /// All of `object`, in one GET, not cached (the manifest read at open).
+    pub async fn whole(&self, object: &ObjectPath) -> Result<Bytes, crate::db::DbError> {
+        let unavailable = |source| {
+            crate::db::DbError::Store(StoreError::Store {
+                what: format!("reading {object}"),
+                source,
+            })
+        };
+        let got = self.store.get(object).await.map_err(unavailable)?;
+        got.bytes().await.map_err(unavailable)
     }
 
     /// `len` bytes at `offset` of `object`, not cached (the indexes read at open).

@@ -176,9 +176,12 @@ impl Metrics {
                 ),
                 (
                     "store_get_errors",
-                    "GETs to the object store that failed after retries",
+                    "GETs to the object store that failed after retries, or returned other bytes than their hash names",
                 ),
-                ("store_read_bytes", "Bytes read from the object store"),
+                (
+                    "store_read_bytes",
+                    "Bytes read from the object store that matched their hash",
+                ),
             )
         } else {
             (
@@ -188,9 +191,12 @@ impl Metrics {
                 ),
                 (
                     "pack_read_errors",
-                    "Reads of the local packs that failed (a pack changed)",
+                    "Reads of the local packs that failed or did not match their hash (a pack changed)",
                 ),
-                ("pack_read_bytes", "Bytes read from the local packs"),
+                (
+                    "pack_read_bytes",
+                    "Bytes read from the local packs that matched their hash",
+                ),
             )
         };
         r.register(
@@ -252,17 +258,17 @@ impl Metrics {
     }
 
     pub fn encode(&self) -> Result<String, std::fmt::Error> {
-        if let Some(store) = &self.cache {
-            let requests = store.cache.requests.get();
-            let gets = store.cache.loads.get();
-            store.held.set(store.cache.held() as i64);
-            store.capacity.set(store.cache.capacity() as i64);
+        if let Some(gauges) = &self.cache {
+            let requests = gauges.cache.requests.get();
+            let loads = gauges.cache.loads.get();
+            gauges.held.set(gauges.cache.held() as i64);
+            gauges.capacity.set(gauges.cache.capacity() as i64);
             let ratio = if requests == 0 {
                 0.0
             } else {
-                1.0 - gets.min(requests) as f64 / requests as f64
+                1.0 - loads.min(requests) as f64 / requests as f64
             };
-            store.hit_ratio.set(ratio);
+            gauges.hit_ratio.set(ratio);
         }
         let mut text = String::new();
         prometheus_client::encoding::text::encode(&mut text, &self.registry)?;

@@ -59,6 +59,8 @@ pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
         crate::db::Origin::Store { .. } => None,
     };
     let mut seen = manifest.as_deref().and_then(identity);
+    // Whether the last poll of a store's pointer failed: an outage is logged once.
+    let mut store_failing = false;
     #[cfg(unix)]
     let mut hangup = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()) {
         Ok(signal) => Some(signal),
@@ -81,7 +83,7 @@ pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
             () = sleep_or_forever(poll) => {
                 let Some(manifest) = &manifest else {
                     // A store: the pointer is read by the reload itself.
-                    poll_store(&state).await;
+                    poll_store(&state, &mut store_failing).await;
                     continue;
                 };
                 let now = identity(manifest);
@@ -113,20 +115,19 @@ pub async fn watch(state: Arc<AppState>, poll: Option<Duration>) {
 
 /// One poll of a store's pointer: a new version is opened and served; a store that does
 /// not answer is logged once per outage, not once per poll.
-async fn poll_store(state: &AppState) {
-    static FAILING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+async fn poll_store(state: &AppState, failing: &mut bool) {
     match state.reload().await {
         Ok(Reloaded::Replaced { from, to }) => {
             tracing::info!(from = %from, to = %to, "the store's pointer names a new version: serving it");
-            FAILING.store(false, std::sync::atomic::Ordering::Relaxed);
+            *failing = false;
         }
         Ok(Reloaded::Unchanged) => {
-            if FAILING.swap(false, std::sync::atomic::Ordering::Relaxed) {
+            if std::mem::replace(failing, false) {
                 tracing::info!("the object store answers again");
             }
         }
         Err(error) => {
-            if !FAILING.swap(true, std::sync::atomic::Ordering::Relaxed) {
+            if !std::mem::replace(failing, true) {
                 tracing::warn!(
                     error = %format!("{:#}", anyhow::Error::new(error)),
                     "cannot read the store's pointer; still serving the version before"

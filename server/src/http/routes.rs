@@ -310,12 +310,14 @@ pub(super) fn entity(
     content_type: &'static str,
     cache_control: &'static str,
 ) -> Response {
-    match entity_with(conditional, etag, content_type, cache_control, || {
-        Ok::<_, std::convert::Infallible>(bytes.clone())
-    }) {
-        Ok(response) => response,
-        Err(never) => match never {},
-    }
+    let not_modified = conditional_matches(conditional, etag);
+    respond(
+        not_modified,
+        bytes.clone(),
+        etag,
+        content_type,
+        cache_control,
+    )
 }
 
 /// [`entity`] for a blob of the database, read only when a body is sent
@@ -328,7 +330,8 @@ pub(super) async fn stored_entity(
     content_type: &'static str,
     cache_control: &'static str,
 ) -> Result<Response, HttpError> {
-    let body = if conditional_matches(conditional, blob.etag.as_ref()) {
+    let not_modified = conditional_matches(conditional, blob.etag.as_ref());
+    let body = if not_modified {
         Bytes::new()
     } else {
         blob.fetch().await.map_err(|error| {
@@ -341,9 +344,9 @@ pub(super) async fn stored_entity(
             }
         })?
     };
-    Ok(entity(
-        conditional,
-        &body,
+    Ok(respond(
+        not_modified,
+        body,
         blob.etag.as_ref(),
         content_type,
         cache_control,
@@ -364,20 +367,20 @@ fn conditional_matches(conditional: &Conditional, etag: Option<&HeaderValue>) ->
     }
 }
 
-fn entity_with<E>(
-    conditional: &Conditional,
+/// A 304 (`not_modified`) or a 200 with `body`, with the entity's validators and caching.
+fn respond(
+    not_modified: bool,
+    body: Bytes,
     etag: Option<&HeaderValue>,
     content_type: &'static str,
     cache_control: &'static str,
-    body: impl FnOnce() -> Result<Bytes, E>,
-) -> Result<Response, E> {
-    let not_modified = conditional_matches(conditional, etag);
+) -> Response {
     let mut response = if not_modified {
         // RFC 9110 section 15.4.5: a 304 repeats the validators and caching headers of the 200,
         // but carries no body and no Content-Type.
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        let mut response = Response::new(Body::from(body()?));
+        let mut response = Response::new(Body::from(body));
         response
             .headers_mut()
             .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
@@ -391,7 +394,7 @@ fn entity_with<E>(
         header::CACHE_CONTROL,
         HeaderValue::from_static(cache_control),
     );
-    Ok(response)
+    response
 }
 
 const HEIGHTS_SPELLING: &str =
