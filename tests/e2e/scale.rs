@@ -198,6 +198,12 @@ fn replicas_behind_nginx_share_the_requests_and_a_replica_killed_mid_flight_lose
     let (_, second, again) = get(&format!("{}{path}", t.nginx.base));
     assert_eq!(second["x-cache-status"], "HIT");
     assert_eq!(body, again);
+    // The manifest (`Cache-Control: no-cache`) is never answered from nginx's cache.
+    for _ in 0..2 {
+        let (status, headers, _) = get(&format!("{}{}", t.nginx.base, routes::MANIFEST));
+        assert_eq!(status, 200);
+        assert_ne!(headers["x-cache-status"], "HIT");
+    }
 
     // Misses spread over both replicas (nginx's round robin).
     let cv_tiles: Vec<String> = t
@@ -380,6 +386,8 @@ fn a_version_published_later_is_served_without_a_restart_and_the_one_before_stil
     let first_dir = database(&jacksboro(), Options::Defaults);
     let url = publish(&store, &first_dir, "reload");
     let replica = Replica::start(&store, &url, &["--reload-poll", "0.1"]);
+    // No poll: this one reads the pointer again on SIGHUP only (`systemctl reload`).
+    let on_signal = Replica::start(&store, &url, &["--reload-poll", "0"]);
     let first = TileDb::open(&first_dir, Verify::SizesOnly).expect("opens");
     let first_cv = first.manifest().content_version.clone();
     assert_eq!(served_version(&replica.base), first_cv);
@@ -437,6 +445,21 @@ fn a_version_published_later_is_served_without_a_restart_and_the_one_before_stil
             started.elapsed() < Duration::from_secs(20),
             "never served: {}",
             replica.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(
+        served_version(&on_signal.base),
+        first_cv,
+        "no poll, no signal"
+    );
+    on_signal.signal("-HUP");
+    let started = Instant::now();
+    while served_version(&on_signal.base) != second_cv {
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "never served after SIGHUP: {}",
+            on_signal.log()
         );
         std::thread::sleep(Duration::from_millis(50));
     }

@@ -306,6 +306,16 @@ impl Replica {
         std::fs::read_to_string(self.log.path()).unwrap_or_default()
     }
 
+    /// Sends the replica a signal (`-HUP`: read the database's location again).
+    pub fn signal(&self, name: &str) {
+        let pid = self.child.as_ref().expect("running").id();
+        let sent = Command::new("kill")
+            .args([name, &pid.to_string()])
+            .status()
+            .expect("kill runs");
+        assert!(sent.success(), "kill {name} {pid}");
+    }
+
     /// A sample of `/metrics` (the sum over its label sets), 0 when absent.
     pub fn metric(&self, name: &str) -> f64 {
         metric(&get_text(&format!("{}/metrics", self.base)), name)
