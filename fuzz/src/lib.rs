@@ -8,6 +8,7 @@
 
 use std::path::Path;
 use terrain_server::build::input::{self, Format, OutOfRange, ReadOptions};
+use terrain_shared::heights::Coder;
 use terrain_shared::{Blob, Heights, Manifest, TileBlob, TileId, mask};
 
 /// Bytes of the heights header (see `terrain_shared::heights`); the payload follows it.
@@ -51,11 +52,14 @@ pub fn heights_decode(data: &[u8]) {
     crc.update(&sealed[HEIGHTS_HEADER..]);
     sealed[40..HEIGHTS_HEADER].copy_from_slice(&crc.finalize().to_le_bytes());
     if let Ok(tile) = Heights::decode(&sealed) {
-        let again = tile.encode_with_level(1).expect("a decoded tile encodes");
-        assert_eq!(
-            Heights::decode(&again).expect("a re-encoded tile decodes"),
-            tile
-        );
+        for coder in [Coder::Rans, Coder::Zstd(1)] {
+            let again = tile.encode_with(coder).expect("a decoded tile encodes");
+            assert_eq!(
+                Heights::decode(&again).expect("a re-encoded tile decodes"),
+                tile,
+                "{coder:?}"
+            );
+        }
     }
 }
 

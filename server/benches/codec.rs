@@ -1,5 +1,6 @@
-//! Heights codec benchmark: size and decode speed against the baselines a tile server
-//! would otherwise use, all measured in the same run on the same tiles.
+//! Heights codec benchmark: size, decode and encode speed of the codec's two coders against
+//! the baselines a tile server would otherwise use, all measured in the same run on the
+//! same tiles.
 //!
 //! ```text
 //! cargo bench -p terrain-server --bench codec -- [DEM ...]
@@ -7,22 +8,27 @@
 //!
 //! Without arguments it reads puget_sound_1k and himalaya_4097 from `$TERRAIN_DATA_DIR`.
 //! For each DEM it cuts the same 129^2 tiles as the builder and reports bytes per sample
-//! for: this codec; each tile as a 16-bit greyscale PNG (best compression, adaptive
-//! filters); plain zstd (level 19) of the raw 16-bit samples; and the order-0 entropy of
-//! the planar predictor's residuals (the floor for any coder without context modelling).
-//! A second table gives what better modelling could reach: the order-0 entropy of LOCO-I's
-//! median predictor, and the planar residuals' entropy given a local-gradient context.
-//! Decode speed is single-threaded, in million samples per second, against zstd alone on
-//! the raw samples and against PNG decoding.
-
+//! for: codec version 2 (rANS with contexts, the default); version 1 (byte planes and
+//! zstd 19, what databases before it hold); each tile as a 16-bit greyscale PNG (best
+//! compression, adaptive filters); plain zstd (level 19) of the raw 16-bit samples; and
+//! the entropy of the planar residuals given a local-gradient context, with a global
+//! table per class and no table cost (the floor a context-modelling coder is held to).
+//! A third table gives other floors: order-0 entropies of the planar and of LOCO-I's
+//! median predictor.
+//! Speeds are single-threaded, in million samples per second. The two coders' decodes are
+//! timed in alternating rounds and each reported as its median round, so load on the
+//! machine falls on both alike.
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use terrain_server::build::{input, tiles};
 use terrain_shared::Heights;
+use terrain_shared::heights::{self, Coder};
 
 const TILE_SIZE: u32 = 129;
 /// Each decode measurement repeats whole passes over all tiles for at least this long.
-const MEASURE_FOR: Duration = Duration::from_secs(2);
+const MEASURE_FOR: Duration = Duration::from_secs(1);
+/// Alternating rounds of the two coders' decodes.
+const ROUNDS: usize = 5;
 
 fn main() {
     let mut paths: Vec<PathBuf> = std::env::args()
@@ -49,27 +55,49 @@ fn main() {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!();
-    println!(
-        "| DEM | tiles | this codec B/sample | PNG-16 B/sample | zstd-19 raw B/sample | entropy floor | vs PNG-16 | vs zstd | decode Msamples/s | zstd raw decode | PNG decode | decode vs zstd raw |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let entropy_rows: Vec<String> = paths.iter().map(|p| bench(p)).collect();
+    let rows: Vec<Rows> = paths.iter().map(|p| bench(p)).collect();
+    println!("Size, bytes per sample:");
     println!();
     println!(
-        "What a better coder could reach (entropies of the same tiles' residuals, bytes/sample):"
+        "| DEM | tiles | version 2 (rANS) | version 1 (zstd planes) | PNG-16 | zstd-19 raw | gradient-context floor | version 2 over the floor | version 2 vs version 1 | vs PNG-16 |"
     );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for row in &rows {
+        println!("{}", row.size);
+    }
+    println!();
+    println!(
+        "Speed, million samples per second on one thread (decodes: median of {ROUNDS} alternating rounds):"
+    );
+    println!();
+    println!(
+        "| DEM | decode version 2 | decode version 1 | version 2 / version 1 | zstd raw decode | PNG decode | encode version 2 | encode version 1 (zstd 19) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for row in &rows {
+        println!("{}", row.speed);
+    }
+    println!();
+    println!("Other floors (entropies of the same tiles' residuals, bytes/sample):");
     println!();
     println!(
         "| DEM | planar, order 0 | MED, order 0 | planar given local gradient (12 classes) | needed for 1.3x PNG-16 |"
     );
     println!("|---|---|---|---|---|");
-    for row in entropy_rows {
-        println!("{row}");
+    for row in &rows {
+        println!("{}", row.entropy);
     }
 }
 
-/// Prints the main table's row and returns the entropy table's.
-fn bench(path: &std::path::Path) -> String {
+/// One DEM's rows of the three tables.
+struct Rows {
+    size: String,
+    speed: String,
+    entropy: String,
+}
+
+/// Measures one DEM.
+fn bench(path: &std::path::Path) -> Rows {
     let raster = match input::read_heights(
         path,
         &input::ReadOptions {
@@ -101,10 +129,26 @@ fn bench(path: &std::path::Path) -> String {
         .collect();
     let samples: usize = cut.iter().map(|t| t.heights.codes.len()).sum();
 
-    let ours: Vec<Vec<u8>> = cut
-        .iter()
-        .map(|t| t.heights.encode().expect("encodes"))
-        .collect();
+    let (ours, ours_encode) = timed(samples, || {
+        cut.iter()
+            .map(|t| t.heights.encode().expect("encodes"))
+            .collect::<Vec<_>>()
+    });
+    let (v1, v1_encode) = timed(samples, || {
+        cut.iter()
+            .map(|t| {
+                t.heights
+                    .encode_with(Coder::Zstd(heights::DEFAULT_ZSTD_LEVEL))
+                    .expect("encodes")
+            })
+            .collect::<Vec<_>>()
+    });
+    for (a, b) in ours.iter().zip(&v1) {
+        assert_eq!(
+            Heights::decode(a).expect("decodes"),
+            Heights::decode(b).expect("decodes")
+        );
+    }
     let raw: Vec<Vec<u8>> = cut
         .iter()
         .map(|t| {
@@ -124,13 +168,19 @@ fn bench(path: &std::path::Path) -> String {
 
     let size =
         |blobs: &[Vec<u8>]| blobs.iter().map(Vec::len).sum::<usize>() as f64 / samples as f64;
-    let (ours_b, png_b, zstd_b) = (size(&ours), size(&png), size(&zstd_raw));
+    let (ours_b, v1_b, png_b, zstd_b) = (size(&ours), size(&v1), size(&png), size(&zstd_raw));
 
-    let ours_rate = rate(samples, || {
-        for blob in &ours {
+    let decode_all = |blobs: &[Vec<u8>]| {
+        for blob in blobs {
             std::hint::black_box(Heights::decode(blob).expect("decodes"));
         }
-    });
+    };
+    let (mut ours_rounds, mut v1_rounds) = (Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        ours_rounds.push(rate(samples, || decode_all(&ours)));
+        v1_rounds.push(rate(samples, || decode_all(&v1)));
+    }
+    let (ours_rate, v1_rate) = (median(ours_rounds), median(v1_rounds));
     let mut buffer = vec![0u8; (TILE_SIZE * TILE_SIZE * 2) as usize];
     let mut decompressor = zstd::bulk::Decompressor::new().expect("zstd context");
     let zstd_rate = rate(samples, || {
@@ -151,21 +201,39 @@ fn bench(path: &std::path::Path) -> String {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    println!(
-        "| {name} | {} | {ours_b:.3} | {png_b:.3} | {zstd_b:.3} | {:.3} | {:.2}x smaller | {:.2}x smaller | {ours_rate:.0} | {zstd_rate:.0} | {png_rate:.0} | {:.2}x |",
-        cut.len(),
-        entropy.planar,
-        png_b / ours_b,
-        zstd_b / ours_b,
-        ours_rate / zstd_rate,
-    );
-    format!(
-        "| {name} | {:.3} | {:.3} | {:.3} | {:.3} |",
-        entropy.planar,
-        entropy.med,
-        entropy.planar_given_gradient,
-        png_b / 1.3
-    )
+    Rows {
+        size: format!(
+            "| {name} | {} | {ours_b:.3} | {v1_b:.3} | {png_b:.3} | {zstd_b:.3} | {:.3} | {:+.1}% | {:.1}% smaller | {:.2}x smaller |",
+            cut.len(),
+            entropy.planar_given_gradient,
+            (ours_b / entropy.planar_given_gradient - 1.0) * 100.0,
+            (1.0 - ours_b / v1_b) * 100.0,
+            png_b / ours_b,
+        ),
+        speed: format!(
+            "| {name} | {ours_rate:.0} | {v1_rate:.0} | {:.2}x | {zstd_rate:.0} | {png_rate:.0} | {ours_encode:.1} | {v1_encode:.1} |",
+            ours_rate / v1_rate,
+        ),
+        entropy: format!(
+            "| {name} | {:.3} | {:.3} | {:.3} | {:.3} |",
+            entropy.planar,
+            entropy.med,
+            entropy.planar_given_gradient,
+            png_b / 1.3
+        ),
+    }
+}
+
+/// Runs `make` once, returning what it made and its rate in million samples per second.
+fn timed<T>(samples: usize, make: impl FnOnce() -> T) -> (T, f64) {
+    let started = Instant::now();
+    let made = make();
+    (made, samples as f64 / started.elapsed().as_secs_f64() / 1e6)
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 /// Million samples per second of repeated passes of `pass` over `samples` samples.

@@ -89,7 +89,8 @@ fn main() {
     );
     write(&hgt, "short", &[b"S10E005.hgt\n".as_slice(), &be].concat());
 
-    // Heights: tiles of the codec, as the builder encodes them, from 1 to 4 byte planes.
+    // Heights: tiles of the codec, as the builder encodes them (version 2, rANS), and as
+    // version 1 (zstd) did, from 1 to 4 byte planes.
     let heights = corpus("heights_decode");
     for (name, side, scale) in [
         ("17x17", 17u16, 1i32),
@@ -109,6 +110,11 @@ fn main() {
             codes,
         };
         write(&heights, name, &tile.encode().expect("encodes"));
+        write(
+            &heights,
+            &format!("{name}-zstd"),
+            &tile.encode_with_level(19).expect("encodes"),
+        );
     }
 
     // Manifest: what the builder writes for a 9x5 crop cut into two 5x5 tiles.

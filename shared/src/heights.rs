@@ -1,19 +1,22 @@
 //! The heights codec: one tile's height samples, lossless at the source's height quantum.
 //!
 //! A tile is a `width x height` grid of integer height *codes*; metres are
-//! `offset_m + quantum_m * code`. Encoding runs three steps, each chosen for a reason:
+//! `offset_m + quantum_m * code`. Encoding runs two steps:
 //!
 //! 1. **Prediction.** Each code is predicted from its west, north and north-west
 //!    neighbours as `west + north - north_west` (the planar predictor, exact on any
-//!    tilted plane, which most terrain locally is) and only the residual is kept.
-//!    Codes are first made relative to the tile minimum so the first sample is small.
-//! 2. **Byte planes.** Residuals are zig-zag mapped to unsigned integers and split
-//!    into planes: all low bytes, then all second bytes, and so on, only as many planes
-//!    as the largest residual needs. Each plane is then a stream of small, similar
-//!    values, which is what an entropy coder compresses best.
-//! 3. **zstd**, one frame per plane, so each plane gets its own entropy tables: the low
-//!    bytes are busy, the high bytes nearly constant, and one shared table fits neither
-//!    (measured: 4% smaller on puget_sound_1k than one frame over all planes).
+//!    tilted plane, which most terrain locally is) and only the residual is kept, zig-zag
+//!    mapped to an unsigned integer. Codes are first made relative to the tile minimum so
+//!    the first sample is small.
+//! 2. **Entropy coding**, by one of two coders (the header's codec version says which):
+//!    - **version 2, rANS with contexts** (written by default, [`Coder::Rans`]): each
+//!      residual is coded under a context of the residuals of the row above, with
+//!      frequency tables made for the tile (`rans.rs` has the details). It comes within a
+//!      few percent of the residuals' entropy given their local gradient, which no
+//!      general-purpose coder reaches, and codes and decodes a row at a time.
+//!    - **version 1, byte planes and zstd** ([`Coder::Zstd`]): the residuals split into
+//!      planes (all low bytes, then all second bytes, as many as the largest residual
+//!      needs), one zstd frame per plane. Still read, and written on request.
 //!
 //! Decoding undoes them in one pass per row: the residual of the planar predictor is
 //! a mixed second difference, so the codes are a running sum along the row added to
@@ -22,13 +25,13 @@
 //! The header is versioned and checksummed; [`Heights::decode`] returns an error, never
 //! panics, for any byte string (see the property tests at the bottom of this file).
 //!
-//! Layout (little endian), 44 bytes then the zstd payload:
+//! Layout (little endian), 44 bytes then the payload:
 //!
 //! | bytes | field |
 //! |---|---|
 //! | 4 | magic `THGT` |
-//! | 1 | codec version (1) |
-//! | 1 | residual byte planes (1..=4) |
+//! | 1 | codec version (2, or 1) |
+//! | 1 | version 1: residual byte planes (1..=4); version 2: zero |
 //! | 2 | reserved, zero |
 //! | 2 + 2 | width, height in samples |
 //! | 8 + 8 | quantum and offset in metres (f64) |
@@ -36,22 +39,49 @@
 //! | 4 | payload length in bytes |
 //! | 4 | CRC-32 of every byte before it and of the payload |
 //!
-//! The payload is one zstd frame per plane, low byte plane first.
+//! Version 2's payload: the byte lengths of the tables and of the raw bits (u32 each), the
+//! tables, the raw bits, then the rANS words (u16). Version 1's: one zstd frame per plane,
+//! low byte plane first.
 
 use thiserror::Error;
 
 /// The four bytes every encoded heights tile starts with.
 pub const MAGIC: [u8; 4] = *b"THGT";
-/// The codec version this crate writes and reads.
-pub const CODEC_VERSION: u8 = 1;
-/// The name of this codec in the manifest.
-pub const CODEC_NAME: &str = "planar-zstd/1";
+/// The codec version this crate writes by default ([`Coder::Rans`]); it also reads
+/// [`ZSTD_CODEC_VERSION`].
+pub const CODEC_VERSION: u8 = 2;
+/// The version of the byte-plane zstd coder ([`Coder::Zstd`]).
+pub const ZSTD_CODEC_VERSION: u8 = 1;
+/// The name of the default codec in the manifest.
+pub const CODEC_NAME: &str = "planar-rans/2";
+/// The name of the byte-plane zstd codec in the manifest.
+pub const ZSTD_CODEC_NAME: &str = "planar-zstd/1";
 /// Largest tile side the decoder accepts. Bounds the allocation a hostile header can ask
 /// for: 8193^2 codes are 268 MB, far above any tile (the builder's largest is 4097).
 pub const MAX_SIDE: u16 = 8193;
-/// zstd level used by default: the builder runs once and clients decode many times;
-/// zstd decompression speed barely depends on the level, so the strongest is free at read time.
+/// zstd level used by default (for [`Coder::Zstd`], and by the quadtree patches): the builder
+/// runs once and clients decode many times; zstd decompression speed barely depends on the
+/// level, so the strongest is free at read time.
 pub const DEFAULT_ZSTD_LEVEL: i32 = 19;
+
+/// Which entropy coder [`Heights::encode_with`] uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coder {
+    /// Codec version 2: context-modelled rANS (the default).
+    Rans,
+    /// Codec version 1: byte planes, one zstd frame each, at this level (1..=22).
+    Zstd(i32),
+}
+
+impl Coder {
+    /// The codec's name in the manifest.
+    pub fn name(self) -> &'static str {
+        match self {
+            Coder::Rans => CODEC_NAME,
+            Coder::Zstd(_) => ZSTD_CODEC_NAME,
+        }
+    }
+}
 
 const HEADER_LEN: usize = 44;
 
@@ -99,7 +129,9 @@ pub enum DecodeError {
     TruncatedHeader { len: usize },
     #[error("not a heights tile: magic {found:?}, expected {MAGIC:?}")]
     BadMagic { found: [u8; 4] },
-    #[error("heights codec version {0} is not supported (this build reads {CODEC_VERSION})")]
+    #[error(
+        "heights codec version {0} is not supported (this build reads {ZSTD_CODEC_VERSION} and {CODEC_VERSION})"
+    )]
     UnsupportedVersion(u8),
     #[error("corrupt heights header: {0}")]
     BadHeader(&'static str),
@@ -109,6 +141,8 @@ pub enum DecodeError {
     Checksum { stored: u32, computed: u32 },
     #[error("heights payload does not decompress: {0}")]
     Zstd(String),
+    #[error("heights payload does not decode: {0}")]
+    Rans(String),
     #[error(
         "heights plane {plane} says it decompresses to {claimed} bytes, more than the {allowed} bytes of a {width}x{height} tile"
     )]
@@ -156,13 +190,18 @@ impl Heights {
         (min, max)
     }
 
-    /// Encodes with the default zstd level.
+    /// Encodes with the default coder ([`Coder::Rans`]).
     pub fn encode(&self) -> Result<Vec<u8>, EncodeError> {
-        self.encode_with_level(DEFAULT_ZSTD_LEVEL)
+        self.encode_with(Coder::Rans)
     }
 
-    /// Encodes with a chosen zstd level (1..=22); the format does not depend on it.
+    /// Encodes with the byte-plane zstd coder (codec version 1) at `zstd_level` (1..=22).
     pub fn encode_with_level(&self, zstd_level: i32) -> Result<Vec<u8>, EncodeError> {
+        self.encode_with(Coder::Zstd(zstd_level))
+    }
+
+    /// Encodes with the given coder.
+    pub fn encode_with(&self, coder: Coder) -> Result<Vec<u8>, EncodeError> {
         let (w, h) = (usize::from(self.width), usize::from(self.height));
         if w == 0 || h == 0 || self.width > MAX_SIDE || self.height > MAX_SIDE {
             return Err(EncodeError::BadSize {
@@ -198,21 +237,27 @@ impl Heights {
                 zigzag.push(z);
             }
         }
-        let planes = planes_needed(largest);
-        let mut plane = vec![0u8; w * h];
-        let mut payload = Vec::new();
-        for index in 0..planes {
-            for (dst, z) in plane.iter_mut().zip(&zigzag) {
-                *dst = (z >> (8 * index)) as u8;
+        let (version, planes_byte, payload) = match coder {
+            Coder::Rans => (CODEC_VERSION, 0u8, crate::rans::encode(&zigzag, w)),
+            Coder::Zstd(zstd_level) => {
+                let planes = planes_needed(largest);
+                let mut plane = vec![0u8; w * h];
+                let mut payload = Vec::new();
+                for index in 0..planes {
+                    for (dst, z) in plane.iter_mut().zip(&zigzag) {
+                        *dst = (z >> (8 * index)) as u8;
+                    }
+                    let frame = zstd::bulk::compress(&plane, zstd_level)
+                        .map_err(|e| EncodeError::Zstd(e.to_string()))?;
+                    payload.extend_from_slice(&frame);
+                }
+                (ZSTD_CODEC_VERSION, planes as u8, payload)
             }
-            let frame = zstd::bulk::compress(&plane, zstd_level)
-                .map_err(|e| EncodeError::Zstd(e.to_string()))?;
-            payload.extend_from_slice(&frame);
-        }
+        };
         let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
         out.extend_from_slice(&MAGIC);
-        out.push(CODEC_VERSION);
-        out.push(planes as u8);
+        out.push(version);
+        out.push(planes_byte);
         out.extend_from_slice(&0u16.to_le_bytes());
         out.extend_from_slice(&self.width.to_le_bytes());
         out.extend_from_slice(&self.height.to_le_bytes());
@@ -235,95 +280,18 @@ impl Heights {
     pub fn decode(bytes: &[u8]) -> Result<Heights, DecodeError> {
         let header = Header::parse(bytes)?;
         let (w, h) = (usize::from(header.width), usize::from(header.height));
-        let n = w * h;
         let payload = &bytes[HEADER_LEN..];
-
-        // One zstd frame per plane, back to back; frames are self-delimiting.
-        let mut planar = vec![0u8; n * header.planes];
-        let mut rest = payload;
-        for (index, plane) in planar.chunks_exact_mut(n).enumerate() {
-            let frame_len = zstd::zstd_safe::find_frame_compressed_size(rest).map_err(|code| {
-                DecodeError::Zstd(zstd::zstd_safe::get_error_name(code).to_string())
-            })?;
-            let Some((frame, tail)) = rest.split_at_checked(frame_len) else {
-                return Err(DecodeError::Zstd("frame runs past the payload".into()));
-            };
-            // A plane can never be larger than the tile: a frame that says so is refused
-            // unread, and one that does not say is stopped where the plane's buffer ends.
-            let claimed = zstd::zstd_safe::get_frame_content_size(frame)
-                .map_err(|_| DecodeError::Zstd("unreadable frame header".into()))?;
-            if let Some(claimed) = claimed.filter(|&c| c > n as u64) {
-                return Err(DecodeError::PlaneTooLarge {
-                    plane: index,
-                    allowed: n,
-                    claimed,
-                    width: header.width,
-                    height: header.height,
-                });
-            }
-            let written = match claimed {
-                Some(_) => DECOMPRESSOR
-                    .with_borrow_mut(|d| d.as_mut().map(|d| d.decompress_to_buffer(frame, plane)))
-                    .ok_or_else(|| DecodeError::Zstd("no zstd context".into()))?
-                    .map_err(|e| DecodeError::Zstd(e.to_string()))?,
-                // Frames of this codec's encoder always state their size; any other is
-                // streamed, a byte past the plane being enough to refuse it.
-                None => decompress_unsized(frame, plane).map_err(|e| match e {
-                    Unsized::PastTile => DecodeError::PlanePastTile {
-                        plane: index,
-                        allowed: n,
-                        width: header.width,
-                        height: header.height,
-                    },
-                    Unsized::Zstd(e) => DecodeError::Zstd(e.to_string()),
-                })?,
-            };
-            if written != n {
-                return Err(DecodeError::Zstd(format!(
-                    "plane of {written} bytes, {n} expected"
-                )));
-            }
-            rest = tail;
+        let mut codes = vec![0i32; w * h];
+        if header.version == CODEC_VERSION {
+            crate::rans::decode(payload, w, h, |y, zigzag| {
+                reconstruct_row(&mut codes, w, y, zigzag)
+            })
+            .map_err(|e| DecodeError::Rans(e.to_string()))?;
+        } else {
+            decode_planes(&header, payload, &mut codes)?;
         }
-        if !rest.is_empty() {
-            return Err(DecodeError::Zstd(format!(
-                "{} bytes after the last plane",
-                rest.len()
-            )));
-        }
-
-        let mut codes = vec![0i32; n];
-        let mut zigzag = vec![0u32; w];
         let mut lo = i32::MAX;
         let mut hi = i32::MIN;
-        for y in 0..h {
-            // Reassemble this row's zig-zag residuals from the planes.
-            for (x, z) in zigzag.iter_mut().enumerate() {
-                *z = u32::from(planar[y * w + x]);
-            }
-            for plane in 1..header.planes {
-                let src = &planar[plane * n + y * w..plane * n + (y + 1) * w];
-                for (z, &b) in zigzag.iter_mut().zip(src) {
-                    *z |= u32::from(b) << (8 * plane);
-                }
-            }
-            // code(x, y) - code(x, y-1) is the running sum of residuals along the row.
-            let (above, row) = codes.split_at_mut(y * w);
-            let row = &mut row[..w];
-            let mut running = 0i32;
-            if y == 0 {
-                for (dst, &z) in row.iter_mut().zip(&zigzag) {
-                    running = running.wrapping_add(zigzag_decode(z));
-                    *dst = running;
-                }
-            } else {
-                let above = &above[(y - 1) * w..];
-                for ((dst, &z), &up) in row.iter_mut().zip(&zigzag).zip(above) {
-                    running = running.wrapping_add(zigzag_decode(z));
-                    *dst = up.wrapping_add(running);
-                }
-            }
-        }
         for c in &mut codes {
             *c = c.wrapping_add(header.min);
             lo = lo.min(*c);
@@ -345,9 +313,104 @@ impl Heights {
     }
 }
 
+/// Puts row `y`'s codes (relative to the minimum) in place from its zig-zag residuals:
+/// `code(x, y) - code(x, y-1)` is the running sum of residuals along the row.
+fn reconstruct_row(codes: &mut [i32], w: usize, y: usize, zigzag: &[u32]) {
+    let (above, row) = codes.split_at_mut(y * w);
+    let row = &mut row[..w];
+    let mut running = 0i32;
+    if y == 0 {
+        for (dst, &z) in row.iter_mut().zip(zigzag) {
+            running = running.wrapping_add(zigzag_decode(z));
+            *dst = running;
+        }
+    } else {
+        let above = &above[(y - 1) * w..];
+        for ((dst, &z), &up) in row.iter_mut().zip(zigzag).zip(above) {
+            running = running.wrapping_add(zigzag_decode(z));
+            *dst = up.wrapping_add(running);
+        }
+    }
+}
+
+/// Codec version 1: decompresses the byte planes and reconstructs the codes from them.
+fn decode_planes(header: &Header, payload: &[u8], codes: &mut [i32]) -> Result<(), DecodeError> {
+    let (w, h) = (usize::from(header.width), usize::from(header.height));
+    let n = w * h;
+    // One zstd frame per plane, back to back; frames are self-delimiting.
+    let mut planar = vec![0u8; n * header.planes];
+    let mut rest = payload;
+    for (index, plane) in planar.chunks_exact_mut(n).enumerate() {
+        let frame_len = zstd::zstd_safe::find_frame_compressed_size(rest)
+            .map_err(|code| DecodeError::Zstd(zstd::zstd_safe::get_error_name(code).to_string()))?;
+        let Some((frame, tail)) = rest.split_at_checked(frame_len) else {
+            return Err(DecodeError::Zstd("frame runs past the payload".into()));
+        };
+        // A plane can never be larger than the tile: a frame that says so is refused
+        // unread, and one that does not say is stopped where the plane's buffer ends.
+        let claimed = zstd::zstd_safe::get_frame_content_size(frame)
+            .map_err(|_| DecodeError::Zstd("unreadable frame header".into()))?;
+        if let Some(claimed) = claimed.filter(|&c| c > n as u64) {
+            return Err(DecodeError::PlaneTooLarge {
+                plane: index,
+                allowed: n,
+                claimed,
+                width: header.width,
+                height: header.height,
+            });
+        }
+        let written = match claimed {
+            Some(_) => DECOMPRESSOR
+                .with_borrow_mut(|d| d.as_mut().map(|d| d.decompress_to_buffer(frame, plane)))
+                .ok_or_else(|| DecodeError::Zstd("no zstd context".into()))?
+                .map_err(|e| DecodeError::Zstd(e.to_string()))?,
+            // Frames of this codec's encoder always state their size; any other is
+            // streamed, a byte past the plane being enough to refuse it.
+            None => decompress_unsized(frame, plane).map_err(|e| match e {
+                Unsized::PastTile => DecodeError::PlanePastTile {
+                    plane: index,
+                    allowed: n,
+                    width: header.width,
+                    height: header.height,
+                },
+                Unsized::Zstd(e) => DecodeError::Zstd(e.to_string()),
+            })?,
+        };
+        if written != n {
+            return Err(DecodeError::Zstd(format!(
+                "plane of {written} bytes, {n} expected"
+            )));
+        }
+        rest = tail;
+    }
+    if !rest.is_empty() {
+        return Err(DecodeError::Zstd(format!(
+            "{} bytes after the last plane",
+            rest.len()
+        )));
+    }
+
+    let mut zigzag = vec![0u32; w];
+    for y in 0..h {
+        // Reassemble this row's zig-zag residuals from the planes.
+        for (x, z) in zigzag.iter_mut().enumerate() {
+            *z = u32::from(planar[y * w + x]);
+        }
+        for plane in 1..header.planes {
+            let src = &planar[plane * n + y * w..plane * n + (y + 1) * w];
+            for (z, &b) in zigzag.iter_mut().zip(src) {
+                *z |= u32::from(b) << (8 * plane);
+            }
+        }
+        reconstruct_row(codes, w, y, &zigzag);
+    }
+    Ok(())
+}
+
 /// The parsed, validated fixed-size header.
 #[derive(Debug, Clone, Copy)]
 struct Header {
+    version: u8,
     planes: usize,
     width: u16,
     height: u16,
@@ -374,8 +437,9 @@ impl Header {
         if magic != MAGIC {
             return Err(DecodeError::BadMagic { found: magic });
         }
-        if head[4] != CODEC_VERSION {
-            return Err(DecodeError::UnsupportedVersion(head[4]));
+        let version = head[4];
+        if version != CODEC_VERSION && version != ZSTD_CODEC_VERSION {
+            return Err(DecodeError::UnsupportedVersion(version));
         }
         let payload_len = u32_at(36) as usize;
         let found = bytes.len() - HEADER_LEN;
@@ -394,6 +458,7 @@ impl Header {
             return Err(DecodeError::Checksum { stored, computed });
         }
         let header = Header {
+            version,
             planes: usize::from(head[5]),
             width: u16_at(8),
             height: u16_at(10),
@@ -402,8 +467,11 @@ impl Header {
             min: u32_at(28) as i32,
             max: u32_at(32) as i32,
         };
-        if !(1..=4).contains(&header.planes) {
+        if version == ZSTD_CODEC_VERSION && !(1..=4).contains(&header.planes) {
             return Err(DecodeError::BadHeader("byte planes must be 1 to 4"));
+        }
+        if version == CODEC_VERSION && header.planes != 0 {
+            return Err(DecodeError::BadHeader("byte planes must be 0 in version 2"));
         }
         if header.width == 0 || header.height == 0 {
             return Err(DecodeError::BadHeader("empty tile"));
@@ -496,9 +564,13 @@ mod tests {
         }
     }
 
+    const CODERS: [Coder; 2] = [Coder::Rans, Coder::Zstd(3)];
+
     fn check_round_trip(h: &Heights) {
-        let bytes = h.encode().expect("encodes");
-        assert_eq!(Heights::decode(&bytes).expect("decodes"), *h);
+        for coder in CODERS {
+            let bytes = h.encode_with(coder).expect("encodes");
+            assert_eq!(Heights::decode(&bytes).expect("decodes"), *h, "{coder:?}");
+        }
     }
 
     #[test]
@@ -513,48 +585,139 @@ mod tests {
         }));
     }
 
+    /// Under 0.006 bytes per sample: the residuals are 0 but along the first row and column
+    /// (rANS spends a bit on each of the column's, which its contexts share with zeros).
     #[test]
     fn a_plane_compresses_to_almost_nothing() {
         let h = tile(129, 129, |x, y| 1000 + (x * 3 + y * 5) as i32);
-        let bytes = h.encode().expect("encodes");
-        assert!(
-            bytes.len() < HEADER_LEN + 64,
-            "{} bytes for a plane",
-            bytes.len()
-        );
+        for coder in CODERS {
+            let bytes = h.encode_with(coder).expect("encodes");
+            assert!(
+                bytes.len() < HEADER_LEN + 96,
+                "{} bytes for a plane with {coder:?}",
+                bytes.len()
+            );
+        }
+    }
+
+    #[test]
+    fn the_default_coder_is_version_2_and_version_1_is_still_read() {
+        let h = tile(65, 65, |x, y| ((x * x + 7 * y * y) % 3000) as i32);
+        let v2 = h.encode().expect("encodes");
+        assert_eq!(v2[4], CODEC_VERSION);
+        let v1 = h.encode_with_level(19).expect("encodes");
+        assert_eq!(v1[4], ZSTD_CODEC_VERSION);
+        assert_eq!(Heights::decode(&v1).expect("version 1 decodes"), h);
+        assert_eq!(Heights::decode(&v2).expect("version 2 decodes"), h);
+        assert_eq!(Coder::Rans.name(), CODEC_NAME);
+        assert_eq!(Coder::Zstd(19).name(), ZSTD_CODEC_NAME);
+    }
+
+    /// Rough terrain with a residual distribution like a DEM's: rANS with contexts beats
+    /// zstd on the byte planes.
+    #[test]
+    fn rans_is_smaller_than_zstd_on_rough_terrain() {
+        let mut state = 7u64;
+        let mut noise = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 33) % 41) as i32 - 20
+        };
+        let mut codes = vec![0i32; 129 * 129];
+        for y in 0..129 {
+            for x in 0..129 {
+                // Smooth slopes whose roughness grows eastwards, plus noise scaled by it.
+                let rough = 1 + x as i32 / 16;
+                codes[y * 129 + x] = ((x * 13 + y * 7) as f64 * (1.0 + (y as f64 / 9.0).sin()))
+                    as i32
+                    + noise() * rough;
+            }
+        }
+        let h = Heights {
+            width: 129,
+            height: 129,
+            quantum_m: 1.0,
+            offset_m: 0.0,
+            codes,
+        };
+        let rans = h.encode().expect("encodes").len();
+        let zstd = h.encode_with_level(19).expect("encodes").len();
+        assert!(rans < zstd, "rANS {rans} bytes, zstd {zstd}");
     }
 
     #[test]
     fn every_truncation_and_every_single_bit_flip_is_rejected() {
         let h = tile(33, 33, |x, y| ((x * x + 3 * y) % 500) as i32);
-        let bytes = h.encode().expect("encodes");
-        for len in 0..bytes.len() {
-            assert!(
-                Heights::decode(&bytes[..len]).is_err(),
-                "truncated to {len} bytes"
-            );
-        }
-        for bit in 0..bytes.len() * 8 {
-            let mut corrupt = bytes.clone();
-            corrupt[bit / 8] ^= 1 << (bit % 8);
-            assert!(Heights::decode(&corrupt).is_err(), "bit {bit} flipped");
+        for coder in CODERS {
+            let bytes = h.encode_with(coder).expect("encodes");
+            for len in 0..bytes.len() {
+                assert!(
+                    Heights::decode(&bytes[..len]).is_err(),
+                    "{coder:?} truncated to {len} bytes"
+                );
+            }
+            for bit in 0..bytes.len() * 8 {
+                let mut corrupt = bytes.clone();
+                corrupt[bit / 8] ^= 1 << (bit % 8);
+                assert!(
+                    Heights::decode(&corrupt).is_err(),
+                    "{coder:?} bit {bit} flipped"
+                );
+            }
         }
     }
 
-    /// A tile whose header passes every check before the payload: magic, version, length and
-    /// checksum are right; `planes`, the side and the payload are whatever the test says.
+    /// Version 2's own checks, under a checksum that is right: every corrupt payload is an
+    /// error, not a panic and not a wrong tile.
+    #[test]
+    fn corrupt_rans_payloads_behind_a_good_checksum_are_errors() {
+        let h = tile(33, 33, |x, y| ((x * x + 3 * y) % 500) as i32);
+        let bytes = h.encode().expect("encodes");
+        let payload = &bytes[HEADER_LEN..];
+        let mut caught = 0;
+        for bit in 0..payload.len() * 8 {
+            let mut corrupt = payload.to_vec();
+            corrupt[bit / 8] ^= 1 << (bit % 8);
+            match Heights::decode(&sealed_v(CODEC_VERSION, 0, 33, (0, 500), &corrupt)) {
+                Err(_) => caught += 1,
+                // A flip can yield another valid stream; then it must not claim this tile.
+                Ok(other) => assert_ne!(other, h, "bit {bit}"),
+            }
+        }
+        assert!(
+            caught * 10 >= payload.len() * 8 * 9,
+            "{caught} of {} caught",
+            payload.len() * 8
+        );
+        for len in 0..payload.len() {
+            assert!(
+                Heights::decode(&sealed_v(CODEC_VERSION, 0, 33, (0, 500), &payload[..len]))
+                    .is_err(),
+                "payload cut to {len} bytes"
+            );
+        }
+    }
+
     fn sealed(planes: u8, side: u16, payload: &[u8]) -> Vec<u8> {
+        sealed_v(ZSTD_CODEC_VERSION, planes, side, (0, 100), payload)
+    }
+
+    /// A tile whose header passes every check before the payload: magic, version, length and
+    /// checksum are right; `planes`, the side, the range and the payload are whatever the
+    /// test says.
+    fn sealed_v(version: u8, planes: u8, side: u16, range: (i32, i32), payload: &[u8]) -> Vec<u8> {
         let mut bytes = Vec::new();
         bytes.extend_from_slice(&MAGIC);
-        bytes.push(CODEC_VERSION);
+        bytes.push(version);
         bytes.push(planes);
         bytes.extend_from_slice(&0u16.to_le_bytes());
         bytes.extend_from_slice(&side.to_le_bytes());
         bytes.extend_from_slice(&side.to_le_bytes());
         bytes.extend_from_slice(&1.0f64.to_le_bytes());
         bytes.extend_from_slice(&0.0f64.to_le_bytes());
-        bytes.extend_from_slice(&0i32.to_le_bytes());
-        bytes.extend_from_slice(&100i32.to_le_bytes());
+        bytes.extend_from_slice(&range.0.to_le_bytes());
+        bytes.extend_from_slice(&range.1.to_le_bytes());
         bytes.extend_from_slice(&(payload.len() as u32).to_le_bytes());
         let mut crc = crc32fast::Hasher::new();
         crc.update(&bytes);
@@ -613,8 +776,10 @@ mod tests {
                 z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
                 ((z >> 33) as i64 % (amplitude + 1)) as i32
             });
-            let bytes = h.encode().expect("encodes");
-            prop_assert_eq!(Heights::decode(&bytes).expect("decodes"), h);
+            for coder in CODERS {
+                let bytes = h.encode_with(coder).expect("encodes");
+                prop_assert_eq!(&Heights::decode(&bytes).expect("decodes"), &h);
+            }
         }
 
         #[test]
@@ -629,6 +794,36 @@ mod tests {
             // Headers that pass the checksum but lie about everything else.
             let bytes = sealed(planes, side, &tail);
             prop_assert!(Heights::decode(&bytes).is_err());
+        }
+
+        #[test]
+        fn arbitrary_rans_payloads_never_panic(
+            tail in proptest::collection::vec(any::<u8>(), 0..400), side in 1u16..40, top in 0i32..1000
+        ) {
+            // Version 2 streams: lengths, tables and words all made up; whatever decodes
+            // must still be a tile of the header's size and range.
+            let bytes = sealed_v(CODEC_VERSION, 0, side, (0, top), &tail);
+            if let Ok(h) = Heights::decode(&bytes) {
+                prop_assert_eq!(h.codes.len(), usize::from(side) * usize::from(side));
+                prop_assert_eq!(h.code_range(), (0, top));
+            }
+        }
+
+        #[test]
+        fn shaped_rans_payloads_never_panic(
+            table in proptest::collection::vec(any::<u8>(), 0..64),
+            raw in proptest::collection::vec(any::<u8>(), 0..64),
+            words in proptest::collection::vec(any::<u8>(), 8..200),
+            side in 1u16..30,
+        ) {
+            // The section lengths right, so the tables, bits and words are what is tried.
+            let mut payload = Vec::new();
+            payload.extend_from_slice(&(table.len() as u32).to_le_bytes());
+            payload.extend_from_slice(&(raw.len() as u32).to_le_bytes());
+            payload.extend_from_slice(&table);
+            payload.extend_from_slice(&raw);
+            payload.extend_from_slice(&words[..words.len() & !1]);
+            let _ = Heights::decode(&sealed_v(CODEC_VERSION, 0, side, (0, 100), &payload));
         }
     }
 }

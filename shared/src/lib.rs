@@ -9,6 +9,7 @@ pub mod heights;
 pub mod manifest;
 pub mod mask;
 pub mod quadtree;
+mod rans;
 pub mod routes;
 pub mod tile;
 pub mod tile_blob;

@@ -4,7 +4,7 @@
 //! - the per-strip-mask errors (metres, against the full-resolution surface),
 //! - the hash and size of each texture level, so every texture body is verified against a
 //!   hash that came, through this blob's own hash, from the manifest,
-//! - the heights, in the `planar-zstd/1` codec ([`crate::heights`]).
+//! - the heights, in the heights codec ([`crate::heights`]).
 //!
 //! Little-endian layout:
 //!
@@ -43,7 +43,7 @@ pub struct TileBlob {
     pub mask_errors_m: Vec<f32>,
     /// Hash and size of each texture level, coarsest first.
     pub texture: Vec<Blob>,
-    /// The heights blob (`planar-zstd/1`), not yet decoded.
+    /// The heights blob ([`crate::heights`]), not yet decoded.
     pub heights: Vec<u8>,
 }
 

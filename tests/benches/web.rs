@@ -8,7 +8,7 @@
 //! himalaya_4097, and prints per dataset:
 //!
 //! - **bytes**, on the same area: the finest level of each pyramid over the source samples
-//!   it covers. Our heights (`planar-zstd/1` tile blobs of level 0), the Terrarium and
+//!   it covers. Our heights (tile blobs of level 0, heights in the default codec), the Terrarium and
 //!   Terrain-RGB PNGs of the finest zoom, and the gzipped quantized-mesh tiles of the finest
 //!   level; per tile, and per source sample (tile bytes times the share of the tile on
 //!   the terrain, summed, over the samples).
@@ -209,7 +209,7 @@ fn main() {
             m.raster.width,
             m.raster.height,
             level0.len(),
-            "ours: planar-zstd (level 0)",
+            "ours: tile blobs (level 0)",
             level0.len(),
             ours / level0.len() as f64,
             ours / samples

@@ -54,7 +54,7 @@ pub(super) struct TileContext<'a> {
     pub offset_m: f64,
     /// Smallest and largest code of level 0 (and so of every level).
     pub code_range: (i32, i32),
-    pub zstd_level: i32,
+    pub heights_coder: terrain_shared::heights::Coder,
     pub texture_format: ImageFormat,
     pub jpeg_quality: u8,
     /// Finest texture side, texels.
@@ -665,7 +665,7 @@ impl TileMaker<'_> {
         let cut = cut_tile(finer, level, id, metres);
         let encoded = cut
             .heights
-            .encode_with_level(c.zstd_level)
+            .encode_with(c.heights_coder)
             .map_err(|source| BuildError::Encode { tile: id, source })?;
         let mut stats = tiles::stats(&cut);
         let (finest, deviation_m) = match parent {
@@ -957,7 +957,6 @@ mod tests {
         options.texture = TextureChoice::Generated;
         options.texture_size = Some(TEXTURE_SIZE);
         options.texture_format = ImageFormat::Png;
-        options.zstd_level = 1;
         let report = build(&options, &|_, _| {}, &AtomicBool::new(false)).expect("builds");
         let mut files: Vec<String> = std::fs::read_dir(&report.out)
             .expect("the database")
@@ -1021,7 +1020,6 @@ mod tests {
         let out = dir.path().join("db");
         let mut options = BuildOptions::new(&input, &out);
         options.tile_size = 9;
-        options.zstd_level = 1;
         // Cancelled from the progress callback once a few tiles are made, as Ctrl-C would.
         let cancel = AtomicBool::new(false);
         let (most, total) = (AtomicUsize::new(0), AtomicUsize::new(0));

@@ -114,7 +114,13 @@ pub struct BuildArgs {
     /// JPEG quality, 1-100.
     #[arg(long, default_value_t = texture::DEFAULT_JPEG_QUALITY, value_parser = clap::value_parser!(u8).range(1..=100))]
     pub jpeg_quality: u8,
-    /// zstd level for heights (1-22); decoding speed does not depend on it.
+    /// Entropy coder of the heights: rans (codec 2: context-modelled rANS, within a few
+    /// percent of the residuals' entropy, fast to encode) or zstd (codec 1: byte planes and
+    /// zstd at --zstd-level, what older databases hold; slower to build, faster to decode).
+    #[arg(long, value_enum, default_value_t = HeightsCodecArg::Rans)]
+    pub heights_codec: HeightsCodecArg,
+    /// zstd level (1-22) of the quadtree patches, and of the heights with
+    /// `--heights-codec zstd`; decoding speed does not depend on it.
     #[arg(long, default_value_t = heights::DEFAULT_ZSTD_LEVEL, value_parser = clap::value_parser!(i32).range(1..=22))]
     pub zstd_level: i32,
     /// Also build the quadtree progressive patches (`--method quadtree-patches`): an
@@ -147,6 +153,12 @@ pub struct BuildArgs {
 pub const DEFAULT_MAX_SAMPLES: u64 = 1 << 32;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum HeightsCodecArg {
+    Rans,
+    Zstd,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum TextureFormatArg {
     Jpeg,
     Png,
@@ -171,6 +183,9 @@ pub struct BuildOptions {
     pub texture_format: ImageFormat,
     pub texture_size: Option<u32>,
     pub jpeg_quality: u8,
+    /// The heights' entropy coder.
+    pub heights_coder: heights::Coder,
+    /// zstd level of the quadtree patches.
     pub zstd_level: i32,
     /// The quadtree patches' tolerance (metres), when they are built.
     pub patches: Option<f64>,
@@ -210,6 +225,7 @@ impl BuildOptions {
             texture_format: ImageFormat::Jpeg,
             texture_size: None,
             jpeg_quality: texture::DEFAULT_JPEG_QUALITY,
+            heights_coder: heights::Coder::Rans,
             zstd_level: heights::DEFAULT_ZSTD_LEVEL,
             patches: None,
             web: false,
@@ -259,6 +275,10 @@ impl BuildOptions {
             },
             texture_size: args.texture_size,
             jpeg_quality: args.jpeg_quality,
+            heights_coder: match args.heights_codec {
+                HeightsCodecArg::Rans => heights::Coder::Rans,
+                HeightsCodecArg::Zstd => heights::Coder::Zstd(args.zstd_level),
+            },
             zstd_level: args.zstd_level,
             patches: args.patches.then_some(args.patch_tolerance),
             web: !args.no_web,
@@ -555,7 +575,7 @@ pub fn build(
         quantum_m,
         offset_m,
         code_range: heights_input.code_range,
-        zstd_level: options.zstd_level,
+        heights_coder: options.heights_coder,
         texture_format: options.texture_format,
         jpeg_quality: options.jpeg_quality,
         texture_size,
@@ -608,7 +628,7 @@ pub fn build(
             f64::from(height - 1) * spacing_m[1],
         ],
         heights: HeightsInfo {
-            codec: heights::CODEC_NAME.into(),
+            codec: options.heights_coder.name().into(),
             quantum_m,
             offset_m,
             min_m,
