@@ -341,17 +341,37 @@ pub const GENERATED_HALO_ROWS: u32 = 1;
 pub fn generated(field: &HeightField<'_>, grid: Grid, id: TileId, size: u32) -> RgbImage {
     let cells = f64::from(grid.tile_size - 1);
     let (x0, y0) = (f64::from(id.x) * cells, f64::from(id.y) * cells);
+    // Each texel blends the colours of the four samples around its centre: per axis, the
+    // sample below the centre and its fraction of the way to the next.
+    let along = |origin: f64| -> Vec<(i64, f64)> {
+        (0..size)
+            .map(|i| {
+                let s = origin + (f64::from(i) + 0.5) * cells / f64::from(size);
+                let f = s.floor();
+                (f as i64, s - f)
+            })
+            .collect()
+    };
+    let (columns, rows) = (along(x0), along(y0));
+    // Every sample's colour once (neighbouring texels share samples: four times fewer
+    // colours than texels' corners at one texel a cell), in the rectangle the texels use.
+    let span = |axis: &[(i64, f64)]| {
+        let first = axis.first().map_or(0, |a| a.0);
+        let last = axis.last().map_or(0, |a| a.0) + 1;
+        (first, (last - first + 1) as usize)
+    };
+    let ((cx, cw), (cy, ch)) = (span(&columns), span(&rows));
+    let colours: Vec<[f64; 3]> = (0..ch as i64)
+        .flat_map(|dy| (0..cw as i64).map(move |dx| field.colour(cx + dx, cy + dy)))
+        .collect();
+    let colour = |x: i64, y: i64| colours[(y - cy) as usize * cw + (x - cx) as usize];
     RgbImage::from_fn(size, size, |i, j| {
-        let sx = x0 + (f64::from(i) + 0.5) * cells / f64::from(size);
-        let sy = y0 + (f64::from(j) + 0.5) * cells / f64::from(size);
-        let (fx, fy) = (sx.floor(), sy.floor());
-        let (tx, ty) = (sx - fx, sy - fy);
-        let (ix, iy) = (fx as i64, fy as i64);
+        let ((ix, tx), (iy, ty)) = (columns[i as usize], rows[j as usize]);
         let (a, b, c, d) = (
-            field.colour(ix, iy),
-            field.colour(ix + 1, iy),
-            field.colour(ix, iy + 1),
-            field.colour(ix + 1, iy + 1),
+            colour(ix, iy),
+            colour(ix + 1, iy),
+            colour(ix, iy + 1),
+            colour(ix + 1, iy + 1),
         );
         Rgb(std::array::from_fn(|k| {
             let top = a[k] + (b[k] - a[k]) * tx;
