@@ -4,7 +4,8 @@
 # commit, machine and date, into docs/benchmarks/ and BENCHMARKS.md's generated blocks.
 # Needs nginx and wrk for the HTTP comparison (installed here when missing, as root), and
 # SeaweedFS for the object store (scripts/scale-setup.sh). `ONLY=http` runs the databases
-# and the HTTP benchmarks alone.
+# and the HTTP benchmarks alone; `ONLY=build` the databases, the builder's benchmark and the
+# heights codec's.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 : "${TERRAIN_DATA_DIR:?set TERRAIN_DATA_DIR to the data kit (the directory holding himalaya_4097/ and puget_sound_1k/)}"
@@ -51,6 +52,14 @@ if [ "${ONLY:-}" != http ]; then
   cargo bench -p terrain-server --bench build_memory -- "$out/build_memory" 2>/dev/null
   echo "== heights codec"
   capture codec "cargo bench -p terrain-server --bench codec" cargo bench -p terrain-server --bench codec
+fi
+if [ "${ONLY:-}" = build ]; then
+  cp "$out/build_memory/build_memory.md" docs/benchmarks/
+  bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/build_memory.md
+  for file in "${captured[@]}"; do
+    bash scripts/insert-generated.sh BENCHMARKS.md "$file"
+  done
+  exit 0
 fi
 echo "== HTTP: terrain-server against nginx"
 capture http-himalaya "cargo bench -p terrain-server --bench http_vs_nginx -- DB/himalaya_4097" cargo bench -p terrain-server --bench http_vs_nginx -- "$out/db/himalaya_4097"

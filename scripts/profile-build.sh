@@ -10,7 +10,7 @@
 # perf samples at 199 Hz with DWARF call graphs (release builds keep no frame pointers;
 # `debug = "line-tables-only"` gives perf what it unwinds with). A sample counts for the
 # innermost frame that names a stage (a zstd call made by the heights codec is the codec's;
-# a deflate call made by the web tiles' PNG encoder is the PNG encoder's). Writes into $OUT
+# a deflate call made by the web tiles' PNG encoder is the web tiles' deflate's). Writes into $OUT
 # (default target/profile-build/): table.md, collapsed.txt (inferno's format),
 # flamegraph.svg, perf.data. Needs perf, python3 and inferno (`cargo install inferno`).
 set -euo pipefail
@@ -50,11 +50,11 @@ from collections import Counter
 # (stage, pattern on a frame's name), innermost first wins; the order only matters
 # between patterns that could both name one frame.
 STAGES = [
-    ("web tiles: PNG encoding (deflate)", r"miniz_oxide|\bpng::encoder|png::text_metadata"),
+    ("web tiles: deflate (PNG and gzip)", r"miniz_oxide|zlib_rs|flate2|\bpng::encoder|png::text_metadata"),
     ("web tiles: quantized-mesh", r"web::quantized_mesh"),
     ("web tiles: sampling and reprojecting the pyramid", r"web::(source|build|crs|tiling)"),
     ("heights codec: zstd", r"ZSTD_|zstd"),
-    ("heights codec: prediction and framing", r"terrain_shared::(heights|codec|tile_blob)"),
+    ("heights codec: prediction, rANS and framing", r"terrain_shared::(heights|rans|codec|tile_blob)"),
     # One stage: `build::tiles::stats` computes the strip-mask errors
     # (`terrain_shared::mask`) with the bounds and roughness, and the inlined frames do not
     # always say which of them a sample was in.

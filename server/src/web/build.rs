@@ -78,7 +78,7 @@ fn png(data: &[u8], size: u32, colour: png::ColorType) -> Result<Vec<u8>, WebErr
     let mut encoder = png::Encoder::new(&mut out, size, size);
     encoder.set_color(colour);
     encoder.set_depth(png::BitDepth::Eight);
-    encoder.set_compression(png::Compression::High);
+    encoder.set_compression(png::Compression::Balanced);
     let encode = |e: png::EncodingError| WebError::Encode(e.to_string());
     let mut writer = encoder.write_header().map_err(encode)?;
     writer.write_image_data(data).map_err(encode)?;
