@@ -87,7 +87,7 @@ fn png(data: &[u8], size: u32, colour: png::ColorType) -> Result<Vec<u8>, WebErr
 }
 
 fn gzip(bytes: &[u8]) -> Result<Vec<u8>, WebError> {
-    let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+    let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
     let io = |source| WebError::Io {
         path: "gzip".into(),
         source,
