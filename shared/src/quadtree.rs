@@ -126,7 +126,7 @@ impl Tree {
 }
 
 /// A vertex of a patch's triangulation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Vertex {
     /// A node `(l, i, j)` of the sub-quadtree.
     Node { l: u8, i: u16, j: u16 },
@@ -137,7 +137,26 @@ pub enum Vertex {
     Corner { corner: u8, l: u8 },
 }
 
+/// One word per vertex (a derived hash writes the variant and each field apart, and the
+/// patch builder hashes triangles of vertices by the million).
+impl std::hash::Hash for Vertex {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        state.write_u64(self.key());
+    }
+}
+
 impl Vertex {
+    /// The vertex packed in a `u64`, one to one: the variant, then its fields.
+    fn key(self) -> u64 {
+        match self {
+            Vertex::Node { l, i, j } => (u64::from(l) << 32) | (u64::from(i) << 16) | u64::from(j),
+            Vertex::Side { side, l, k } => {
+                (1 << 48) | (u64::from(side) << 32) | (u64::from(l) << 16) | u64::from(k)
+            }
+            Vertex::Corner { corner, l } => (2 << 48) | (u64::from(corner) << 16) | u64::from(l),
+        }
+    }
+
     /// Position in patch units; `far` is where sides 1 and 2 lie (the patch's extent, or
     /// the terrain's edge where it runs past the last patch).
     pub fn position(self, tree: Tree, far: [f32; 2]) -> [f32; 2] {

@@ -23,7 +23,7 @@
 
 use super::BuildError;
 use rayon::prelude::*;
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use terrain_shared::quadtree::{self, Cut, Parent, PatchEntry, Tree, Vertex};
 use terrain_shared::{Manifest, TileId};
@@ -204,7 +204,7 @@ impl Patch<'_> {
                     }
                     let a = i * s..((i + 1) * s + 1).min(p + 1);
                     let b = j * s..((j + 1) * s + 1).min(p + 1);
-                    let before: HashSet<[Vertex; 3]> =
+                    let before: quadtree::FastSet<[Vertex; 3]> =
                         quadtree::triangles_in(&cut, a.clone(), b.clone())
                             .into_iter()
                             .collect();
