@@ -870,3 +870,50 @@ fn out_of_range_floats_become_voids_when_asked() {
     }
     assert!(m.heights.max_m <= 180.0 + 1e-9, "{} m", m.heights.max_m);
 }
+
+/// The default heights coder is rANS (codec 2) and `--heights-codec zstd` still writes codec
+/// 1: the same heights and mask errors in every tile, fewer bytes with rANS. The summary
+/// gives each product's seconds and samples a second.
+#[test]
+fn both_heights_coders_hold_the_same_tiles_and_the_summary_gives_each_products_rate() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (rans, zstd) = (dir.path().join("rans"), dir.path().join("zstd"));
+    let (ok, stdout, stderr) = build_cli(&jacksboro(), &rans, &[]);
+    assert!(ok, "{stderr}");
+    let speed = stdout
+        .lines()
+        .find(|l| l.starts_with("  speed "))
+        .unwrap_or_else(|| panic!("no speed line in {stdout}"));
+    assert!(
+        speed.contains("tiles, heights and textures")
+            && speed.contains("; web ")
+            && speed.matches(" M samples/s)").count() == 2,
+        "{speed}"
+    );
+    let (ok, _, stderr) = build_cli(&jacksboro(), &zstd, &["--heights-codec", "zstd"]);
+    assert!(ok, "{stderr}");
+    let (rans, zstd) = (
+        TileDb::open(&rans, Verify::Hashes).expect("opens"),
+        TileDb::open(&zstd, Verify::Hashes).expect("opens"),
+    );
+    assert_eq!(rans.manifest().heights.codec, "planar-rans/2");
+    assert_eq!(zstd.manifest().heights.codec, "planar-zstd/1");
+    let (a, b) = (decoded_tiles(&rans), decoded_tiles(&zstd));
+    assert_eq!(a.len(), b.len());
+    let (mut rans_bytes, mut zstd_bytes) = (0, 0);
+    for (a, b) in a.iter().zip(&b) {
+        assert_eq!((a.id, &a.heights), (b.id, &b.heights));
+        assert_eq!(a.blob.mask_errors_m, b.blob.mask_errors_m, "tile {}", a.id);
+        assert_eq!(
+            (a.blob.heights[4], b.blob.heights[4]),
+            (2, 1),
+            "codec versions"
+        );
+        rans_bytes += a.blob.heights.len();
+        zstd_bytes += b.blob.heights.len();
+    }
+    assert!(
+        rans_bytes < zstd_bytes,
+        "rANS {rans_bytes} bytes, zstd {zstd_bytes}"
+    );
+}

@@ -430,6 +430,8 @@ pub struct BuildReport {
     pub patches: Option<patches::Stats>,
     /// The web tiles, when made.
     pub web: Option<crate::web::build::Stats>,
+    /// Reading the heights and making every level's tiles, heights and textures.
+    pub tiles_elapsed: Duration,
     pub elapsed: Duration,
 }
 
@@ -610,6 +612,7 @@ pub fn build(
     }
     drop(rows);
     let built = pyramid.finish()?;
+    let tiles_elapsed = started.elapsed();
 
     let name = options
         .name
@@ -723,6 +726,7 @@ pub fn build(
         source_bytes,
         patches: patch_stats,
         web: web_stats,
+        tiles_elapsed,
         elapsed: started.elapsed(),
     })
 }
@@ -1069,6 +1073,29 @@ impl fmt::Display for Summary<'_> {
                 info.crs,
             )?;
         }
+        // Each product's seconds and source samples a second (the patches and the web tiles
+        // are made after the tiles, from them).
+        let samples = f64::from(m.raster.width) * f64::from(m.raster.height);
+        let rate = |seconds: f64| samples / seconds.max(1e-9) / 1e6;
+        let tiles_s = r.tiles_elapsed.as_secs_f64();
+        write!(
+            f,
+            "  speed     tiles, heights and textures {tiles_s:.1} s ({:.2} M samples/s)",
+            rate(tiles_s)
+        )?;
+        if let Some(p) = &r.patches {
+            let s = p.elapsed.as_secs_f64();
+            write!(f, "; patches {s:.1} s ({:.2} M samples/s)", rate(s))?;
+        }
+        if let Some(w) = &r.web {
+            write!(
+                f,
+                "; web {:.1} s ({:.2} M samples/s)",
+                w.seconds,
+                rate(w.seconds)
+            )?;
+        }
+        writeln!(f)?;
         if r.warnings.is_empty() {
             writeln!(f, "  warnings  none")?;
         }
