@@ -435,14 +435,45 @@ pub struct BuildReport {
     pub elapsed: Duration,
 }
 
-/// Progress of a build, for a bar: tiles done out of the total.
+/// Progress of a build, for a bar: items of the current [`Stage`] done out of its total.
 pub type ProgressFn<'a> = &'a (dyn Fn(usize, usize) + Sync);
+
+/// The stages of a build, in order, each with its own progress count.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Reading the heights and making every level's tiles: heights, errors, textures.
+    Tiles,
+    /// The quadtree patches (`--patches`), from the raster.
+    Patches,
+    /// The web tiles, from the finished pyramid.
+    WebTiles,
+}
+
+impl fmt::Display for Stage {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Stage::Tiles => "tiles",
+            Stage::Patches => "patches",
+            Stage::WebTiles => "web tiles",
+        })
+    }
+}
 
 /// Builds the database described by `options`. Checks `cancel` between tiles; a cancelled
 /// or failed build leaves nothing at `options.out`.
 pub fn build(
     options: &BuildOptions,
     progress: ProgressFn<'_>,
+    cancel: &AtomicBool,
+) -> Result<BuildReport, BuildError> {
+    build_in_stages(options, progress, &|_| {}, cancel)
+}
+
+/// [`build`], calling `stage` as each stage starts (the progress counts start again).
+pub fn build_in_stages(
+    options: &BuildOptions,
+    progress: ProgressFn<'_>,
+    stage: &dyn Fn(Stage),
     cancel: &AtomicBool,
 ) -> Result<BuildReport, BuildError> {
     let started = Instant::now();
@@ -601,6 +632,7 @@ pub fn build(
             writer.abandoned_removed().to_vec(),
         ));
     }
+    stage(Stage::Tiles);
     let mut pyramid = Pyramid::new(RasterSize { width, height }, context, progress, cancel);
     let mut rows = heights_input.rows;
     let mut whole: Vec<i32> = Vec::new();
@@ -663,6 +695,7 @@ pub fn build(
             )));
         }
         let started = Instant::now();
+        stage(Stage::Patches);
         let made = patches::build(
             &whole,
             &manifest,
@@ -697,6 +730,7 @@ pub fn build(
             Ok(placement) => {
                 let dir = writer.seal(&manifest)?.to_path_buf();
                 let db = crate::db::TileDb::open_being_built(&dir, crate::db::Verify::SizesOnly)?;
+                stage(Stage::WebTiles);
                 let (info, stats) = crate::web::build::build(
                     &db,
                     placement,
@@ -916,14 +950,20 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
         indicatif::ProgressBar::new(0)
     };
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} building [{elapsed_precise}] {wide_bar} {pos}/{len} tiles ({per_sec}, {eta} left)")
+        indicatif::ProgressStyle::with_template("{spinner} building {msg} [{elapsed_precise}] {wide_bar} {pos}/{len} ({per_sec}, {eta} left)")
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let on_progress = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     };
-    let report = build(&options, &on_progress, &cancel)
+    // One bar per stage: its count, elapsed time and rate start again.
+    let on_stage = |stage: Stage| {
+        bar.reset();
+        bar.set_length(0);
+        bar.set_message(stage.to_string());
+    };
+    let report = build_in_stages(&options, &on_progress, &on_stage, &cancel)
         .with_context(|| format!("building {}", options.heights.display()))?;
     bar.finish_and_clear();
     crate::print_stdout(&Summary(&report).to_string()).context("cannot write to stdout")?;
