@@ -30,6 +30,9 @@ pub struct Sampler<'a> {
     heights: HashMap<TileId, Arc<Vec<f32>>>,
     textures: HashMap<TileId, Arc<RgbImage>>,
     errors: HashMap<TileId, f64>,
+    /// The tile the last height came from: consecutive samples are mostly in one tile, and
+    /// this answers them without a lookup.
+    last_heights: Option<(TileId, Arc<Vec<f32>>)>,
 }
 
 impl<'a> Sampler<'a> {
@@ -39,6 +42,7 @@ impl<'a> Sampler<'a> {
             heights: HashMap::new(),
             textures: HashMap::new(),
             errors: HashMap::new(),
+            last_heights: None,
         }
     }
 
@@ -57,7 +61,22 @@ impl<'a> Sampler<'a> {
         (id, c - f64::from(x) * step, r - f64::from(y) * step)
     }
 
-    fn tile_heights(&mut self, id: TileId) -> Result<Arc<Vec<f32>>, SourceError> {
+    fn tile_heights(&mut self, id: TileId) -> Result<&[f32], SourceError> {
+        if self
+            .last_heights
+            .as_ref()
+            .is_none_or(|(last, _)| *last != id)
+        {
+            let h = self.load_heights(id)?;
+            self.last_heights = Some((id, h));
+        }
+        Ok(self
+            .last_heights
+            .as_ref()
+            .map_or(&[], |(_, h)| h.as_slice()))
+    }
+
+    fn load_heights(&mut self, id: TileId) -> Result<Arc<Vec<f32>>, SourceError> {
         if let Some(h) = self.heights.get(&id) {
             return Ok(h.clone());
         }
