@@ -225,22 +225,19 @@ impl Heights {
         // arithmetic: the decoder wraps the same way, so any i32 range round-trips.
         let rel = |x: usize, y: usize| self.codes[y * w + x].wrapping_sub(min);
         let mut zigzag = Vec::with_capacity(w * h);
-        let mut largest = 0u32;
         for y in 0..h {
             for x in 0..w {
                 let west = if x > 0 { rel(x - 1, y) } else { 0 };
                 let north = if y > 0 { rel(x, y - 1) } else { 0 };
                 let north_west = if x > 0 && y > 0 { rel(x - 1, y - 1) } else { 0 };
                 let prediction = west.wrapping_add(north).wrapping_sub(north_west);
-                let z = zigzag_encode(rel(x, y).wrapping_sub(prediction));
-                largest = largest.max(z);
-                zigzag.push(z);
+                zigzag.push(zigzag_encode(rel(x, y).wrapping_sub(prediction)));
             }
         }
         let (version, planes_byte, payload) = match coder {
             Coder::Rans => (CODEC_VERSION, 0u8, crate::rans::encode(&zigzag, w)),
             Coder::Zstd(zstd_level) => {
-                let planes = planes_needed(largest);
+                let planes = planes_needed(zigzag.iter().copied().max().unwrap_or(0));
                 let mut plane = vec![0u8; w * h];
                 let mut payload = Vec::new();
                 for index in 0..planes {
@@ -526,11 +523,13 @@ fn decompress_unsized(frame: &[u8], plane: &mut [u8]) -> Result<usize, Unsized> 
     }
 }
 
-fn zigzag_encode(v: i32) -> u32 {
+/// The zig-zag map of signed residuals to unsigned ones (0, -1, 1, -2, ... to 0, 1, 2, ...),
+/// and back; the rANS coder's table steps use it too.
+pub(crate) fn zigzag_encode(v: i32) -> u32 {
     ((v << 1) ^ (v >> 31)) as u32
 }
 
-fn zigzag_decode(z: u32) -> i32 {
+pub(crate) fn zigzag_decode(z: u32) -> i32 {
     ((z >> 1) as i32) ^ -((z & 1) as i32)
 }
 
@@ -682,7 +681,7 @@ mod tests {
             match Heights::decode(&sealed_v(CODEC_VERSION, 0, 33, (0, 500), &corrupt)) {
                 Err(_) => caught += 1,
                 // A flip can yield another valid stream; then it must not claim this tile.
-                Ok(other) => assert_ne!(other, h, "bit {bit}"),
+                Ok(other) => assert_ne!(other.codes, h.codes, "bit {bit}"),
             }
         }
         assert!(
@@ -697,6 +696,59 @@ mod tests {
                 "payload cut to {len} bytes"
             );
         }
+    }
+
+    /// The checks at the end of a version-2 stream, each on its own: a valid stream with a
+    /// word too many, a raw byte too many, or a start state changed is refused by name.
+    #[test]
+    fn a_rans_stream_that_does_not_end_cleanly_is_refused_by_name() {
+        let h = tile(33, 33, |x, y| ((x * x + 3 * y) % 500) as i32);
+        let bytes = h.encode().expect("encodes");
+        let payload = &bytes[HEADER_LEN..];
+        let u32_at = |i: usize| u32::from_le_bytes(payload[i..i + 4].try_into().expect("4"));
+        let (table_len, raw_len) = (u32_at(0) as usize, u32_at(4) as usize);
+        let decode = |payload: &[u8]| {
+            Heights::decode(&sealed_v(
+                CODEC_VERSION,
+                0,
+                33,
+                (h.code_range().0, h.code_range().1),
+                payload,
+            ))
+        };
+        assert_eq!(decode(payload).expect("the stream as made").codes, h.codes);
+
+        let mut extra_word = payload.to_vec();
+        extra_word.extend_from_slice(&[0, 0]);
+        let message = decode(&extra_word)
+            .expect_err("a word too many")
+            .to_string();
+        assert!(message.contains("rANS words left over"), "{message}");
+
+        let mut extra_raw = payload.to_vec();
+        extra_raw[4..8].copy_from_slice(&(raw_len as u32 + 1).to_le_bytes());
+        extra_raw.insert(8 + table_len + raw_len, 0);
+        let message = decode(&extra_raw)
+            .expect_err("a raw byte too many")
+            .to_string();
+        assert!(message.contains("raw bits left over"), "{message}");
+
+        // A start state changed in one bit: the stream is refused, and for some such flip it
+        // decodes to its end with the same words read, where only the final states tell.
+        let words_at = 8 + table_len + raw_len;
+        let mut final_state_caught = false;
+        for bit in 0..8 * 16 {
+            let mut state_off = payload.to_vec();
+            state_off[words_at + bit / 8] ^= 1 << (bit % 8);
+            let message = decode(&state_off)
+                .expect_err("a start state changed")
+                .to_string();
+            final_state_caught |= message.contains("do not end where they began");
+        }
+        assert!(
+            final_state_caught,
+            "no flip of a start state reached the final check"
+        );
     }
 
     fn sealed(planes: u8, side: u16, payload: &[u8]) -> Vec<u8> {

@@ -24,6 +24,8 @@
 //! used without a table, a stream read past its end, states that do not end where the
 //! encoder began, bytes left over. Every check is an error, never a panic.
 
+use crate::heights::{zigzag_decode, zigzag_encode};
+
 /// Probabilities are multiples of `2^-PROB_BITS`.
 pub(crate) const PROB_BITS: u32 = 10;
 const TOTAL: u32 = 1 << PROB_BITS;
@@ -309,14 +311,6 @@ impl<'a> BitReader<'a> {
     }
 }
 
-fn zigzag(v: i32) -> u32 {
-    ((v << 1) ^ (v >> 31)) as u32
-}
-
-fn unzigzag(z: u32) -> i32 {
-    ((z >> 1) as i32) ^ -((z & 1) as i32)
-}
-
 /// Codes the zig-zag residuals `z` of a `w`-wide tile (row-major) as the payload of heights
 /// codec 2.
 pub(crate) fn encode(z: &[u32], w: usize) -> Vec<u8> {
@@ -356,7 +350,7 @@ pub(crate) fn encode(z: &[u32], w: usize) -> Vec<u8> {
                 let share = (f64::from(count) * f64::from(TOTAL) / sum as f64).max(1.0);
                 *step = ((share.log2() * 2.0).round() as u32 + 1).min(Q_MAX) as u8;
             }
-            table.gamma(zigzag(i32::from(*step) - previous) + 1);
+            table.gamma(zigzag_encode(i32::from(*step) - previous) + 1);
             previous = i32::from(*step);
         }
         let freq = normalize(&steps[..used]).expect("a used context has a token");
@@ -407,8 +401,6 @@ struct Scratch {
     tables: Vec<u32>,
     /// The rANS words, then zeros, so a word can be read without a bounds branch.
     words: Vec<u32>,
-    /// The raw bits, then 8 zero bytes, for the same reason.
-    raw: Vec<u8>,
 }
 
 thread_local! {
@@ -433,34 +425,6 @@ fn step(
     *state = if refill { *state << 16 | word } else { *state };
     *next += usize::from(refill);
     entry as u8 & 0x7f
-}
-
-/// Fast LSB-first reader of the raw bits from a buffer padded with 8 zero bytes.
-struct RawBits<'a> {
-    bytes: &'a [u8],
-    /// Bytes of `bytes` that are data, not padding.
-    len: usize,
-    at: usize,
-    acc: u64,
-    count: u32,
-    consumed: u64,
-}
-
-impl RawBits<'_> {
-    /// `bits <= 32` bits (0 gives 0): refills unconditionally, then takes them.
-    #[inline(always)]
-    fn get(&mut self, bits: u32) -> u32 {
-        let at = self.at.min(self.bytes.len() - 8);
-        let word = u64::from_le_bytes(self.bytes[at..at + 8].try_into().expect("8 bytes"));
-        self.acc |= word << self.count;
-        self.at += ((63 - self.count) >> 3) as usize;
-        self.count |= 56;
-        let value = (self.acc & ((1u64 << bits) - 1)) as u32;
-        self.acc >>= bits;
-        self.count -= bits;
-        self.consumed += u64::from(bits);
-        value
-    }
 }
 
 /// Decodes a codec-2 payload into the zig-zag residuals of a `w x h` tile, handing each row
@@ -493,25 +457,25 @@ pub(crate) fn decode(
         let Scratch {
             tables,
             words: padded_words,
-            raw: padded_raw,
         } = scratch;
-        // Filled for the contexts the tile has tables for, and only those are read.
+        // Filled for the contexts the tile has tables for (bit `c` of `has_table`), and
+        // only those are read.
         tables.resize(TABLES_LEN, 0);
-        let mut has_table = [false; CONTEXTS];
+        let mut has_table = 0u32;
         let mut reader = BitReader::new(table);
-        for (context, has) in has_table.iter_mut().enumerate() {
+        for context in 0..CONTEXTS {
             let used = reader.get(8) as usize;
             if used == 0 {
                 continue;
             }
-            *has = true;
+            has_table |= 1 << context;
             if used > TOKENS {
                 return Err(StreamError::Table("more tokens than there are"));
             }
             let mut steps = [0u8; TOKENS];
             let mut previous = 0i32;
             for step in &mut steps[..used] {
-                let q = previous + unzigzag(reader.gamma()? - 1);
+                let q = previous + zigzag_decode(reader.gamma()? - 1);
                 if !(0..=Q_MAX as i32).contains(&q) {
                     return Err(StreamError::Table("a frequency step out of range"));
                 }
@@ -543,17 +507,7 @@ pub(crate) fn decode(
         // Every step reads at most one word, so a row reads at most `w`: a state that reads
         // past the end reads zeros, and is caught at the end of its row.
         padded_words.resize(word_count + w + STATES, 0);
-        padded_raw.clear();
-        padded_raw.extend_from_slice(extra);
-        padded_raw.extend_from_slice(&[0; 8]);
-        let mut raw = RawBits {
-            bytes: padded_raw,
-            len: extra.len(),
-            at: 0,
-            acc: 0,
-            count: 0,
-            consumed: 0,
-        };
+        let mut raw = BitReader::new(extra);
 
         let words = &padded_words[..];
         let mut states = [0u32; STATES];
@@ -563,10 +517,6 @@ pub(crate) fn decode(
         let [mut s0, mut s1, mut s2, mut s3] = states;
         let mut next = 2 * STATES;
         let tables: &[u32; TABLES_LEN] = tables[..].try_into().expect("sized above");
-        let has_mask = has_table
-            .iter()
-            .enumerate()
-            .fold(0u32, |m, (c, &has)| m | u32::from(has) << c);
         let mut contexts = vec![0u8; w];
         let mut tokens = vec![0u8; w];
         let mut padded = Vec::with_capacity(w + 4);
@@ -575,9 +525,9 @@ pub(crate) fn decode(
         for y in 0..h {
             row_contexts((y > 0).then_some(&above[..]), &mut padded, &mut contexts);
             let used = contexts.iter().fold(0u32, |m, &c| m | 1 << (c & 15));
-            if used & !has_mask != 0 {
+            if used & !has_table != 0 {
                 return Err(StreamError::MissingTable(
-                    (used & !has_mask).trailing_zeros() as u8,
+                    (used & !has_table).trailing_zeros() as u8,
                 ));
             }
             let mut token_chunks = tokens.chunks_exact_mut(STATES);
@@ -606,13 +556,13 @@ pub(crate) fn decode(
         if next > word_count {
             return Err(StreamError::Overrun("rANS"));
         }
-        if raw.consumed > raw.len as u64 * 8 {
+        if raw.overrun() {
             return Err(StreamError::Overrun("raw bits"));
         }
         if next != word_count {
             return Err(StreamError::BadEnd("rANS words left over"));
         }
-        if raw.consumed.div_ceil(8) != raw.len as u64 {
+        if !raw.used_exactly() {
             return Err(StreamError::BadEnd("raw bits left over"));
         }
         if [s0, s1, s2, s3] != [RANS_L; STATES] {

@@ -1029,6 +1029,7 @@ impl fmt::Display for Summary<'_> {
         let r = self.0;
         let m = &r.manifest;
         let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+        let samples = f64::from(m.raster.width) * f64::from(m.raster.height);
         writeln!(
             f,
             "built {} ({}) in {:.1} s",
@@ -1078,7 +1079,6 @@ impl fmt::Display for Summary<'_> {
             }
         )?;
         if let Some(p) = &r.patches {
-            let samples = f64::from(m.raster.width) * f64::from(m.raster.height);
             writeln!(
                 f,
                 "  patches   {:.2} MiB in {:.1} s for {} patches: split bits {:.4} bytes/sample (1 bit a node, the paper's 0.06), heights {:.3} bytes/sample, index {:.1} KiB; {:.1}% of the samples active in the finest patches",
@@ -1115,7 +1115,6 @@ impl fmt::Display for Summary<'_> {
         }
         // Each product's seconds and source samples a second (the patches and the web tiles
         // are made after the tiles, from them).
-        let samples = f64::from(m.raster.width) * f64::from(m.raster.height);
         let rate = |seconds: f64| samples / seconds.max(1e-9) / 1e6;
         let tiles_s = r.tiles_elapsed.as_secs_f64();
         write!(
