@@ -588,6 +588,45 @@ mod tests {
         }
     }
 
+    /// A stream whose table for a context it uses is taken out is refused, naming the
+    /// context (row 0's, which every tile uses).
+    #[test]
+    fn a_context_used_without_a_table_is_refused_by_name() {
+        let w = 9;
+        let z: Vec<u32> = (0..w * 7).map(|i| (i * 7 % 23) as u32).collect();
+        let payload = encode(&z, w);
+        let length = |at: usize| u32::from_le_bytes(payload[at..at + 4].try_into().expect("4"));
+        let table_len = length(0) as usize;
+        let table = &payload[8..8 + table_len];
+        // The same tables, row 0's written as absent.
+        let mut reader = BitReader::new(table);
+        let mut writer = BitWriter::default();
+        for context in 0..CONTEXTS {
+            let used = reader.get(8);
+            let steps: Vec<u32> = (0..used).map(|_| reader.gamma().expect("a step")).collect();
+            if context == usize::from(FIRST_ROW) {
+                assert!(used > 0, "row 0 has a table");
+                writer.put(0, 8);
+                continue;
+            }
+            writer.put(used, 8);
+            for step in steps {
+                writer.gamma(step);
+            }
+        }
+        let without = writer.finish();
+        let mut stream = Vec::new();
+        stream.extend_from_slice(&(without.len() as u32).to_le_bytes());
+        stream.extend_from_slice(&payload[4..8]);
+        stream.extend_from_slice(&without);
+        stream.extend_from_slice(&payload[8 + table_len..]);
+        assert_eq!(decode(&payload, w, 7, |_, _| {}), Ok(()));
+        assert_eq!(
+            decode(&stream, w, 7, |_, _| {}),
+            Err(StreamError::MissingTable(FIRST_ROW))
+        );
+    }
+
     #[test]
     fn normalized_tables_always_sum_to_the_total() {
         let mut rng = 0x1234_5678_9abc_def0u64;
