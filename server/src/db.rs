@@ -948,7 +948,7 @@ fn slice_pack(
 /// holds: builds to the same output that were killed (SIGKILL, a power cut) before they
 /// could clean up. A directory whose lock is held (a build running now) or that has no lock
 /// is left alone. Returns what was removed.
-fn remove_abandoned_builds(parent: &Path, prefix: &str) -> Vec<PathBuf> {
+pub(crate) fn remove_abandoned_builds(parent: &Path, prefix: &str) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(parent) else {
         return Vec::new();
     };
@@ -1245,6 +1245,52 @@ impl DbWriter {
             Pack::Textures => self.textures_written += bytes.len() as u64,
         }
         Ok(Blob::of(bytes))
+    }
+
+    /// Appends the files `heights` and `textures` to pyramid level `level`'s blobs, as if
+    /// their blobs had been added one by one (a region job's tiles, [`crate::build::jobs`]);
+    /// returns the bytes appended from each.
+    pub fn append_level_files(
+        &mut self,
+        level: u32,
+        heights: &Path,
+        textures: &Path,
+    ) -> Result<(u64, u64), WriteError> {
+        use std::io::Write;
+        let out = self.out.clone();
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| WriteError::Io { path, source }
+        };
+        let (to_heights, to_textures) = match level.checked_sub(1) {
+            None => (&mut self.heights, &mut self.textures),
+            Some(index) => {
+                let index = index as usize;
+                if self.coarser.len() <= index {
+                    self.coarser.resize_with(index + 1, || None);
+                }
+                let files = match &mut self.coarser[index] {
+                    Some(files) => files,
+                    empty => {
+                        empty.insert(LevelFiles::create(self.tmp.path(), level).map_err(io(&out))?)
+                    }
+                };
+                (&mut files.heights.1, &mut files.textures.1)
+            }
+        };
+        let mut copied = [0; 2];
+        for ((from, to), n) in [(heights, to_heights), (textures, to_textures)]
+            .into_iter()
+            .zip(&mut copied)
+        {
+            to.flush().map_err(io(&out))?;
+            let mut file = File::open(from).map_err(io(from))?;
+            // File to file: the standard library copies with copy_file_range where it can.
+            *n = std::io::copy(&mut file, to.get_mut()).map_err(io(&out))?;
+        }
+        self.heights_written += copied[0];
+        self.textures_written += copied[1];
+        Ok((copied[0], copied[1]))
     }
 
     /// Writes the quadtree patches' pack: the bodies in tile order, then the index.

@@ -17,6 +17,9 @@ struct Cli {
 enum Command {
     /// Build a tile database from a DEM (16/8-bit PNG, GeoTIFF, SRTM .hgt) and an optional texture.
     Build(terrain_server::build::BuildArgs),
+    /// Make the database from the region jobs of a build split into jobs (`build --region
+    /// I/N`), the same database one build makes.
+    Merge(terrain_server::build::jobs::MergeArgs),
     /// Serve a tile database over HTTP.
     Serve(terrain_server::http::ServeArgs),
     /// Upload a finished database to an object store (s3://bucket/prefix) and point the
@@ -39,6 +42,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Build(args) => terrain_server::build::run_cli(args),
+        Command::Merge(args) => terrain_server::build::jobs::run_merge_cli(args),
         Command::Serve(args) => terrain_server::http::run_cli(args),
         Command::Export(args) => terrain_server::export::run_cli(args),
         Command::Publish(args) => terrain_server::store::run_publish_cli(args),

@@ -11,6 +11,7 @@ mod fuzz_corpora;
 mod grids;
 mod hostile;
 mod http;
+mod jobs;
 mod levels;
 mod memory;
 mod methods;

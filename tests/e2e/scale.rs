@@ -661,3 +661,105 @@ fn a_build_written_to_the_store_is_served_as_the_same_version_a_local_build_make
         "{stderr}"
     );
 }
+
+/// Region jobs that upload to the store (`build --region I/N --out s3://…`), merged from
+/// the store into the store (`merge s3://… --out s3://…`): the published version is the
+/// one a local build makes, and the merge's scratch files are gone. A job whose record is
+/// not in the store (killed while uploading) is a missing job to the merge.
+#[test]
+fn region_jobs_written_to_the_store_merge_into_the_version_one_build_makes() {
+    let Some(tools) = tools("region jobs in the store") else {
+        return;
+    };
+    let store = ObjectStore::start(&tools);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let jobs = format!("s3://{BUCKET}/jobs/jacksboro");
+    let flags = ["--tile-size", "33"];
+    for i in 0..3 {
+        let region = format!("{i}/3");
+        let said = server_command(
+            &store,
+            &[
+                &[
+                    OsStr::new("build"),
+                    jacksboro().as_os_str(),
+                    OsStr::new("--region"),
+                    OsStr::new(&region),
+                    OsStr::new("--out"),
+                    OsStr::new(&jobs),
+                    OsStr::new("--quiet"),
+                ][..],
+                &flags.map(OsStr::new),
+            ]
+            .concat(),
+        );
+        assert!(
+            said.contains(&format!("region {region} done: {jobs}/job-{i}-of-3"))
+                && said.contains("  uploaded "),
+            "{said}"
+        );
+    }
+    let local = tmp.path().join("db");
+    cli_build(&jacksboro(), &local, &flags);
+    let version = TileDb::open(&local, Verify::SizesOnly)
+        .expect("opens")
+        .manifest()
+        .content_version
+        .clone();
+    let url = format!("s3://{BUCKET}/merged/jacksboro");
+    let merge = |out: &str| {
+        std::process::Command::new(terrain_tests::data::workspace_binary("terrain-server"))
+            .args(["merge", &jobs, "--out", out, "--quiet"])
+            .envs(store.env())
+            .output()
+            .expect("runs")
+    };
+    let output = merge(&url);
+    let said = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{said}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(
+        said.contains("published s3://tiles/merged/jacksboro"),
+        "{said}"
+    );
+    assert!(
+        said.contains(&version),
+        "one build's version {version}: {said}"
+    );
+    let replica = Replica::start(&store, &url, &[]);
+    assert_eq!(served_version(&replica.base), version);
+    let leftovers: Vec<_> = std::fs::read_dir(std::env::temp_dir())
+        .expect("temp dir")
+        .flatten()
+        .filter(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            name.starts_with("terrain-merge-jobs-") || name.starts_with("terrain-region-")
+        })
+        .filter(|e| std::fs::read_dir(e.path()).is_ok_and(|mut d| d.next().is_some()))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+
+    // Region 1's record gone, as a job killed while it uploads leaves it.
+    let runtime = runtime();
+    runtime.block_on(async {
+        use object_store::ObjectStoreExt as _;
+        let client = terrain_server::store::connect_with(
+            &terrain_server::store::StoreUrl::parse(&jobs).expect("url"),
+            &store.env(),
+        )
+        .expect("connects");
+        client
+            .delete(&object_store::path::Path::from(
+                "jobs/jacksboro/job-1-of-3/job.json",
+            ))
+            .await
+            .expect("deletes");
+    });
+    let output = merge(tmp.path().join("again").to_str().expect("utf-8"));
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("missing region job(s) 1/3"), "{stderr}");
+}

@@ -40,11 +40,27 @@
 use super::texture::{self, ChildTexture, Edges, HeightField, Registration};
 use super::tiles::{self, Band, Grid, TileStats};
 use super::{BuildError, ProgressFn};
-use crate::db::DbWriter;
+use crate::db::{DbWriter, WriteError};
 use image::RgbImage;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use terrain_shared::manifest::{self, GridSize, ImageFormat, Level, RasterSize};
-use terrain_shared::{TileBlob, TileId, TileRecord};
+use terrain_shared::{Blob, TileBlob, TileId, TileRecord};
+
+/// Where a pyramid's tiles go: a database being written, or a region job's files
+/// ([`super::jobs`]). Blobs arrive in row-major order per level.
+pub(super) trait TileSink: std::fmt::Debug {
+    fn add_level_heights(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError>;
+    fn add_level_texture(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError>;
+}
+
+impl TileSink for DbWriter {
+    fn add_level_heights(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError> {
+        DbWriter::add_level_heights(self, level, bytes)
+    }
+    fn add_level_texture(&mut self, level: u32, bytes: &[u8]) -> Result<Blob, WriteError> {
+        DbWriter::add_level_texture(self, level, bytes)
+    }
+}
 
 /// What every tile of a build shares.
 #[derive(Debug)]
@@ -77,6 +93,9 @@ pub(super) enum LevelZeroTexture<'a> {
         min_m: f64,
         max_m: f64,
     },
+    /// None: the pyramid starts above level 0 ([`Pyramid::above`]), and every tile's
+    /// texture is filtered from its children's.
+    FromChildren,
 }
 
 /// What a finished pyramid made.
@@ -92,10 +111,15 @@ pub(super) struct Built {
 }
 
 /// The levels being built. See the module docs.
-#[derive(Debug)]
 pub(super) struct Pyramid<'a> {
     tiles: TileMaker<'a>,
+    /// The levels this pyramid makes: all of them ([`Pyramid::new`]), those up to a region
+    /// job's split level ([`Pyramid::region`]), or those above it ([`Pyramid::above`]).
     levels: Vec<LevelState>,
+    /// A region job's hand-over to the merge, gathered as its top level's rows are made.
+    handover: Option<Handover>,
+    /// Above a split level: the children's carries of each tile row of the first level.
+    children: Option<ChildrenFn<'a>>,
     /// Per level (none at level 0), per tile of its next tile row, what its children have
     /// handed up so far.
     pending: Vec<Vec<Parent>>,
@@ -104,6 +128,32 @@ pub(super) struct Pyramid<'a> {
     heights_bytes: u64,
     /// Per texture level, coarsest first, the bytes written so far.
     texture_bytes: Vec<u64>,
+}
+
+impl std::fmt::Debug for Pyramid<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pyramid")
+            .field("tiles", &self.tiles)
+            .field("levels", &self.levels)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The carries of the children of tile row `y` of a pyramid's first level, one [`Parent`]
+/// per column ([`Pyramid::above`]).
+pub(super) type ChildrenFn<'a> = Box<dyn FnMut(u32) -> Result<Vec<Parent>, BuildError> + 'a>;
+
+/// What a region job hands the merge ([`Pyramid::take_handover`]): the carries of its top
+/// level's tiles, row-major, and the rows of the next coarser level that its top level's
+/// rows make (each with its row number).
+#[derive(Debug, Default)]
+pub(super) struct Handover {
+    pub carries: Vec<Carry>,
+    pub rows: Vec<(u32, Vec<i32>)>,
+    /// The next coarser level's raster, when there is one.
+    up: Option<RasterSize>,
+    /// Its next row to hand over.
+    next_up_row: u32,
 }
 
 /// Makes tiles, from any thread.
@@ -133,13 +183,16 @@ struct LevelState {
     grid: Grid,
     band: Band,
     next_tile_row: u32,
+    /// One past the last tile row this pyramid makes of the level (the grid's rows but in a
+    /// region job).
+    end_tile_row: u32,
 }
 
 /// What a tile's children have handed up so far.
 #[derive(Debug, Default)]
-struct Parent {
+pub(super) struct Parent {
     /// North-west, north-east, south-west, south-east; `None` past the finer grid's edge.
-    children: [Option<Carry>; 4],
+    pub children: [Option<Carry>; 4],
 }
 
 /// A tile to make: its level and column (its row is the level's next), and above level 0
@@ -152,8 +205,8 @@ struct Job {
 }
 
 /// What a tile hands to its parent.
-#[derive(Debug)]
-struct Carry {
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct Carry {
     /// Bounds of the full-resolution surface under the tile.
     min_m: f32,
     max_m: f32,
@@ -169,6 +222,46 @@ struct Carry {
 }
 
 impl Carry {
+    /// Appends the carry's bytes to `out`: its five figures as f32 bits (little-endian),
+    /// then its texture ([`ChildTexture::write_to`]). Exact: a merge reads back what the
+    /// region job held.
+    pub fn write_to(&self, out: &mut Vec<u8>) {
+        for v in [
+            self.min_m,
+            self.max_m,
+            self.deviation_m,
+            self.half_resolution_error_m,
+            self.padding_error_m,
+        ] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        self.texture.write_to(out);
+    }
+
+    /// Reads what [`Carry::write_to`] wrote from the front of `bytes`, advancing it.
+    pub fn read_from(bytes: &mut &[u8]) -> Option<Carry> {
+        let mut figure = || -> Option<f32> {
+            let (head, rest) = (bytes.len() >= 4).then(|| bytes.split_at(4))?;
+            *bytes = rest;
+            Some(f32::from_le_bytes(head.try_into().ok()?))
+        };
+        let [
+            min_m,
+            max_m,
+            deviation_m,
+            half_resolution_error_m,
+            padding_error_m,
+        ] = [figure()?, figure()?, figure()?, figure()?, figure()?];
+        Some(Carry {
+            min_m,
+            max_m,
+            deviation_m,
+            half_resolution_error_m,
+            padding_error_m,
+            texture: ChildTexture::read_from(bytes)?,
+        })
+    }
+
     /// The same carry in allocations made by the calling thread.
     fn rehomed(self) -> Carry {
         Carry {
@@ -198,28 +291,126 @@ impl<'a> Pyramid<'a> {
         progress: ProgressFn<'a>,
         cancel: &'a AtomicBool,
     ) -> Pyramid<'a> {
+        let all = manifest::level_rasters(raster, context.tile_size).len();
+        Pyramid::of_levels(raster, 0..all, None, None, context, progress, cancel)
+    }
+
+    /// A region job's pyramid: levels `0..=split` of the tiles under tile rows `rows` of
+    /// level `split` (rows past the grid's end are ignored), with their
+    /// [`Pyramid::take_handover`] for the merge. It reads level 0's rows from
+    /// [`Pyramid::first_row`] on and is done ([`Pyramid::is_done`]) well before the last.
+    pub fn region(
+        raster: RasterSize,
+        context: TileContext<'a>,
+        split: u32,
+        rows: std::ops::Range<u32>,
+        progress: ProgressFn<'a>,
+        cancel: &'a AtomicBool,
+    ) -> Pyramid<'a> {
+        let split = split as usize;
+        let all = manifest::level_rasters(raster, context.tile_size);
+        let up = all.get(split + 1).copied();
+        let mut pyramid = Pyramid::of_levels(
+            raster,
+            0..(split + 1).min(all.len()),
+            Some(rows),
+            None,
+            context,
+            progress,
+            cancel,
+        );
+        let step = pyramid.tiles.context.tile_size - 1;
+        let first_up_row = pyramid
+            .levels
+            .last()
+            .map_or(0, |l| l.next_tile_row * step / 2);
+        pyramid.handover = Some(Handover {
+            up,
+            next_up_row: first_up_row,
+            ..Handover::default()
+        });
+        pyramid
+    }
+
+    /// The merge's pyramid: the levels above `split`, level `split + 1` read row by row
+    /// (from the region jobs' hand-overs) and its tiles made from `children`' carries.
+    pub fn above(
+        raster: RasterSize,
+        context: TileContext<'a>,
+        split: u32,
+        children: ChildrenFn<'a>,
+        progress: ProgressFn<'a>,
+        cancel: &'a AtomicBool,
+    ) -> Pyramid<'a> {
+        let all = manifest::level_rasters(raster, context.tile_size).len();
+        let first = (split as usize + 1).min(all);
+        Pyramid::of_levels(
+            raster,
+            first..all,
+            None,
+            Some(children),
+            context,
+            progress,
+            cancel,
+        )
+    }
+
+    /// Levels `range` of the pyramid over a `raster` of level 0; with `region`, only the
+    /// tiles under those tile rows of the range's last level.
+    fn of_levels(
+        raster: RasterSize,
+        range: std::ops::Range<usize>,
+        region: Option<std::ops::Range<u32>>,
+        children: Option<ChildrenFn<'a>>,
+        context: TileContext<'a>,
+        progress: ProgressFn<'a>,
+        cancel: &'a AtomicBool,
+    ) -> Pyramid<'a> {
         let n = context.tile_size;
+        let step = n - 1;
+        let top = range.end.saturating_sub(1);
+        let first = range.start;
         let levels: Vec<LevelState> = manifest::level_rasters(raster, n)
             .into_iter()
-            .zip(0..)
+            .zip(0u32..)
+            .skip(first)
+            .take(range.len())
             .map(|(raster, level)| {
-                // Level 0 stores its band and the halo; a coarser level only the rows that
-                // outlive the finer band they are seen through (see `store_for`).
-                let rows = if level == 0 {
+                // The first level stores its band and the halo; a coarser level only the rows
+                // that outlive the finer band they are seen through (see `store_for`).
+                let rows = if level as usize == first {
                     n + 2 * texture::GENERATED_HALO_ROWS
                 } else {
                     (n - 1) / 2 + 1
                 };
+                let grid = Grid::covering(raster.width, raster.height, n);
+                // Tile row `y` of the top level covers rows `2y` and `2y + 1` of the one below.
+                let shift = top - level as usize;
+                let (start, end) = match &region {
+                    Some(rows) => (
+                        (rows.start << shift).min(grid.rows),
+                        (rows.end << shift).min(grid.rows),
+                    ),
+                    None => (0, grid.rows),
+                };
+                let mut band = Band::new(raster.width, raster.height, rows, context.code_range);
+                if level as usize == first {
+                    band.restart_at((start * step).saturating_sub(texture::GENERATED_HALO_ROWS));
+                }
                 LevelState {
                     level,
                     raster,
-                    grid: Grid::covering(raster.width, raster.height, n),
-                    band: Band::new(raster.width, raster.height, rows, context.code_range),
-                    next_tile_row: 0,
+                    grid,
+                    band,
+                    next_tile_row: start,
+                    end_tile_row: end.max(start),
                 }
             })
             .collect();
-        let total = levels.iter().map(|l| l.grid.len()).sum();
+        let total = levels
+            .iter()
+            .map(|l| (l.end_tile_row - l.next_tile_row) as usize * l.grid.columns as usize)
+            .sum();
         Pyramid {
             tiles: TileMaker {
                 context,
@@ -230,25 +421,60 @@ impl<'a> Pyramid<'a> {
             },
             pending: levels
                 .iter()
-                .map(|l| match l.level {
+                .enumerate()
+                .map(|(i, l)| match i {
                     0 => Vec::new(),
                     _ => (0..l.grid.columns).map(|_| Parent::default()).collect(),
                 })
                 .collect(),
             records: levels
                 .iter()
-                .map(|l| Vec::with_capacity(l.grid.len()))
+                .map(|l| {
+                    let rows = (l.end_tile_row - l.next_tile_row) as usize;
+                    Vec::with_capacity(rows * l.grid.columns as usize)
+                })
                 .collect(),
             levels,
+            handover: None,
+            children,
             heights_bytes: 0,
             texture_bytes: Vec::new(),
         }
     }
 
+    /// The first row of its first level the pyramid reads ([`Pyramid::push_row`] takes rows
+    /// from here on).
+    pub fn first_row(&self) -> u32 {
+        self.levels.first().map_or(0, |l| l.band.next_row())
+    }
+
+    /// Whether every tile row of every level is made: the rows still to come are not read.
+    pub fn is_done(&self) -> bool {
+        self.levels
+            .iter()
+            .all(|l| l.next_tile_row == l.end_tile_row)
+    }
+
+    /// What a region job made for the merge since the last call (see [`Handover`]).
+    pub fn take_handover(&mut self) -> Handover {
+        match &mut self.handover {
+            Some(h) => Handover {
+                carries: std::mem::take(&mut h.carries),
+                rows: std::mem::take(&mut h.rows),
+                up: h.up,
+                next_up_row: h.next_up_row,
+            },
+            None => Handover::default(),
+        }
+    }
+
     /// Adds the next row of level 0 and makes every tile row that completes.
-    pub fn push_row(&mut self, row: &[i32], writer: &mut DbWriter) -> Result<(), BuildError> {
+    pub fn push_row(&mut self, row: &[i32], writer: &mut dyn TileSink) -> Result<(), BuildError> {
         if self.tiles.cancel.load(Ordering::Relaxed) {
             return Err(BuildError::Cancelled);
+        }
+        if self.is_done() {
+            return Ok(());
         }
         self.levels[0].band.push_row(row);
         while self.level_zero_ready() {
@@ -260,7 +486,11 @@ impl<'a> Pyramid<'a> {
     /// The levels, once every row of level 0 has been pushed.
     pub fn finish(self) -> Result<Built, BuildError> {
         let n = u64::from(self.tiles.context.tile_size);
-        if let Some(level) = self.levels.iter().find(|l| l.next_tile_row != l.grid.rows) {
+        if let Some(level) = self
+            .levels
+            .iter()
+            .find(|l| l.next_tile_row != l.end_tile_row)
+        {
             return Err(BuildError::Unfinished {
                 level: level.level,
                 made: level.next_tile_row,
@@ -297,19 +527,22 @@ impl<'a> Pyramid<'a> {
         let j = level.next_tile_row;
         let last_needed =
             (j * step + step + texture::GENERATED_HALO_ROWS).min(level.raster.height - 1);
-        j < level.grid.rows && level.band.next_row() > last_needed
+        j < level.end_tile_row && level.band.next_row() > last_needed
     }
 
     /// Makes level 0's next tile row and the coarser rows it completes (level `k + 1`'s when
     /// level `k`'s row is odd or its last); then, top down, lets each of those levels forget
     /// the rows its next tile row does not read, once the level above has stored what it
     /// still needs of them.
-    fn make_climb(&mut self, writer: &mut DbWriter) -> Result<(), BuildError> {
+    fn make_climb(&mut self, writer: &mut dyn TileSink) -> Result<(), BuildError> {
         let mut top = 0;
         while top + 1 < self.levels.len() && completes_parents(&self.levels[top]) {
             top += 1;
         }
         self.make_rows(top, writer)?;
+        if top + 1 == self.levels.len() {
+            self.hand_over_rows();
+        }
         for level in &mut self.levels[..=top] {
             level.next_tile_row += 1;
         }
@@ -330,6 +563,36 @@ impl<'a> Pyramid<'a> {
         Ok(())
     }
 
+    /// A region job's top level has just made a tile row: hands over the rows of the next
+    /// coarser level it makes (every other sample of every other row of it, as `store_for`
+    /// sees them), up to the row it shares with the next tile row, or to the last.
+    fn hand_over_rows(&mut self) {
+        let Some(handover) = &mut self.handover else {
+            return;
+        };
+        let Some(up) = handover.up else {
+            return;
+        };
+        let Some((level, finer)) = self.levels.split_last() else {
+            return;
+        };
+        let step = self.tiles.context.tile_size - 1;
+        let t = level.next_tile_row;
+        let last = if t + 1 == level.grid.rows {
+            up.height - 1
+        } else {
+            ((t + 1) * step / 2).min(up.height - 1)
+        };
+        while handover.next_up_row <= last {
+            let y = handover.next_up_row;
+            let seen = level_row(finer, level, 2 * y).halved(up.width);
+            handover
+                .rows
+                .push((y, (0..seen.len()).map(|x| seen.get(x)).collect()));
+            handover.next_up_row += 1;
+        }
+    }
+
     /// Stores in level `k`'s band the rows its next tile row reads that it sees through
     /// level `k - 1`'s rows, which that level is about to forget (those above its next tile
     /// row, halo aside). The level above a band's top half thus keeps it until its bottom
@@ -341,7 +604,7 @@ impl<'a> Pyramid<'a> {
         let Some((fine, below)) = finer.split_last() else {
             return;
         };
-        if coarse.next_tile_row == coarse.grid.rows {
+        if coarse.next_tile_row == coarse.end_tile_row {
             return;
         }
         let halo = if k == 1 {
@@ -377,11 +640,16 @@ impl<'a> Pyramid<'a> {
     /// last child is written, ahead of the finer level's remaining tiles: so a row's outputs
     /// are never all held, and of the carries only those of the north children wait, for
     /// the south row.
-    fn make_rows(&mut self, top: usize, writer: &mut DbWriter) -> Result<(), BuildError> {
+    fn make_rows(&mut self, top: usize, writer: &mut dyn TileSink) -> Result<(), BuildError> {
+        let first_parents = match &mut self.children {
+            Some(children) => Some(children(self.levels[0].next_tile_row)?),
+            None => None,
+        };
         let (levels, tiles) = (&self.levels[..], &self.tiles);
         let mut output = Output {
             top,
             writer,
+            handover: self.handover.as_mut().map(|h| &mut h.carries),
             pending: &mut self.pending,
             records: &mut self.records,
             heights_bytes: &mut self.heights_bytes,
@@ -395,7 +663,8 @@ impl<'a> Pyramid<'a> {
             let spawn = |job: Job| {
                 let (sender, stop) = (sender.clone(), &stop);
                 scope.spawn(move |_| {
-                    let id = TileId::at(job.level as u32, job.x, levels[job.level].next_tile_row);
+                    let level = &levels[job.level];
+                    let id = TileId::at(level.level, job.x, level.next_tile_row);
                     let made = if stop.load(Ordering::Relaxed) {
                         Err(BuildError::Cancelled)
                     } else {
@@ -406,7 +675,7 @@ impl<'a> Pyramid<'a> {
                     let _ = sender.send((job.level, job.x, made));
                 });
             };
-            let mut queue = Queue::new(levels[0].grid.columns);
+            let mut queue = Queue::new(levels[0].grid.columns, first_parents);
             let mut in_order = InOrder::new(top);
             let mut in_flight = 0;
             loop {
@@ -421,7 +690,7 @@ impl<'a> Pyramid<'a> {
                 };
                 in_flight -= 1;
                 for (x, made) in in_order.accept(k, x, made) {
-                    queue.ready.extend(output.write(&levels[k], x, made));
+                    queue.ready.extend(output.write(k, &levels[k], x, made));
                 }
                 if output.failure.is_some() {
                     stop.store(true, Ordering::Relaxed);
@@ -438,14 +707,17 @@ struct Queue {
     ready: std::collections::VecDeque<Job>,
     next_at_level_zero: u32,
     columns_at_level_zero: u32,
+    /// Above a split level, the first level's tiles' children ([`Pyramid::above`]).
+    first_parents: Option<std::vec::IntoIter<Parent>>,
 }
 
 impl Queue {
-    fn new(columns_at_level_zero: u32) -> Queue {
+    fn new(columns_at_level_zero: u32, first_parents: Option<Vec<Parent>>) -> Queue {
         Queue {
             ready: std::collections::VecDeque::new(),
             next_at_level_zero: 0,
             columns_at_level_zero,
+            first_parents: first_parents.map(Vec::into_iter),
         }
     }
 
@@ -458,7 +730,10 @@ impl Queue {
                 Job {
                     level: 0,
                     x,
-                    parent: None,
+                    parent: self
+                        .first_parents
+                        .as_mut()
+                        .map(|p| p.next().unwrap_or_default()),
                 }
             })
         })
@@ -505,7 +780,9 @@ impl InOrder {
 struct Output<'a> {
     /// The highest level the climb makes a row of.
     top: usize,
-    writer: &'a mut DbWriter,
+    writer: &'a mut dyn TileSink,
+    /// A region job's top-level carries, kept for the merge.
+    handover: Option<&'a mut Vec<Carry>>,
     pending: &'a mut [Vec<Parent>],
     records: &'a mut [Vec<Written>],
     heights_bytes: &'a mut u64,
@@ -520,6 +797,7 @@ impl Output<'_> {
     /// parent's job when this was its last child and the climb makes the parent's row.
     fn write(
         &mut self,
+        k: usize,
         level: &LevelState,
         x: u32,
         made: Result<MadeTile, BuildError>,
@@ -527,7 +805,6 @@ impl Output<'_> {
         if self.failure.is_some() {
             return None;
         }
-        let k = level.level as usize;
         let written = made.and_then(|made| {
             *self.heights_bytes += made.heights_bytes;
             let (record, carry) = write(level.level, made, self.writer, self.texture_bytes)?;
@@ -541,7 +818,13 @@ impl Output<'_> {
                 return None;
             }
         };
-        let parent = self.pending.get_mut(k + 1)?.get_mut(x as usize / 2)?;
+        let Some(parents) = self.pending.get_mut(k + 1) else {
+            if let Some(handover) = &mut self.handover {
+                handover.push(carry);
+            }
+            return None;
+        };
+        let parent = parents.get_mut(x as usize / 2)?;
         let j = level.next_tile_row;
         parent.children[x as usize % 2 + 2 * (j as usize % 2)] = Some(carry);
         let last_child = x % 2 == 1 || x + 1 == level.grid.columns;
@@ -624,7 +907,7 @@ fn hash_bytes(hex: &str) -> [u8; 16] {
 fn write(
     level: u32,
     made: MadeTile,
-    writer: &mut DbWriter,
+    writer: &mut dyn TileSink,
     texture_bytes: &mut Vec<u64>,
 ) -> Result<(Written, Carry), BuildError> {
     let stored = writer.add_level_heights(level, &made.blob)?;
@@ -674,7 +957,7 @@ impl TileMaker<'_> {
                     .map_err(|e| BuildError::TextureEncode(e.to_string()))?;
                 (finest, parent.fold_into(&mut stats))
             }
-            _ => (self.level_zero_texture(level, id), 0.0),
+            _ => (self.level_zero_texture(level, id)?, 0.0),
         };
         // The siblings this tile lacks: their padding is cut from the rows it stands on, which
         // are held now and may not be when the parent is made.
@@ -718,10 +1001,10 @@ impl TileMaker<'_> {
     }
 
     /// The finest texture of tile `id` of level 0.
-    fn level_zero_texture(&self, level: &LevelState, id: TileId) -> RgbImage {
+    fn level_zero_texture(&self, level: &LevelState, id: TileId) -> Result<RgbImage, BuildError> {
         let c = &self.context;
         let grid = level.grid;
-        match &c.level_zero_texture {
+        Ok(match &c.level_zero_texture {
             LevelZeroTexture::Image {
                 image,
                 registration,
@@ -742,7 +1025,12 @@ impl TileMaker<'_> {
                 };
                 texture::generated(&field, grid, id, c.texture_size)
             }
-        }
+            LevelZeroTexture::FromChildren => {
+                return Err(BuildError::TextureEncode(format!(
+                    "tile {id} has no children to filter its texture from"
+                )));
+            }
+        })
     }
 }
 

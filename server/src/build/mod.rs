@@ -21,6 +21,7 @@
 //! name), then a `dataset.json` beside the input, then defaults (with a warning).
 
 pub mod input;
+pub mod jobs;
 pub mod levels;
 pub mod patches;
 pub mod texture;
@@ -144,6 +145,14 @@ pub struct BuildArgs {
     /// Raise it for a DEM that large.
     #[arg(long, default_value_t = DEFAULT_MAX_SAMPLES, value_name = "SAMPLES")]
     pub max_samples: u64,
+    /// Make only the tiles of region I of N, as one of N independent jobs, into the jobs
+    /// directory --out (default db/NAME.jobs), or uploaded to the store location --out
+    /// s3://BUCKET/PREFIX; `terrain-server merge` then makes the database, the same as one
+    /// build's. Regions are runs of tile rows of the coarsest
+    /// level with at least N of them. Every job reads the whole heights file (a scan, and
+    /// the voids' passes), and makes its region's tiles.
+    #[arg(long, value_name = "I/N", value_parser = jobs::Region::parse, conflicts_with = "patches")]
+    pub region: Option<jobs::Region>,
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,
@@ -340,6 +349,8 @@ pub enum BuildError {
     Unfinished { level: u32, made: u32, rows: u32 },
     #[error("the web tiles: {0}")]
     Web(#[from] crate::web::build::WebError),
+    #[error("region jobs in {dir}: {message}")]
+    Jobs { dir: PathBuf, message: String },
     #[error("reading the new tiles back for the web tiles: {0}")]
     ReadBack(#[from] crate::db::DbError),
 }
@@ -477,6 +488,95 @@ pub fn build_in_stages(
     cancel: &AtomicBool,
 ) -> Result<BuildReport, BuildError> {
     let started = Instant::now();
+    check_options(options)?;
+    // Before reading anything: a refused output should not cost a read of the whole input.
+    crate::db::check_output(&options.out, options.force)?;
+    let mut prepared = prepare(options)?;
+    let mut writer = DbWriter::create(&options.out, options.force)?;
+    if !writer.abandoned_removed().is_empty() {
+        prepared.warnings.push(BuildWarning::AbandonedRemoved(
+            writer.abandoned_removed().to_vec(),
+        ));
+    }
+    stage(Stage::Tiles);
+    let mut rows = std::mem::replace(&mut prepared.rows, CodeRows::memory(Vec::new(), 0));
+    let mut pyramid = Pyramid::new(
+        prepared.manifest.raster,
+        prepared.context(),
+        progress,
+        cancel,
+    );
+    let mut whole: Vec<i32> = Vec::new();
+    while let Some(row) = rows.next_row()? {
+        if options.patches.is_some() {
+            whole.extend_from_slice(row);
+        }
+        pyramid.push_row(row, &mut writer)?;
+    }
+    drop(rows);
+    let built = pyramid.finish()?;
+    let tiles_elapsed = started.elapsed();
+    let mut manifest = prepared.manifest.clone();
+    manifest.levels = built.levels;
+    manifest.texture.level_bytes = built.texture_level_bytes;
+    let mut patch_stats = None;
+    if let Some(tolerance_m) = options.patches {
+        if !(tolerance_m.is_finite() && tolerance_m >= 0.0) {
+            return Err(BuildError::BadOption(format!(
+                "--patch-tolerance {tolerance_m} must be a finite number of metres, 0 or more"
+            )));
+        }
+        let started = Instant::now();
+        stage(Stage::Patches);
+        let made = patches::build(
+            &whole,
+            &manifest,
+            tolerance_m,
+            options.zstd_level,
+            progress,
+            cancel,
+        )?;
+        drop(whole);
+        let index = terrain_shared::quadtree::encode_index(&made.entries);
+        patch_stats = Some(patches::Stats::of(
+            &made,
+            index.len() as u64,
+            started.elapsed(),
+        ));
+        writer.add_patches(&made.bodies, &index)?;
+        manifest.patches = Some(manifest::PatchesInfo {
+            format: terrain_shared::quadtree::FORMAT.into(),
+            tolerance_m,
+            index: terrain_shared::Blob::of(&index),
+            bodies_bytes: made.bodies.iter().map(|b| b.len() as u64).sum(),
+        });
+    }
+    let (out, web_stats) = finish_database(
+        writer,
+        &mut manifest,
+        options.web,
+        &mut prepared.warnings,
+        progress,
+        stage,
+        cancel,
+    )?;
+    Ok(BuildReport {
+        out,
+        tile_samples: built.tile_samples,
+        manifest,
+        warnings: prepared.warnings,
+        heights_bytes: built.heights_bytes,
+        texture_bytes: built.texture_bytes,
+        source_bytes: prepared.source_bytes,
+        patches: patch_stats,
+        web: web_stats,
+        tiles_elapsed,
+        elapsed: started.elapsed(),
+    })
+}
+
+/// Refuses options no build takes, before anything is read.
+fn check_options(options: &BuildOptions) -> Result<(), BuildError> {
     let n = options.tile_size;
     if !(3..=4097).contains(&n) || !(n - 1).is_power_of_two() {
         return Err(BuildError::BadTileSize(n));
@@ -488,8 +588,105 @@ pub fn build_in_stages(
             "--texture-size {size} is not a power of two up to 4096"
         )));
     }
-    // Before reading anything: a refused output should not cost a read of the whole input.
-    crate::db::check_output(&options.out, options.force)?;
+    Ok(())
+}
+
+/// Writes the manifest's content version, makes the web tiles when asked and the input
+/// allows (from the sealed database), and puts the database in place.
+fn finish_database(
+    mut writer: DbWriter,
+    manifest: &mut Manifest,
+    web: bool,
+    warnings: &mut Vec<BuildWarning>,
+    progress: ProgressFn<'_>,
+    stage: &dyn Fn(Stage),
+    cancel: &AtomicBool,
+) -> Result<(PathBuf, Option<crate::web::build::Stats>), BuildError> {
+    manifest.content_version = manifest.compute_content_version();
+    if cancel.load(Ordering::Relaxed) {
+        return Err(BuildError::Cancelled);
+    }
+    let mut web_stats = None;
+    if web {
+        match crate::web::crs::Placement::new(manifest.georeference.as_ref()) {
+            Err(reason) => warnings.push(BuildWarning::NoWeb(reason.to_string())),
+            Ok(placement) => {
+                let dir = writer.seal(manifest)?.to_path_buf();
+                let db = crate::db::TileDb::open_being_built(&dir, crate::db::Verify::SizesOnly)?;
+                stage(Stage::WebTiles);
+                let (info, stats) = crate::web::build::build(
+                    &db,
+                    placement,
+                    &writer.web_pack_path(),
+                    progress,
+                    cancel,
+                )
+                .map_err(|e| match e {
+                    crate::web::build::WebError::Cancelled => BuildError::Cancelled,
+                    e => BuildError::Web(e),
+                })?;
+                drop(db);
+                manifest.web = Some(info);
+                manifest.content_version = manifest.compute_content_version();
+                web_stats = Some(stats);
+            }
+        }
+    }
+    let out = writer.finish(manifest)?;
+    Ok((out, web_stats))
+}
+
+/// What a build knows before its first tile (see [`prepare`]).
+#[derive(Debug)]
+struct Prepared {
+    /// The heights, filled, row by row.
+    rows: CodeRows,
+    /// The manifest without its levels, texture bytes, content version, patches and web
+    /// tiles.
+    manifest: Manifest,
+    warnings: Vec<BuildWarning>,
+    source_bytes: u64,
+    /// Smallest and largest code, voids filled.
+    code_range: (i32, i32),
+    source_image: Option<image::RgbImage>,
+    registration: Registration,
+    heights_coder: heights::Coder,
+    jpeg_quality: u8,
+}
+
+impl Prepared {
+    /// What every tile shares.
+    fn context(&self) -> TileContext<'_> {
+        TileContext {
+            tile_size: self.manifest.tile_size,
+            quantum_m: self.manifest.heights.quantum_m,
+            offset_m: self.manifest.heights.offset_m,
+            code_range: self.code_range,
+            heights_coder: self.heights_coder,
+            texture_format: self.manifest.texture.format,
+            jpeg_quality: self.jpeg_quality,
+            texture_size: self.manifest.texture.size,
+            level_zero_texture: match &self.source_image {
+                Some(image) => LevelZeroTexture::Image {
+                    image,
+                    registration: self.registration,
+                    raster: (self.manifest.raster.width, self.manifest.raster.height),
+                },
+                None => LevelZeroTexture::Generated {
+                    spacing_m: self.manifest.spacing_m,
+                    min_m: self.manifest.heights.min_m,
+                    max_m: self.manifest.heights.max_m,
+                },
+            },
+        }
+    }
+}
+
+/// Opens the heights (a scan of every row, and the voids' passes when there are any), the
+/// texture, and resolves every setting of the manifest from flags, the files and the
+/// dataset.json, in that order.
+fn prepare(options: &BuildOptions) -> Result<Prepared, BuildError> {
+    let n = options.tile_size;
     // Only regular files: a device (`/dev/zero`), a FIFO or a directory has no size to
     // check a header against and would be read without end.
     input::check_regular_file(&options.heights)?;
@@ -603,54 +800,11 @@ pub fn build_in_stages(
         None => n - 1,
     });
     let texture_levels = texture::level_count(texture_size);
-    let context = TileContext {
-        tile_size: n,
-        quantum_m,
-        offset_m,
-        code_range: heights_input.code_range,
-        heights_coder: options.heights_coder,
-        texture_format: options.texture_format,
-        jpeg_quality: options.jpeg_quality,
-        texture_size,
-        level_zero_texture: match &source_image {
-            Some(image) => LevelZeroTexture::Image {
-                image,
-                registration,
-                raster: (width, height),
-            },
-            None => LevelZeroTexture::Generated {
-                spacing_m,
-                min_m,
-                max_m,
-            },
-        },
-    };
-
-    let mut writer = DbWriter::create(&options.out, options.force)?;
-    if !writer.abandoned_removed().is_empty() {
-        warnings.push(BuildWarning::AbandonedRemoved(
-            writer.abandoned_removed().to_vec(),
-        ));
-    }
-    stage(Stage::Tiles);
-    let mut pyramid = Pyramid::new(RasterSize { width, height }, context, progress, cancel);
-    let mut rows = heights_input.rows;
-    let mut whole: Vec<i32> = Vec::new();
-    while let Some(row) = rows.next_row()? {
-        if options.patches.is_some() {
-            whole.extend_from_slice(row);
-        }
-        pyramid.push_row(row, &mut writer)?;
-    }
-    drop(rows);
-    let built = pyramid.finish()?;
-    let tiles_elapsed = started.elapsed();
-
     let name = options
         .name
         .clone()
         .unwrap_or_else(|| default_name(&options.heights));
-    let mut manifest = Manifest {
+    let manifest = Manifest {
         format: manifest::FORMAT.into(),
         version: manifest::VERSION,
         dataset: name,
@@ -679,89 +833,24 @@ pub fn build_in_stages(
             },
             size: texture_size,
             levels: texture_levels,
-            level_bytes: built.texture_level_bytes,
+            level_bytes: Vec::new(),
         },
         georeference,
         mask_levels: mask::level_count(n),
-        levels: built.levels,
+        levels: Vec::new(),
         patches: None,
         web: None,
     };
-    let mut patch_stats = None;
-    if let Some(tolerance_m) = options.patches {
-        if !(tolerance_m.is_finite() && tolerance_m >= 0.0) {
-            return Err(BuildError::BadOption(format!(
-                "--patch-tolerance {tolerance_m} must be a finite number of metres, 0 or more"
-            )));
-        }
-        let started = Instant::now();
-        stage(Stage::Patches);
-        let made = patches::build(
-            &whole,
-            &manifest,
-            tolerance_m,
-            options.zstd_level,
-            progress,
-            cancel,
-        )?;
-        drop(whole);
-        let index = terrain_shared::quadtree::encode_index(&made.entries);
-        patch_stats = Some(patches::Stats::of(
-            &made,
-            index.len() as u64,
-            started.elapsed(),
-        ));
-        writer.add_patches(&made.bodies, &index)?;
-        manifest.patches = Some(manifest::PatchesInfo {
-            format: terrain_shared::quadtree::FORMAT.into(),
-            tolerance_m,
-            index: terrain_shared::Blob::of(&index),
-            bodies_bytes: made.bodies.iter().map(|b| b.len() as u64).sum(),
-        });
-    }
-    manifest.content_version = manifest.compute_content_version();
-    if cancel.load(Ordering::Relaxed) {
-        return Err(BuildError::Cancelled);
-    }
-    let mut web_stats = None;
-    if options.web {
-        match crate::web::crs::Placement::new(manifest.georeference.as_ref()) {
-            Err(reason) => warnings.push(BuildWarning::NoWeb(reason.to_string())),
-            Ok(placement) => {
-                let dir = writer.seal(&manifest)?.to_path_buf();
-                let db = crate::db::TileDb::open_being_built(&dir, crate::db::Verify::SizesOnly)?;
-                stage(Stage::WebTiles);
-                let (info, stats) = crate::web::build::build(
-                    &db,
-                    placement,
-                    &writer.web_pack_path(),
-                    progress,
-                    cancel,
-                )
-                .map_err(|e| match e {
-                    crate::web::build::WebError::Cancelled => BuildError::Cancelled,
-                    e => BuildError::Web(e),
-                })?;
-                drop(db);
-                manifest.web = Some(info);
-                manifest.content_version = manifest.compute_content_version();
-                web_stats = Some(stats);
-            }
-        }
-    }
-    let out = writer.finish(&manifest)?;
-    Ok(BuildReport {
-        out,
-        tile_samples: built.tile_samples,
+    Ok(Prepared {
+        rows: heights_input.rows,
         manifest,
         warnings,
-        heights_bytes: built.heights_bytes,
-        texture_bytes: built.texture_bytes,
         source_bytes,
-        patches: patch_stats,
-        web: web_stats,
-        tiles_elapsed,
-        elapsed: started.elapsed(),
+        code_range: heights_input.code_range,
+        source_image,
+        registration,
+        heights_coder: options.heights_coder,
+        jpeg_quality: options.jpeg_quality,
     })
 }
 
@@ -921,6 +1010,48 @@ fn read_texture(path: &Path, max_samples: u64) -> Result<image::RgbImage, BuildE
 /// Runs `terrain-server build`: progress bar, Ctrl-C cancels cleanly, summary at the end.
 pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
     let mut options = BuildOptions::from_args(&args)?;
+    if let Some(region) = args.region {
+        // A job for a store is written to a temporary jobs directory, then uploaded.
+        let scratch = match &args.out {
+            Some(crate::store::Location::Store(_)) => {
+                let dir = tempfile::Builder::new()
+                    .prefix("terrain-region-")
+                    .tempdir()
+                    .context("cannot make a temporary directory for the job")?;
+                options.out = dir.path().join("jobs");
+                Some(dir)
+            }
+            Some(crate::store::Location::Dir(_)) => None,
+            None => {
+                let name = args
+                    .name
+                    .clone()
+                    .unwrap_or_else(|| default_name(&args.heights));
+                options.out = Path::new("db").join(format!("{name}.jobs"));
+                None
+            }
+        };
+        let report = with_progress_bar(args.quiet, "building", |progress, stage, cancel| {
+            jobs::build_region(&options, region, progress, stage, cancel)
+        })
+        .with_context(|| format!("building region {region} of {}", options.heights.display()))?;
+        let mut report = report;
+        let mut uploaded = None;
+        if let (Some(crate::store::Location::Store(url)), Some(_dir)) = (&args.out, &scratch) {
+            let started = Instant::now();
+            let sent = jobs::upload_job(&report.out, region, url)
+                .with_context(|| format!("uploading region {region} to {url}"))?;
+            report.out = PathBuf::from(format!("{url}/{}", region.dir_name()));
+            uploaded = Some(format!(
+                "  uploaded  {:.1} MiB in {:.1} s\n",
+                sent as f64 / (1024.0 * 1024.0),
+                started.elapsed().as_secs_f64()
+            ));
+        }
+        let text = report.to_string() + uploaded.as_deref().unwrap_or("");
+        crate::print_stdout(&text).context("cannot write to stdout")?;
+        return Ok(());
+    }
     // A build for a store is written to a temporary directory first, removed at the end.
     let scratch = match &args.out {
         Some(crate::store::Location::Store(_)) => {
@@ -933,6 +1064,24 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
         }
         _ => None,
     };
+    let report = with_progress_bar(args.quiet, "building", |progress, stage, cancel| {
+        build_in_stages(&options, progress, stage, cancel)
+    })
+    .with_context(|| format!("building {}", options.heights.display()))?;
+    crate::print_stdout(&Summary(&report).to_string()).context("cannot write to stdout")?;
+    if let (Some(crate::store::Location::Store(url)), Some(_dir)) = (&args.out, &scratch) {
+        publish_cli(&report.out, url, args.quiet)?;
+    }
+    Ok(())
+}
+
+/// Runs `work` with a progress bar per stage (`verb` and the stage's name, its count, rate
+/// and time left) and Ctrl-C wired to its cancel flag.
+fn with_progress_bar<T>(
+    quiet: bool,
+    verb: &str,
+    work: impl FnOnce(ProgressFn<'_>, &dyn Fn(Stage), &AtomicBool) -> Result<T, BuildError>,
+) -> Result<T, BuildError> {
     let cancel = std::sync::Arc::new(AtomicBool::new(false));
     {
         let cancel = cancel.clone();
@@ -944,13 +1093,16 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
             }
         });
     }
-    let bar = if args.quiet {
+    let bar = if quiet {
         indicatif::ProgressBar::hidden()
     } else {
         indicatif::ProgressBar::new(0)
     };
+    let template = format!(
+        "{{spinner}} {verb} {{msg}} [{{elapsed_precise}}] {{wide_bar}} {{pos}}/{{len}} ({{per_sec}}, {{eta}} left)"
+    );
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} building {msg} [{elapsed_precise}] {wide_bar} {pos}/{len} ({per_sec}, {eta} left)")
+        indicatif::ProgressStyle::with_template(&template)
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let on_progress = |done: usize, total: usize| {
@@ -963,14 +1115,9 @@ pub fn run_cli(args: BuildArgs) -> anyhow::Result<()> {
         bar.set_length(0);
         bar.set_message(stage.to_string());
     };
-    let report = build_in_stages(&options, &on_progress, &on_stage, &cancel)
-        .with_context(|| format!("building {}", options.heights.display()))?;
+    let result = work(&on_progress, &on_stage, &cancel);
     bar.finish_and_clear();
-    crate::print_stdout(&Summary(&report).to_string()).context("cannot write to stdout")?;
-    if let (Some(crate::store::Location::Store(url)), Some(_dir)) = (&args.out, &scratch) {
-        publish_cli(&report.out, url, args.quiet)?;
-    }
-    Ok(())
+    result
 }
 
 /// Uploads the database built in `dir` to `url` with a progress bar, and says what it did.

@@ -169,6 +169,51 @@ impl ChildTexture {
         })
     }
 
+    /// The carried texture as bytes, for a region job's hand-over to the merge
+    /// ([`super::jobs`]): its size, then the halved PNG, the last column and the last row,
+    /// each after its length (u32, little-endian).
+    pub fn write_to(&self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.size.to_le_bytes());
+        out.extend_from_slice(&(self.half_png.len() as u32).to_le_bytes());
+        out.extend_from_slice(&self.half_png);
+        for texels in [&self.last_column, &self.last_row] {
+            out.extend_from_slice(&(texels.len() as u32).to_le_bytes());
+            out.extend(texels.iter().flatten());
+        }
+    }
+
+    /// Reads what [`ChildTexture::write_to`] wrote from the front of `bytes`, advancing it;
+    /// `None` when `bytes` is too short or its lengths do not fit the size.
+    pub fn read_from(bytes: &mut &[u8]) -> Option<ChildTexture> {
+        fn take<'a>(bytes: &mut &'a [u8], n: usize) -> Option<&'a [u8]> {
+            let (head, rest) = (bytes.len() >= n).then(|| bytes.split_at(n))?;
+            *bytes = rest;
+            Some(head)
+        }
+        fn word(bytes: &mut &[u8]) -> Option<u32> {
+            Some(u32::from_le_bytes(take(bytes, 4)?.try_into().ok()?))
+        }
+        let size = word(bytes)?;
+        let png_len = word(bytes)? as usize;
+        let half_png = take(bytes, png_len)?.to_vec();
+        let mut texels = || -> Option<Vec<[u8; 3]>> {
+            let n = word(bytes)? as usize;
+            if n > size as usize {
+                return None;
+            }
+            let raw = take(bytes, 3 * n)?;
+            Some(raw.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect())
+        };
+        let last_column = texels()?;
+        let last_row = texels()?;
+        Some(ChildTexture {
+            size,
+            half_png,
+            last_column,
+            last_row,
+        })
+    }
+
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.half_png.len() + 3 * (self.last_column.len() + self.last_row.len())
