@@ -350,6 +350,33 @@ fn a_killed_region_job_rerun_gives_the_same_database_and_a_damaged_one_is_refuse
         "{stderr}"
     );
     assert!(!merged.exists());
+    let (ok, _, stderr) = rerun(0);
+    assert!(ok, "{stderr}");
+
+    // A job built with another setting than the others.
+    let (ok, _, stderr) = run(&[
+        &[
+            "build",
+            "--quiet",
+            utf8(&dem),
+            "--region",
+            "3/4",
+            "--out",
+            utf8(&jobs),
+            "--jpeg-quality",
+            "50",
+        ][..],
+        &flags,
+    ]
+    .concat());
+    assert!(ok, "{stderr}");
+    let (ok, _, stderr) = merge();
+    assert!(!ok);
+    assert!(
+        stderr.contains("region 3/4 was built with other settings or another input"),
+        "{stderr}"
+    );
+    assert!(!merged.exists());
 }
 
 /// Regions tile the split level's rows in order, the split level is the coarsest with a row

@@ -190,14 +190,14 @@ impl std::fmt::Display for RegionReport {
             self.region,
             self.out.display()
         )?;
+        let levels = match self.split_level {
+            0 => "level 0".to_string(),
+            k => format!("levels 0-{k}"),
+        };
         writeln!(
             f,
-            "  tiles     {} tiles of levels 0-{} under tile rows {}..{} of level {}",
-            self.tiles,
-            self.split_level,
-            self.tile_rows.start,
-            self.tile_rows.end,
-            self.split_level
+            "  tiles     {} tiles of {levels} under tile rows {}..{} of level {}",
+            self.tiles, self.tile_rows.start, self.tile_rows.end, self.split_level
         )?;
         writeln!(
             f,
