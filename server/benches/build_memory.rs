@@ -16,6 +16,12 @@
 //! either way) and, per input, the pyramid's bytes over level 0's (heights, textures, both;
 //! about 4/3, since each level has a quarter of the samples of the one below).
 //!
+//! Then every product: himalaya_4097 with `--patches` and the web tiles (the source is
+//! georeferenced), each product's seconds and samples a second from the build's own
+//! `speed` line against its target (the tiles 8, the patches 2, the web tiles 5 M samples/s);
+//! and the peak with `--patches` (no web tiles) of the source and of the mosaic, whose ratio
+//! has the same 1.25 target.
+//!
 //! Peak memory is the kernel's high-water mark of the child's resident set (`VmHWM` in
 //! `/proc/<pid>/status`), read every [`POLL`] while it runs: the mark only rises, so the
 //! last reading is the peak unless the child grew in its last milliseconds (it then writes
@@ -68,6 +74,8 @@ struct Measured {
     samples: u64,
     elapsed: Duration,
     peak_kib: u64,
+    /// The build's `speed` line: per product, its seconds and M samples/s.
+    speed: Vec<(String, f64, f64)>,
     /// Bytes of heights and textures, level 0 and all levels.
     heights: [u64; 2],
     textures: [u64; 2],
@@ -110,10 +118,16 @@ fn run(data: &Path, out: Option<&Path>) -> anyhow::Result<()> {
     info.insert("nodata".into(), serde_json::json!(VOID_NODATA));
     std::fs::write(&json, serde_json::to_vec_pretty(&info)?)?;
     println!("with voids: {void_samples} void samples punched in a copy of the source");
-    let small = measure(&source, &work.path().join("db-4097"))?;
-    let voided = measure(&with_voids, &work.path().join("db-4097-voids"))?;
-    let large = measure(&mosaic, &work.path().join("db-8193"))?;
-    let report = report(&small, &voided, &large, void_samples);
+    let no_web = ["--no-web"];
+    let small = measure(&source, &work.path().join("db-4097"), &no_web)?;
+    let voided = measure(&with_voids, &work.path().join("db-4097-voids"), &no_web)?;
+    let large = measure(&mosaic, &work.path().join("db-8193"), &no_web)?;
+    let every = measure(&source, &work.path().join("db-4097-all"), &["--patches"])?;
+    let patches = ["--patches", "--no-web"];
+    let small_patches = measure(&source, &work.path().join("db-4097-patches"), &patches)?;
+    let large_patches = measure(&mosaic, &work.path().join("db-8193-patches"), &patches)?;
+    let mut report = report(&small, &voided, &large, void_samples);
+    report.push_str(&every_product(&every, &small_patches, &large_patches));
     print!("{report}");
     if let Some(out) = out {
         std::fs::create_dir_all(out)?;
@@ -190,6 +204,69 @@ fn report(small: &Measured, voided: &Measured, large: &Measured, void_samples: u
     s
 }
 
+/// Each product's rate against its target, and the peak with the patches, 4x against 1x.
+fn every_product(every: &Measured, small: &Measured, large: &Measured) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "\nEvery product, {} with `--patches` and the web tiles, from the build's summary:\n",
+        every.name
+    );
+    let _ = writeln!(s, "| product | seconds | M samples/s | target | |");
+    let _ = writeln!(s, "|---|---:|---:|---:|---|");
+    for (product, seconds, rate) in &every.speed {
+        let target = match product.as_str() {
+            "tiles, heights and textures" => 8.0,
+            "patches" => 2.0,
+            "web" => 5.0,
+            _ => f64::NAN,
+        };
+        let verdict = if *rate >= target { "PASS" } else { "FAIL" };
+        let _ = writeln!(
+            s,
+            "| {product} | {seconds:.1} | {rate:.2} | {target} | {verdict} |"
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\nWhole build with every product: {:.1} s, peak RSS {:.1} MiB.\n",
+        every.elapsed.as_secs_f64(),
+        every.peak_kib as f64 / 1024.0
+    );
+    let ratio = large.peak_kib as f64 / small.peak_kib as f64;
+    let _ = writeln!(
+        s,
+        "Peak RSS with `--patches --no-web`: {} {:.1} MiB, {} {:.1} MiB; 4x the samples over 1x: **{ratio:.3}** (target at most {TARGET_RATIO}: {}).",
+        small.name,
+        small.peak_kib as f64 / 1024.0,
+        large.name,
+        large.peak_kib as f64 / 1024.0,
+        if ratio <= TARGET_RATIO {
+            "PASS"
+        } else {
+            "FAIL"
+        }
+    );
+    s
+}
+
+/// The products of a build summary's `speed` line: `NAME S s (R M samples/s)`, `; `-separated.
+fn parse_speed(stdout: &str) -> Vec<(String, f64, f64)> {
+    let Some(line) = stdout.lines().find_map(|l| l.strip_prefix("  speed")) else {
+        return Vec::new();
+    };
+    line.split(';')
+        .filter_map(|part| {
+            let part = part.trim();
+            let (head, rate) = part.split_once(" s (")?;
+            let (name, seconds) = head.rsplit_once(' ')?;
+            let rate = rate.strip_suffix(" M samples/s)")?;
+            Some((name.to_string(), seconds.parse().ok()?, rate.parse().ok()?))
+        })
+        .collect()
+}
+
 /// The source's dataset.json minus what names its own files and place, so the mosaic gets
 /// the same spacing and height scale (and a computed texture, as the source has).
 fn write_dataset_json(source: &Path, dir: &Path) -> anyhow::Result<()> {
@@ -211,26 +288,30 @@ fn write_dataset_json(source: &Path, dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Builds `input` into `out` with the release binary, reading its high-water mark.
-fn measure(input: &Path, out: &Path) -> anyhow::Result<Measured> {
+/// Builds `input` into `out` with the release binary and `flags`, reading its high-water
+/// mark and its summary.
+fn measure(input: &Path, out: &Path, flags: &[&str]) -> anyhow::Result<Measured> {
     let name = input
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    eprintln!("building {name} ...");
+    eprintln!("building {name} {} ...", flags.join(" "));
     let started = Instant::now();
     let mut child = Command::new(env!("CARGO_BIN_EXE_terrain-server"))
         .arg("build")
         .arg(input)
         .arg("--out")
         .arg(out)
-        // Without the web tiles, which only georeferenced inputs (the source, not its
-        // copies) get: the same products for every input.
-        .args(["--force", "--quiet", "--no-web"])
-        .stdout(Stdio::null())
+        // The first three without the web tiles, which only georeferenced inputs (the
+        // source, not its copies) get: the same products for every input.
+        .args(["--force", "--quiet"])
+        .args(flags)
+        .stdout(Stdio::piped())
         .spawn()
         .context("cannot start terrain-server")?;
     let status_path = PathBuf::from(format!("/proc/{}/status", child.id()));
+    // The summary is a few lines: read at the end, it never fills the pipe.
+    let mut stdout = child.stdout.take().context("the child's stdout")?;
     let mut peak_kib = 0;
     let status = loop {
         if let Some(kib) = high_water_mark_kib(&status_path) {
@@ -242,6 +323,8 @@ fn measure(input: &Path, out: &Path) -> anyhow::Result<Measured> {
         std::thread::sleep(POLL);
     };
     let elapsed = started.elapsed();
+    let mut summary = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut summary)?;
     if !status.success() {
         bail!("terrain-server build {} failed: {status}", input.display());
     }
@@ -268,6 +351,7 @@ fn measure(input: &Path, out: &Path) -> anyhow::Result<Measured> {
         samples: u64::from(manifest.raster.width) * u64::from(manifest.raster.height),
         elapsed,
         peak_kib,
+        speed: parse_speed(&summary),
         heights,
         textures,
     })
