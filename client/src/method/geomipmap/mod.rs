@@ -1,7 +1,8 @@
-//! GeoMipMaps (Brodersen 2005) as a method: per visible tile the coarsest level whose
-//! error, projected by the frame's bound, stays within `--max-error-px`, each side stitched
-//! to its neighbour's level ([`stitching`]): crack-free, no budget, no filler.
-//! Tiles are bound block by block with MapBlock textures, as the paper draws them
+//! GeoMipMaps (Brodersen 2005) as a method: each tile is cut into GeoMipMaps of 17x17
+//! samples ([`blocks`]), and each visible one is drawn at the coarsest level whose error,
+//! projected by the frame's bound at its own box, stays within `--max-error-px`, each side
+//! stitched to its neighbour's level ([`stitching`]): crack-free, no budget, no filler.
+//! Tiles are bound MapBlock by MapBlock with their textures, as the paper draws them
 //! ([`super::MethodConfig::uses_texture_blocks`]).
 //!
 //! Levels of the pyramid: a tile of a coarser level is one more GeoMipMap, its level errors
@@ -9,14 +10,16 @@
 //! side that borders a tile of another level (a seam, [`crate::lod::levels::seams`]) hangs a
 //! skirt from its edge samples instead, down past the cracks the two edges can leave.
 
+pub mod blocks;
 pub mod stitching;
 
+use self::blocks::{BlockErrors, Blocks};
 use self::stitching::{self as levels, Stitch};
 use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
-use crate::lod::needed;
-use crate::lod::plan::{self, LodSettings};
+use crate::lod::plan::{self, Candidate, Layout, LodSettings};
 use crate::lod::strips::MaskSet;
-use crate::render::{Frame, Gpu, IndexSet, TileExtras};
+use crate::render::{Camera, Frame, Gpu, IndexSet, TileExtras};
+use glam::DVec3;
 use std::collections::HashMap;
 use std::time::Instant;
 use terrain_shared::{Heights, TileId, TileRecord};
@@ -32,7 +35,18 @@ enum SetKey {
 }
 
 impl SetKey {
-    fn indices(self, n: u32) -> (Vec<u32>, u32) {
+    /// The set's strip for a block of `blocks`, numbered as the tile's north-west block
+    /// ([`Blocks::to_tile`]), and the triangles it draws.
+    fn indices(self, blocks: Blocks) -> (Vec<u32>, u32) {
+        let (local, triangles) = self.block_indices(blocks.size());
+        (
+            local.into_iter().map(|i| blocks.to_tile(i)).collect(),
+            triangles,
+        )
+    }
+
+    /// The set's strip on a block of `n` samples a side, numbered within the block.
+    fn block_indices(self, n: u32) -> (Vec<u32>, u32) {
         match self {
             SetKey::Stitch(stitch) => (
                 levels::strip(n, stitch),
@@ -68,9 +82,11 @@ pub struct GeoMipMaps {
     lod: LodSettings,
     /// The strip masks' triangle counts: the common yardstick of triangles needed.
     masks: MaskSet,
-    /// Per resident tile, the suffix minima of its levels' errors, computed from its
-    /// heights when it arrives.
-    error_minima: HashMap<TileId, Vec<f32>>,
+    /// How a tile is cut into GeoMipMaps.
+    blocks: Blocks,
+    /// Per resident tile, its blocks' level errors and heights, computed from its heights
+    /// when it arrives.
+    block_errors: HashMap<TileId, BlockErrors>,
     /// Index sets drawn lately, shared by every tile, with the frame each was last drawn
     /// in: a set unused for [`super::strip_masks::KEEP_UNUSED_FRAMES`] frames is dropped.
     /// A skirt is a set of its own (one side at one level), drawn after the tile's stitch,
@@ -85,13 +101,15 @@ pub struct GeoMipMaps {
 impl GeoMipMaps {
     pub fn new(config: &MethodConfig, with: &Build<'_>) -> GeoMipMaps {
         let n = with.manifest.tile_size;
-        let coarsest = levels::level_count(n) - 1;
-        let (indices, _) = SetKey::Stitch(Stitch::new(coarsest, [None; 4])).indices(n);
+        let blocks = Blocks::new(n);
+        let coarsest = blocks.levels() - 1;
+        let (indices, _) = SetKey::Stitch(Stitch::new(coarsest, [None; 4])).indices(blocks);
         let coarsest_set_bytes = 4 * (indices.len() as u64).max(1);
         GeoMipMaps {
             lod: config.lod,
             masks: MaskSet::new(n),
-            error_minima: HashMap::new(),
+            blocks,
+            block_errors: HashMap::new(),
             index_sets: HashMap::new(),
             frame: 0,
             coarsest_set_bytes,
@@ -102,11 +120,11 @@ impl GeoMipMaps {
 impl GeoMipMaps {
     /// Whether set `key` is held, or can be made within `room` (taking its bytes out of it),
     /// dropping sets no frame drew lately to make room if need be.
-    fn affordable(&mut self, key: SetKey, n: u32, room: &mut u64) -> bool {
+    fn affordable(&mut self, key: SetKey, room: &mut u64) -> bool {
         if self.index_sets.contains_key(&key) {
             return true;
         }
-        let (indices, _) = key.indices(n);
+        let (indices, _) = key.indices(self.blocks);
         let bytes = 4 * (indices.len() as u64).max(1);
         if *room < bytes {
             *room += self.trim(bytes - *room);
@@ -140,21 +158,17 @@ impl LodMethod for GeoMipMaps {
             input.tiles,
             &self.lod,
         );
-        // The error bound per visible tile, as the planner computed it for the strip masks'
-        // needed levels, compared with this method's own level errors.
-        let threshold = self.lod.max_error_px;
-        let mut chosen = HashMap::with_capacity(ranked.visible.len());
-        for (&i, &k) in ranked.visible.iter().zip(&ranked.pixels_per_metre) {
-            let tile = &input.tiles[i];
-            // A coarser level of the pyramid is that far from full resolution already.
-            let deviation = tile.error_minima_m.first().copied().unwrap_or(0.0);
-            let level = self.error_minima.get(&tile.id).map_or(0, |minima| {
-                let raised: Vec<f32> = minima.iter().map(|e| e + deviation).collect();
-                needed::coarsest_level_within(&raised, k, threshold)
-            });
-            chosen.insert(tile.id, level);
-        }
-        let n = input.layout.tile_size;
+        let blocks = self.blocks;
+        let chosen = choose_levels(
+            frame.camera(),
+            frame.viewport(),
+            input.layout,
+            input.tiles,
+            &ranked.visible,
+            &self.block_errors,
+            blocks,
+            self.lod.max_error_px,
+        );
         let mut plan = plan::FramePlan {
             budget: input.budget,
             triangles_needed: ranked
@@ -170,73 +184,95 @@ impl LodMethod for GeoMipMaps {
         let now = self.frame;
         self.index_sets
             .retain(|_, (_, used)| now - *used <= super::strip_masks::KEEP_UNUSED_FRAMES);
-        let mut stitches = Vec::with_capacity(ranked.visible.len());
-        let coarsest = levels::level_count(n) - 1;
+        let mut sets_of_tile: Vec<Vec<(SetKey, u32)>> = Vec::with_capacity(ranked.visible.len());
+        let coarsest = blocks.levels() - 1;
         let reserved = SetKey::Stitch(Stitch::new(coarsest, [None; 4]));
         let mut room = input.room;
         let mut degraded = 0;
         let mut extras = Vec::with_capacity(ranked.visible.len());
+        let last = blocks.per_side - 1;
         for (&i, &importance) in ranked.visible.iter().zip(&ranked.importances) {
             let tile = &input.tiles[i];
             let id = tile.id;
-            let level = chosen[&id];
-            let near = |dx: i64, dy: i64| {
-                let (x, y) = (i64::from(id.x) + dx, i64::from(id.y) + dy);
-                (x >= 0 && y >= 0)
-                    .then(|| {
-                        chosen
-                            .get(&TileId::at(id.level, x as u32, y as u32))
-                            .copied()
-                    })
-                    .flatten()
+            let Some(levels_of) = chosen.get(&id) else {
+                continue;
             };
-            let stitch = Stitch::new(level, [near(0, -1), near(1, 0), near(0, 1), near(-1, 0)]);
-            // Each set the tile needs, made if the limit has room for it; without room, the
-            // unstitched set of its level (cracks may show along the stitched sides), else
-            // the coarsest level's, which the reservation holds; a skirt without room is
-            // left out.
-            let mut keys = Vec::with_capacity(5);
-            let mut drawn_level = level;
-            for key in sets_of(stitch, tile.seams) {
-                let usable = match key {
-                    SetKey::Stitch(_) => [
-                        key,
-                        SetKey::Stitch(Stitch::new(level, [None; 4])),
-                        SetKey::Stitch(Stitch::new(coarsest, [None; 4])),
-                    ]
-                    .into_iter()
-                    .find(|&k| k == reserved || self.affordable(k, n, &mut room)),
-                    SetKey::Skirt { .. } => Some(key).filter(|&k| self.affordable(k, n, &mut room)),
-                };
-                let Some(key) = usable else {
-                    degraded += 1;
+            // Block (bx, by)'s level, blocks of the tiles around counted on: `None` where
+            // nothing is drawn.
+            let level_at = |bx: i64, by: i64| -> Option<u32> {
+                let per = i64::from(blocks.per_side);
+                let (tx, ty) = (
+                    i64::from(id.x) + bx.div_euclid(per),
+                    i64::from(id.y) + by.div_euclid(per),
+                );
+                if tx < 0 || ty < 0 {
+                    return None;
+                }
+                let levels = chosen.get(&TileId::at(id.level, tx as u32, ty as u32))?;
+                levels[(by.rem_euclid(per) * per + bx.rem_euclid(per)) as usize]
+            };
+            let mut keys = Vec::new();
+            let mut finest = coarsest;
+            for (b, level) in levels_of.iter().enumerate() {
+                let Some(level) = *level else {
                     continue;
                 };
-                if let SetKey::Stitch(s) = key {
-                    degraded += u32::from(s != stitch);
-                    drawn_level = s.level;
+                let (bx, by) = blocks.at(b);
+                let (x, y) = (i64::from(bx), i64::from(by));
+                let stitch = Stitch::new(
+                    level,
+                    [
+                        level_at(x, y - 1),
+                        level_at(x + 1, y),
+                        level_at(x, y + 1),
+                        level_at(x - 1, y),
+                    ],
+                );
+                // A side on the tile's edge that borders another level of the pyramid
+                // hangs a skirt.
+                let on_edge = [by == 0, bx == last, by == last, bx == 0];
+                let skirts: [bool; 4] = std::array::from_fn(|k| tile.seams[k] && on_edge[k]);
+                let base = blocks.base_vertex(bx, by);
+                // Each set the block needs, made if the limit has room for it; without
+                // room, the unstitched set of its level (cracks may show along the stitched
+                // sides), else the coarsest level's, which the reservation holds; a skirt
+                // without room is left out.
+                for key in sets_of(stitch, skirts) {
+                    let usable = match key {
+                        SetKey::Stitch(_) => {
+                            [key, SetKey::Stitch(Stitch::new(level, [None; 4])), reserved]
+                                .into_iter()
+                                .find(|&k| k == reserved || self.affordable(k, &mut room))
+                        }
+                        SetKey::Skirt { .. } => {
+                            Some(key).filter(|&k| self.affordable(k, &mut room))
+                        }
+                    };
+                    let Some(key) = usable else {
+                        degraded += 1;
+                        continue;
+                    };
+                    if let SetKey::Stitch(s) = key {
+                        degraded += u32::from(s != stitch);
+                        finest = finest.min(s.level);
+                    }
+                    let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
+                        let (indices, triangles) = key.indices(blocks);
+                        (IndexSet::new(&gpu, &indices, triangles), now)
+                    });
+                    *used = now;
+                    plan.triangles += u64::from(set.triangles);
+                    keys.push((key, base));
                 }
-                let (set, used) = self.index_sets.entry(key).or_insert_with(|| {
-                    let (indices, triangles) = key.indices(n);
-                    (IndexSet::new(&gpu, &indices, triangles), now)
-                });
-                *used = now;
-                plan.triangles += u64::from(set.triangles);
-                keys.push(key);
             }
-            plan.draws.push(plan::Draw {
-                id,
-                level: drawn_level,
-            });
+            if keys.is_empty() {
+                continue;
+            }
+            plan.draws.push(plan::Draw { id, level: finest });
             plan.importances.push(importance);
-            stitches.push(keys);
-            // Skirts reach below the tile's lowest point by a tenth of a level-0 tile and
-            // twice its own distance from full resolution: the two edges of a seam lie
-            // within their tiles' errors of the true surface, which is above that point.
-            let depth = super::fillers::filler_depth_m(input.layout.tile_extent_m())
-                + 2.0 * f64::from(tile.error_minima_m.first().copied().unwrap_or(0.0));
+            sets_of_tile.push(keys);
             extras.push(TileExtras {
-                floor_m: (tile.min_m - depth) as f32,
+                floor_m: (tile.min_m - skirt_depth_m(input.layout, tile)) as f32,
                 ..TileExtras::default()
             });
         }
@@ -249,8 +285,8 @@ impl LodMethod for GeoMipMaps {
             .map(|(d, extras)| (d.id, extras))
             .collect();
         let slots = frame.prepare_tiles(&tiles);
-        let mut keys_of: Vec<&[SetKey]> = vec![&[]; tiles.len()];
-        for (keys, slot) in stitches.iter().zip(&slots) {
+        let mut keys_of: Vec<&[(SetKey, u32)]> = vec![&[]; tiles.len()];
+        for (keys, slot) in sets_of_tile.iter().zip(&slots) {
             if let Some(slot) = *slot {
                 keys_of[slot] = keys;
             }
@@ -262,9 +298,9 @@ impl LodMethod for GeoMipMaps {
                 continue;
             }
             pass.bind_tile(slot);
-            for key in keys_of[slot] {
+            for (key, base) in keys_of[slot] {
                 let set = &self.index_sets[key].0;
-                pass.draw(set);
+                pass.draw_from(set, *base as i32);
                 pass.stats_mut().triangles += u64::from(set.triangles);
             }
         }
@@ -275,20 +311,20 @@ impl LodMethod for GeoMipMaps {
 
     fn tile_resident(&mut self, _gpu: &Gpu, id: TileId, heights: &Heights) {
         let samples = heights.to_metres_f32();
-        let errors = levels::level_errors(&samples, u32::from(heights.width));
-        self.error_minima.insert(id, needed::suffix_minima(&errors));
+        self.block_errors
+            .insert(id, BlockErrors::new(&samples, self.blocks));
     }
 
     fn tile_evicted(&mut self, id: TileId) {
-        self.error_minima.remove(&id);
+        self.block_errors.remove(&id);
     }
 
     fn tile_bytes(&self, id: TileId) -> u64 {
-        self.error_minima.get(&id).map_or(0, |m| 4 * m.len() as u64)
+        self.block_errors.get(&id).map_or(0, BlockErrors::bytes)
     }
 
     fn expected_tile_bytes(&self, _tile: &TileRecord) -> u64 {
-        4 * u64::from(levels::level_count(self.masks.tile_size()))
+        BlockErrors::bytes_for(self.blocks.count(), self.blocks.levels() as usize)
     }
 
     fn shared_bytes(&self) -> MethodBytes {
@@ -329,6 +365,92 @@ impl LodMethod for GeoMipMaps {
     }
 }
 
+/// How far skirts reach below a tile's lowest point: a tenth of a level-0 tile and twice
+/// the tile's own distance from full resolution. The two edges of a seam lie within their
+/// tiles' errors of the true surface, which is above that point.
+fn skirt_depth_m(layout: &Layout, tile: &Candidate<'_>) -> f64 {
+    super::fillers::filler_depth_m(layout.tile_extent_m())
+        + 2.0 * f64::from(tile.error_minima_m.first().copied().unwrap_or(0.0))
+}
+
+/// Per tile of `visible` (indices into `tiles`), the level of each of its blocks, `None`
+/// for a block outside the view: the coarsest level whose error, raised by the tile's own
+/// distance from full resolution, projects within `threshold_px` anywhere in the block's
+/// box. A tile whose heights have not been measured yet draws every block at level 0.
+#[allow(clippy::too_many_arguments)]
+fn choose_levels(
+    camera: &Camera,
+    viewport: [u32; 2],
+    layout: &Layout,
+    tiles: &[Candidate<'_>],
+    visible: &[usize],
+    errors: &HashMap<TileId, BlockErrors>,
+    blocks: Blocks,
+    threshold_px: f64,
+) -> HashMap<TileId, Vec<Option<u32>>> {
+    let projection = plan::error_projection(camera, viewport);
+    let frustum = camera.frustum(f64::from(viewport[0]) / f64::from(viewport[1].max(1)));
+    let eye = DVec3::from(camera.position);
+    let mut chosen = HashMap::with_capacity(visible.len());
+    for &i in visible {
+        let tile = &tiles[i];
+        // A coarser level of the pyramid is that far from full resolution already.
+        let deviation = tile.error_minima_m.first().copied().unwrap_or(0.0);
+        let [x0, y0] = layout.tile_origin_m(tile.id);
+        let extent = layout.tile_extent_m_at(tile.id.level);
+        let side = [
+            extent[0] / f64::from(blocks.per_side),
+            extent[1] / f64::from(blocks.per_side),
+        ];
+        let measured = errors.get(&tile.id);
+        // Skirts hang below the blocks on a seam: cull those with their skirt.
+        let floor = tile.min_m - skirt_depth_m(layout, tile);
+        let levels = (0..blocks.count())
+            .map(|b| {
+                let (bx, by) = blocks.at(b);
+                let [lo, hi] =
+                    measured.map_or([tile.min_m, tile.max_m], |m| m.range_m(b).map(f64::from));
+                let min = [
+                    x0 + f64::from(bx) * side[0],
+                    y0 + f64::from(by) * side[1],
+                    lo,
+                ];
+                let max = [min[0] + side[0], min[1] + side[1], hi];
+                let bottom = if tile.seams.iter().any(|&s| s) {
+                    floor.min(lo)
+                } else {
+                    lo
+                };
+                let (a, b_) = (
+                    Camera::to_render(DVec3::new(min[0], min[1], bottom) - eye),
+                    Camera::to_render(DVec3::from(max) - eye),
+                );
+                if !frustum.intersects_box(a.min(b_), a.max(b_)) {
+                    return None;
+                }
+                let k = projection.pixels_per_metre(min, max, threshold_px);
+                Some(measured.map_or(0, |m| {
+                    coarsest_within(m.minima(b), deviation, k, threshold_px)
+                }))
+            })
+            .collect();
+        chosen.insert(tile.id, levels);
+    }
+    chosen
+}
+
+/// The coarsest level whose error in `minima` (suffix minima, metres), raised by
+/// `deviation`, is within `threshold_px` at `pixels_per_metre`.
+fn coarsest_within(
+    minima: &[f32],
+    deviation: f32,
+    pixels_per_metre: f64,
+    threshold_px: f64,
+) -> u32 {
+    let limit = threshold_px / pixels_per_metre;
+    (minima.partition_point(|&e| f64::from(e + deviation) <= limit)).saturating_sub(1) as u32
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -346,9 +468,9 @@ mod tests {
             sets,
             [SetKey::Stitch(stitch), SetKey::Skirt { side: 1, level: 1 }]
         );
-        let (plain, _) = sets[0].indices(n);
+        let (plain, _) = sets[0].block_indices(n);
         assert_eq!(plain, levels::strip(n, stitch));
-        let (skirt, triangles) = sets[1].indices(n);
+        let (skirt, triangles) = sets[1].block_indices(n);
         // The east side is stitched at level 1 (every other sample): 8 cells, 16 triangles.
         assert_eq!(triangles, 16);
         let feet: Vec<u32> = skirt

@@ -116,13 +116,20 @@ impl FramePass<'_> {
     /// Draws `set` for the tile bound last (the draw's instance index is the tile's slot);
     /// counts a draw call.
     pub fn draw(&mut self, set: &IndexSet) {
+        self.draw_from(set, 0);
+    }
+
+    /// Draws `set` for the bound tile with every index but the restart raised by
+    /// `base_vertex` (the shader's `vertex_index` includes it): one set drawn at several
+    /// places of a tile.
+    pub fn draw_from(&mut self, set: &IndexSet, base_vertex: i32) {
         if self.index_buffer.as_ref() != Some(&set.buffer) {
             self.pass
                 .set_index_buffer(set.buffer.slice(..), wgpu::IndexFormat::Uint32);
             self.index_buffer = Some(set.buffer.clone());
         }
         self.pass
-            .draw_indexed(0..set.len, 0, self.slot..self.slot + 1);
+            .draw_indexed(0..set.len, base_vertex, self.slot..self.slot + 1);
         self.stats.draw_calls += 1;
     }
 
