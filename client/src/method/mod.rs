@@ -319,7 +319,7 @@ impl MethodKind {
     /// The coarsest level it draws a tile of `tile_size` samples a side at.
     pub fn coarsest_level(self, tile_size: u32) -> u32 {
         match self {
-            MethodKind::Geomipmap => geomipmap::stitching::level_count(tile_size) - 1,
+            MethodKind::Geomipmap => geomipmap::blocks::Blocks::new(tile_size).levels() - 1,
             MethodKind::StripMasks
             | MethodKind::Reference
             | MethodKind::Pgm

@@ -13,6 +13,7 @@
 //! against frame time, crack pixels against budget, triangles used against needed.
 
 mod blocks;
+mod on_screen;
 mod report;
 
 pub use self::report::{
@@ -117,6 +118,12 @@ pub struct AccuracyArgs {
     /// per block. Slow (every block of every full-resolution tile in view, every step).
     #[arg(long)]
     pub block_grids: bool,
+    /// Count the oracle over the samples on screen only: a sample none of whose cells is in
+    /// the camera's view is free (by default every sample of every full-resolution tile in
+    /// view is held to the threshold, on screen or not). Stricter: a method that culls
+    /// inside a tile no longer comes below the oracle for it.
+    #[arg(long)]
+    pub on_screen_oracle: bool,
 }
 
 impl AccuracyArgs {
@@ -143,6 +150,7 @@ impl AccuracyArgs {
             popping_halvings: 1.0,
             images: false,
             block_grids: false,
+            on_screen_oracle: false,
         }
     }
 }
@@ -336,6 +344,8 @@ pub struct AccuracyReport {
     /// Per camera, the oracle's triangle count ([`oracle_triangles`]) at each threshold the
     /// configurations ask for, as (threshold px, triangles).
     pub oracle: Vec<Vec<(f64, u64)>>,
+    /// Whether the oracle counts the samples on screen only (`--on-screen-oracle`).
+    pub on_screen_oracle: bool,
     /// Triangles and median time of the reference frames.
     pub reference_triangles: f64,
     pub reference_ms: f64,
@@ -425,6 +435,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
                     camera,
                     viewport,
                     &thresholds,
+                    args.on_screen_oracle,
                 ))
                 .collect(),
         );
@@ -519,6 +530,7 @@ pub async fn run(args: &AccuracyArgs) -> Result<AccuracyReport, FlightError> {
     bar.finish_and_clear();
     let stats = session.fetcher.stats();
     let mut report = AccuracyReport {
+        on_screen_oracle: args.on_screen_oracle,
         dataset: args
             .label
             .clone()
@@ -673,19 +685,32 @@ pub fn cameras_along(path: &CameraPath, count: u32, pitch_deg: f64) -> Vec<Camer
 /// within it on screen (the least of that family, not of every mesh): per level-0 tile in view (by its
 /// bounding box, as the methods cull), the smallest right-triangulated irregular network
 /// within the threshold ([`super::oracle`]), each sample's vertical error projected by the
-/// bound the methods use ([`crate::lod::needed::ErrorProjection`]) at that sample. Tiles
-/// not resident count nothing.
+/// bound the methods use ([`crate::lod::needed::ErrorProjection`]) at that sample. With
+/// `on_screen`, a sample none of whose cells is in view ([`on_screen::samples_in_view`]) is free: the
+/// oracle culls inside a tile as finely as any method can. Tiles not resident count
+/// nothing.
 pub fn oracle_triangles(
     scene: &crate::scene::Scene,
     camera: &Camera,
     viewport: [u32; 2],
     thresholds_px: &[f64],
+    on_screen: bool,
 ) -> Vec<u64> {
     let projection = crate::lod::plan::error_projection(camera, viewport);
+    let frustum = camera.frustum(f64::from(viewport[0]) / f64::from(viewport[1].max(1)));
+    let eye = glam::DVec3::from(camera.position);
     let mut totals = vec![0; thresholds_px.len()];
     for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
+        let in_view = if on_screen {
+            on_screen::samples_in_view(&frustum, eye, [x0, y0], spacing, samples, n)
+        } else {
+            vec![true; samples.len()]
+        };
         for (total, &threshold_px) in totals.iter_mut().zip(thresholds_px) {
             let ppm = |c: u32, r: u32| {
+                if !in_view[(r * n + c) as usize] {
+                    return 0.0;
+                }
                 let p = [
                     x0 + f64::from(c) * spacing[0],
                     y0 + f64::from(r) * spacing[1],

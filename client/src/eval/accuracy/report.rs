@@ -153,7 +153,12 @@ pub fn summary_markdown(report: &AccuracyReport) -> String {
     if let Some(first) = report.oracle.first() {
         let _ = writeln!(
             s,
-            "\nThe oracle per camera: the fewest triangles of a right-triangulated irregular network over the full-resolution tiles in view that keeps every sample within the threshold on screen.\n"
+            "\nThe oracle per camera: the fewest triangles of a right-triangulated irregular network over the full-resolution tiles in view that keeps every sample {} within the threshold on screen.\n",
+            if report.on_screen_oracle {
+                "of a cell in view (`--on-screen-oracle`: samples off screen are free)"
+            } else {
+                "of those tiles, on screen or not,"
+            }
         );
         let _ = write!(s, "| threshold (px) |");
         for k in 0..report.oracle.len() {

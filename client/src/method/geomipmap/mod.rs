@@ -456,6 +456,30 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_flat_block_is_drawn_at_its_coarsest_level_beside_a_rough_one() {
+        // A 17x17 tile of four blocks, flat but for a ridge across block (1, 1).
+        let n = 17;
+        let blocks = Blocks::new(n);
+        let mut samples = vec![100.0f32; (n * n) as usize];
+        for y in 9..17 {
+            samples[(y * n + 12) as usize] = 130.0;
+        }
+        let errors = BlockErrors::new(&samples, blocks);
+        // At 0.01 px a metre the ridge's 30 m project to 0.3 px: every block at its
+        // coarsest level. At 1 px a metre only the ridge's block needs full resolution.
+        let levels = |k: f64, deviation: f32| -> Vec<u32> {
+            (0..blocks.count())
+                .map(|b| coarsest_within(errors.minima(b), deviation, k, 1.0))
+                .collect()
+        };
+        let coarsest = blocks.levels() - 1;
+        assert_eq!(levels(0.01, 0.0), [coarsest; 4]);
+        assert_eq!(levels(1.0, 0.0), [coarsest, coarsest, coarsest, 0]);
+        // A tile already far from full resolution is held to its own deviation too.
+        assert_eq!(levels(1.0, 2.0), [0; 4]);
+    }
+
+    #[test]
     fn a_seam_adds_a_skirt_along_its_side_only_at_the_level_it_is_stitched_at() {
         let n = 17;
         let stitch = Stitch::new(2, [Some(2), Some(1), None, Some(2)]);
