@@ -266,7 +266,7 @@ EOF
     [ -f "$docs/accuracy-$d-on-screen/summary.md" ] || continue
     echo "### ${d/puget/Puget Sound}"
     echo
-    awk '/^Triangles over the oracle per camera/ {p = 1} /^Resident geometry/ {p = 0} p' \
+    awk '/^The oracle per camera/ {p = 1} /^Resident geometry/ {p = 0} p' \
       "$docs/accuracy-$d-on-screen/summary.md"
     echo
   done
