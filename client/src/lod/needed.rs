@@ -50,11 +50,23 @@ pub fn suffix_minima(mask_errors_m: &[f32]) -> Vec<f32> {
 /// largest level whose own error is within it. Level 0 (no error) always qualifies.
 /// O(log levels).
 pub fn coarsest_level_within(minima: &[f32], pixels_per_metre: f64, threshold_px: f64) -> u32 {
+    coarsest_level_within_raised(minima, 0.0, pixels_per_metre, threshold_px)
+}
+
+/// [`coarsest_level_within`] with every error raised by `raise_m` metres (a coarser level
+/// of the pyramid is that far from full resolution already), without a raised copy.
+pub fn coarsest_level_within_raised(
+    minima: &[f32],
+    raise_m: f32,
+    pixels_per_metre: f64,
+    threshold_px: f64,
+) -> u32 {
     // The largest error allowed, metres; far tiles (most of them) pass at the coarsest level.
     let limit = threshold_px / pixels_per_metre;
+    let within = |&e: &f32| f64::from(e + raise_m) <= limit;
     match minima.last() {
-        Some(&e) if f64::from(e) <= limit => minima.len() as u32 - 1,
-        _ => (minima.partition_point(|&e| f64::from(e) <= limit)).saturating_sub(1) as u32,
+        Some(e) if within(e) => minima.len() as u32 - 1,
+        _ => (minima.partition_point(within)).saturating_sub(1) as u32,
     }
 }
 

@@ -701,14 +701,11 @@ pub fn oracle_triangles(
     let eye = glam::DVec3::from(camera.position);
     let mut totals = vec![0; thresholds_px.len()];
     for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
-        let in_view = if on_screen {
-            on_screen::samples_in_view(&frustum, eye, [x0, y0], spacing, samples, n)
-        } else {
-            vec![true; samples.len()]
-        };
+        let in_view = on_screen
+            .then(|| on_screen::samples_in_view(&frustum, eye, [x0, y0], spacing, samples, n));
         for (total, &threshold_px) in totals.iter_mut().zip(thresholds_px) {
             let ppm = |c: u32, r: u32| {
-                if !in_view[(r * n + c) as usize] {
+                if in_view.as_ref().is_some_and(|v| !v[(r * n + c) as usize]) {
                     return 0.0;
                 }
                 let p = [

@@ -8,9 +8,9 @@
 //! The paper found 17x17 the best balance of draw calls against triangles on its hardware.
 //! Here the size is chosen against the triangle oracle (`bench accuracy`): the smaller the
 //! block, the nearer each block's level comes to what its own samples need (the block-grids
-//! table of docs/evaluation.md), and 9x9 blocks keep GeoMipMaps within twice the oracle
-//! where 17x17 do not, at about the same frame time on lavapipe. A block's errors cost
-//! [`BlockErrors::bytes_for`] bytes, counted with the tile.
+//! table of docs/evaluation.md), and with 9x9 blocks GeoMipMaps stay within twice the
+//! oracle on the evaluation's flights (`accuracy::geomipmaps_keep_every_pixel_*`). A
+//! block's errors cost [`BlockErrors::bytes_for`] bytes, counted with the tile.
 //!
 //! A block's index sets are those of [`super::stitching`] for a tile of the block's size,
 //! its sample indices rewritten to the tile's row stride ([`Blocks::to_tile`]): the same set

@@ -1,4 +1,4 @@
-//! GeoMipMaps (Brodersen 2005) as a method: each tile is cut into GeoMipMaps of 17x17
+//! GeoMipMaps (Brodersen 2005) as a method: each tile is cut into GeoMipMaps of 9x9
 //! samples ([`blocks`]), and each visible one is drawn at the coarsest level whose error,
 //! projected by the frame's bound at its own box, stays within `--max-error-px`, each side
 //! stitched to its neighbour's level ([`stitching`]): crack-free, no budget, no filler.
@@ -16,6 +16,7 @@ pub mod stitching;
 use self::blocks::{BlockErrors, Blocks};
 use self::stitching::{self as levels, Stitch};
 use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind, MethodOutput};
+use crate::lod::needed;
 use crate::lod::plan::{self, Candidate, Layout, LodSettings};
 use crate::lod::strips::MaskSet;
 use crate::render::{Camera, Frame, Gpu, IndexSet, TileExtras};
@@ -430,25 +431,13 @@ fn choose_levels(
                 }
                 let k = projection.pixels_per_metre(min, max, threshold_px);
                 Some(measured.map_or(0, |m| {
-                    coarsest_within(m.minima(b), deviation, k, threshold_px)
+                    needed::coarsest_level_within_raised(m.minima(b), deviation, k, threshold_px)
                 }))
             })
             .collect();
         chosen.insert(tile.id, levels);
     }
     chosen
-}
-
-/// The coarsest level whose error in `minima` (suffix minima, metres), raised by
-/// `deviation`, is within `threshold_px` at `pixels_per_metre`.
-fn coarsest_within(
-    minima: &[f32],
-    deviation: f32,
-    pixels_per_metre: f64,
-    threshold_px: f64,
-) -> u32 {
-    let limit = threshold_px / pixels_per_metre;
-    (minima.partition_point(|&e| f64::from(e + deviation) <= limit)).saturating_sub(1) as u32
 }
 
 #[cfg(test)]
@@ -469,7 +458,7 @@ mod tests {
         // coarsest level. At 1 px a metre only the ridge's block needs full resolution.
         let levels = |k: f64, deviation: f32| -> Vec<u32> {
             (0..blocks.count())
-                .map(|b| coarsest_within(errors.minima(b), deviation, k, 1.0))
+                .map(|b| needed::coarsest_level_within_raised(errors.minima(b), deviation, k, 1.0))
                 .collect()
         };
         let coarsest = blocks.levels() - 1;
