@@ -152,14 +152,17 @@ fn xyz_tile(frame: &Frame, t: TileXyz, sampler: &mut Sampler) -> Result<Made, We
     let level = tiling::nearest_finer_level(pixel_m, frame.sample_m, frame.coarsest);
     let n = (size * size) as usize;
     let (mut terr, mut rgb, mut tex) = (vec![0u8; n * 3], vec![0u8; n * 3], vec![0u8; n * 4]);
-    for j in 0..size {
-        for i in 0..size {
-            let (lon, lat) = tiling::mercator_lon_lat(
-                f64::from(t.x * size + i) + 0.5,
-                f64::from(t.y * size + j) + 0.5,
-                t.z,
-                size,
-            );
+    // A pixel's longitude depends on its column alone and its latitude on its row alone: each
+    // is worked out once per column or row, by the same function.
+    let pixel = |k: u32| f64::from(k) + 0.5;
+    let lons: Vec<f64> = (0..size)
+        .map(|i| tiling::mercator_lon_lat(pixel(t.x * size + i), pixel(t.y * size), t.z, size).0)
+        .collect();
+    let lats: Vec<f64> = (0..size)
+        .map(|j| tiling::mercator_lon_lat(pixel(t.x * size), pixel(t.y * size + j), t.z, size).1)
+        .collect();
+    for (j, &lat) in (0..size).zip(&lats) {
+        for (i, &lon) in (0..size).zip(&lons) {
             let k = (j * size + i) as usize;
             let (h, colour) = match frame.sample(lon, lat)? {
                 Some((c, r)) => (
@@ -205,10 +208,28 @@ fn xyz_tile(frame: &Frame, t: TileXyz, sampler: &mut Sampler) -> Result<Made, We
 /// row 0 north), by the triangle of the mask's cell there.
 fn mesh_height(grid: &[f64], side: u32, kept: &[u32], gx: f64, gy: f64) -> f64 {
     let n = side as usize;
+    // The kept indices are the multiples of a step, then the last: how many are at most `g`
+    // is counted, not searched for (this runs for every sample under every mesh tile).
+    let step = kept.get(1).copied().unwrap_or(1).max(1);
+    let last = kept.last().copied().unwrap_or(0);
     let find = |g: f64| {
-        let i = kept
-            .partition_point(|&k| f64::from(k) <= g)
-            .clamp(1, kept.len() - 1);
+        let count = if !(g >= 0.0) {
+            0
+        } else if g >= f64::from(last) {
+            kept.len()
+        } else {
+            // The multiples of `step` up to `g`, all below the last; the quotient's rounding
+            // corrected against the exact comparison.
+            let mut k = (g / f64::from(step)) as u32;
+            while k > 0 && f64::from(k * step) > g {
+                k -= 1;
+            }
+            while f64::from((k + 1) * step) <= g {
+                k += 1;
+            }
+            k as usize + 1
+        };
+        let i = count.clamp(1, kept.len() - 1);
         (kept[i - 1], kept[i])
     };
     let (c0, c1) = find(gx);
@@ -283,8 +304,9 @@ fn mesh_tile(
                 }
                 let gx = (lon - west) / d * f64::from(side - 1);
                 let gy = (north - lat) / d * f64::from(side - 1);
-                checks.push((gx, gy, sampler.height(level, col, row)?));
-                level_error = level_error.max(sampler.level_error(level, col, row)?);
+                let (h, error) = sampler.sample(level, c, r)?;
+                checks.push((gx, gy, h));
+                level_error = level_error.max(error);
             }
         }
     }
@@ -312,7 +334,13 @@ fn mesh_tile(
         .iter()
         .fold((f64::MAX, f64::MIN), |(lo, hi), &h| (lo.min(h), hi.max(h)));
     let quantum = (hi - lo) / 32767.0;
-    let error = measure(&mask::kept_indices(side, chosen)) + level_error + quantum;
+    // The finest mask is the grid itself, measured already.
+    let mesh_error = if chosen == 0 {
+        full
+    } else {
+        measure(&mask::kept_indices(side, chosen))
+    };
+    let error = mesh_error + level_error + quantum;
     let mesh = quantized_mesh::mesh_from_grid(&grid, side, chosen);
     let vertices = mesh.u.len() as u64;
     let rect = GeoRect {
@@ -339,31 +367,30 @@ fn mesh_tile(
     ))
 }
 
-/// `make` over one row of tiles, a chunk per thread, each chunk with its own cache of
-/// decoded tiles; results in the row's order.
+/// Tiles handed to rayon at once: enough that both halves of a split have work to steal
+/// whatever the tiles cost, few enough that what they make is small (at most a few MiB).
+const BATCH_PER_THREAD: usize = 16;
+
+/// `make` over `tiles`, each tile a task of rayon's, each task with a cache of decoded tiles
+/// of its own (rayon's `map_init`, reused across the tiles a thread takes in a row); results
+/// in the tiles' order.
 fn in_parallel<T: Send>(
     db: &TileDb,
-    row: &[TileXyz],
+    tiles: &[TileXyz],
     make: impl Fn(TileXyz, &mut Sampler) -> Result<T, WebError> + Sync,
     tick: &(dyn Fn() + Sync),
 ) -> Result<Vec<T>, WebError> {
-    Ok(row
-        .par_chunks(row.len().div_ceil(rayon::current_num_threads()).max(1))
-        .map(|chunk| {
-            let mut sampler = Sampler::new(db);
-            chunk
-                .iter()
-                .map(|&t| {
-                    let m = make(t, &mut sampler);
-                    tick();
-                    m
-                })
-                .collect::<Result<Vec<_>, _>>()
-        })
-        .collect::<Result<Vec<_>, _>>()?
-        .into_iter()
-        .flatten()
-        .collect())
+    tiles
+        .par_iter()
+        .map_init(
+            || Sampler::new(db),
+            |sampler, &t| {
+                let m = make(t, sampler);
+                tick();
+                m
+            },
+        )
+        .collect()
 }
 
 /// Whether the database can have web tiles, and if not why (for the build's warning).
@@ -422,17 +449,8 @@ pub fn build(
         mesh_tiles: meshes.len(),
         ..Stats::default()
     };
-    // Rows of tiles in parallel, each with its own cache; written in order.
-    let rows = |tiles: &[TileXyz]| -> Vec<Vec<TileXyz>> {
-        let mut rows: Vec<Vec<TileXyz>> = Vec::new();
-        for t in tiles {
-            match rows.last_mut() {
-                Some(row) if row[0].z == t.z && row[0].y == t.y => row.push(*t),
-                _ => rows.push(vec![*t]),
-            }
-        }
-        rows
-    };
+    // Batches of tiles in row order, the tiles of each made in parallel; written in order.
+    let batch = BATCH_PER_THREAD * rayon::current_num_threads();
     let mut write = |made: Made, stats: &mut Stats| -> Result<(), WebError> {
         for (entry, bytes) in made.entries {
             file.write_all(&bytes).map_err(io)?;
@@ -447,23 +465,23 @@ pub fn build(
         }
         Ok(())
     };
-    for row in rows(&xyz) {
+    for tiles in xyz.chunks(batch) {
         if cancel.load(Ordering::Relaxed) {
             return Err(WebError::Cancelled);
         }
-        let made = in_parallel(db, &row, |t, sampler| xyz_tile(&frame, t, sampler), &tick)?;
+        let made = in_parallel(db, tiles, |t, sampler| xyz_tile(&frame, t, sampler), &tick)?;
         for m in made {
             write(m, &mut stats)?;
         }
     }
     let mut max_error = vec![0.0f64; max_level as usize + 1];
-    for row in rows(&meshes) {
+    for tiles in meshes.chunks(batch) {
         if cancel.load(Ordering::Relaxed) {
             return Err(WebError::Cancelled);
         }
         let made = in_parallel(
             db,
-            &row,
+            tiles,
             |t, sampler| mesh_tile(&frame, t, t.z == max_level, sampler),
             &tick,
         )?;
@@ -514,6 +532,48 @@ mod tests {
             let back =
                 -10000.0 + (f64::from(r) * 65536.0 + f64::from(g) * 256.0 + f64::from(b)) * 0.1;
             assert!((back - h).abs() <= 0.05 + 1e-9, "terrain-rgb {h}: {back}");
+        }
+    }
+
+    #[test]
+    fn the_mesh_height_finds_the_cell_a_search_of_the_kept_indices_finds() {
+        // The counted cell against a search, for every mask of a 65-sample grid, at points
+        // on and between the kept indices and just off the grid.
+        let side = 65u32;
+        let grid: Vec<f64> = (0..side * side)
+            .map(|i| f64::from((i * 7919) % 101) - 50.0)
+            .collect();
+        let searched = |kept: &[u32], gx: f64, gy: f64| {
+            let find = |g: f64| {
+                let i = kept
+                    .partition_point(|&k| f64::from(k) <= g)
+                    .clamp(1, kept.len() - 1);
+                (kept[i - 1], kept[i])
+            };
+            let ((c0, c1), (r0, r1)) = (find(gx), find(gy));
+            let at = |c: u32, r: u32| grid[(r * side + c) as usize];
+            let u = ((gx - f64::from(c0)) / f64::from(c1 - c0)).clamp(0.0, 1.0);
+            let v = ((gy - f64::from(r0)) / f64::from(r1 - r0)).clamp(0.0, 1.0);
+            mask::cell_height(at(c0, r0), at(c1, r0), at(c0, r1), at(c1, r1), u, v)
+        };
+        let mut points = vec![-1.0, -1e-12, 64.0, 64.5, 1e9, f64::NAN];
+        for k in 0..=640 {
+            let g = f64::from(k) / 10.0;
+            points.extend([g, g - 1e-12, g + 1e-12]);
+        }
+        for level in 0..mask::level_count(side) {
+            let kept = mask::kept_indices(side, level);
+            for (i, &gx) in points.iter().enumerate() {
+                let gy = points[(i * 31) % points.len()];
+                let (a, b) = (
+                    mesh_height(&grid, side, &kept, gx, gy),
+                    searched(&kept, gx, gy),
+                );
+                assert!(
+                    a == b || (a.is_nan() && b.is_nan()),
+                    "level {level} at ({gx}, {gy}): {a} against {b}"
+                );
+            }
         }
     }
 

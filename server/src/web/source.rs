@@ -31,32 +31,78 @@ pub struct Sampler<'a> {
     textures: HashMap<TileId, Arc<RgbImage>>,
     errors: HashMap<TileId, f64>,
     /// The tile the last height came from: consecutive samples are mostly in one tile, and
-    /// this answers them without a lookup.
+    /// this answers them without a lookup. The same for colours and error tables.
     last_heights: Option<(TileId, Arc<Vec<f32>>)>,
+    last_texture: Option<(TileId, Arc<RgbImage>)>,
+    last_error: Option<(TileId, f64)>,
+    /// Per pyramid level, what [`Sampler::locate`] reads of the manifest: the last sample's
+    /// column and row, the last tile's column and row.
+    levels: Vec<LevelBounds>,
+    /// Samples per tile side, and cells (`tile_size - 1`).
+    tile_size: usize,
+    step: f64,
+    /// `1 / step` where `step` is a power of two (as tiles of `2^n + 1` samples make it):
+    /// multiplying by it is then exactly dividing by the step, and faster.
+    per_step: Option<f64>,
+}
+
+/// The extent of one pyramid level, in samples and in tiles.
+#[derive(Debug, Clone, Copy)]
+struct LevelBounds {
+    last_c: f64,
+    last_r: f64,
+    last_x: u32,
+    last_y: u32,
 }
 
 impl<'a> Sampler<'a> {
     pub fn new(db: &'a TileDb) -> Sampler<'a> {
+        let manifest = db.manifest();
+        let levels = manifest
+            .levels
+            .iter()
+            .map(|l| LevelBounds {
+                last_c: f64::from(l.raster.width.saturating_sub(1)),
+                last_r: f64::from(l.raster.height.saturating_sub(1)),
+                last_x: l.grid.columns.saturating_sub(1),
+                last_y: l.grid.rows.saturating_sub(1),
+            })
+            .collect();
         Sampler {
             db,
             heights: HashMap::new(),
             textures: HashMap::new(),
             errors: HashMap::new(),
             last_heights: None,
+            last_texture: None,
+            last_error: None,
+            levels,
+            tile_size: manifest.tile_size as usize,
+            step: f64::from(manifest.tile_size - 1),
+            per_step: (manifest.tile_size - 1)
+                .is_power_of_two()
+                .then(|| 1.0 / f64::from(manifest.tile_size - 1)),
         }
     }
 
     /// The tile of `level` holding level-`level` sample `(c, r)` (fractional, clamped to the
     /// level's raster), with the position inside it.
+    ///
+    /// Called for every pixel of every web tile: the level's bounds are read from
+    /// [`Sampler::levels`], and the floors are casts (the values are clamped non-negative,
+    /// where a cast truncates as `floor` does).
+    #[inline]
     fn locate(&self, level: u32, c: f64, r: f64) -> (TileId, f64, f64) {
-        let manifest = self.db.manifest();
-        let raster = manifest.levels[level as usize].raster;
-        let step = f64::from(manifest.tile_size - 1);
-        let c = c.clamp(0.0, f64::from(raster.width - 1));
-        let r = r.clamp(0.0, f64::from(raster.height - 1));
-        let grid = manifest.grid(level);
-        let x = ((c / step).floor() as u32).min(grid.columns - 1);
-        let y = ((r / step).floor() as u32).min(grid.rows - 1);
+        let bounds = self.levels[level as usize];
+        let step = self.step;
+        let c = c.clamp(0.0, bounds.last_c);
+        let r = r.clamp(0.0, bounds.last_r);
+        let (cx, ry) = match self.per_step {
+            Some(per_step) => (c * per_step, r * per_step),
+            None => (c / step, r / step),
+        };
+        let x = (cx as u32).min(bounds.last_x);
+        let y = (ry as u32).min(bounds.last_y);
         let id = TileId { level, x, y };
         (id, c - f64::from(x) * step, r - f64::from(y) * step)
     }
@@ -95,14 +141,14 @@ impl<'a> Sampler<'a> {
     /// Height in metres at level-0 sample `(col, row)` (fractional), bilinear between the
     /// samples of pyramid `level`.
     pub fn height(&mut self, level: u32, col: f64, row: f64) -> Result<f64, SourceError> {
-        let scale = f64::from(1u32 << level);
-        let (id, u, v) = self.locate(level, col / scale, row / scale);
-        let n = self.db.manifest().tile_size as usize;
+        // Dividing by a power of two is multiplying by its inverse, exactly.
+        let per_scale = 1.0 / f64::from(1u32 << level);
+        let (id, u, v) = self.locate(level, col * per_scale, row * per_scale);
+        let n = self.tile_size;
         let h = self.tile_heights(id)?;
-        let (c0, r0) = (
-            (u.floor() as usize).min(n - 1),
-            (v.floor() as usize).min(n - 1),
-        );
+        // Casts as floors: a negative `u` (rounding at a tile's first column) saturates to 0,
+        // as its floor would.
+        let (c0, r0) = ((u as usize).min(n - 1), (v as usize).min(n - 1));
         let (c1, r1) = ((c0 + 1).min(n - 1), (r0 + 1).min(n - 1));
         let (fu, fv) = (u - c0 as f64, v - r0 as f64);
         let at = |c: usize, r: usize| f64::from(h[r * n + c]);
@@ -111,12 +157,28 @@ impl<'a> Sampler<'a> {
         Ok(top * (1.0 - fv) + bottom * fv)
     }
 
-    /// The distance from the full-resolution surface of pyramid `level`'s tile holding
-    /// level-0 sample `(col, row)`, metres, from its tile blob's error table.
-    pub fn level_error(&mut self, level: u32, col: f64, row: f64) -> Result<f64, SourceError> {
-        let scale = f64::from(1u32 << level);
-        let (id, _, _) = self.locate(level, col / scale, row / scale);
+    /// Height in metres of sample `(c, r)` of pyramid `level` itself (what [`Sampler::height`]
+    /// gives at level-0 sample `(c, r) * 2^level`), with the distance of the level's tile
+    /// there from the full-resolution surface, from its tile blob's error table.
+    pub fn sample(&mut self, level: u32, c: u32, r: u32) -> Result<(f64, f64), SourceError> {
+        let (id, u, v) = self.locate(level, f64::from(c), f64::from(r));
+        let n = self.tile_size;
+        let error = self.tile_error(id)?;
+        let h = self.tile_heights(id)?;
+        let (c0, r0) = ((u as usize).min(n - 1), (v as usize).min(n - 1));
+        Ok((f64::from(h[r0 * n + c0]), error))
+    }
+
+    /// The first entry of tile `id`'s error table, metres: its distance from the
+    /// full-resolution surface.
+    fn tile_error(&mut self, id: TileId) -> Result<f64, SourceError> {
+        if let Some((last, e)) = self.last_error
+            && last == id
+        {
+            return Ok(e);
+        }
         if let Some(&e) = self.errors.get(&id) {
+            self.last_error = Some((id, e));
             return Ok(e);
         }
         let blob = self.db.heights(id).ok_or(SourceError::Missing { id })?;
@@ -129,10 +191,27 @@ impl<'a> Sampler<'a> {
             self.errors.clear();
         }
         self.errors.insert(id, e);
+        self.last_error = Some((id, e));
         Ok(e)
     }
 
-    fn tile_texture(&mut self, id: TileId) -> Result<Arc<RgbImage>, SourceError> {
+    fn tile_texture(&mut self, id: TileId) -> Result<&RgbImage, SourceError> {
+        if self
+            .last_texture
+            .as_ref()
+            .is_none_or(|(last, _)| *last != id)
+        {
+            let t = self.load_texture(id)?;
+            self.last_texture = Some((id, t));
+        }
+        Ok(self
+            .last_texture
+            .as_ref()
+            .map(|(_, t)| &**t)
+            .expect("set above"))
+    }
+
+    fn load_texture(&mut self, id: TileId) -> Result<Arc<RgbImage>, SourceError> {
         if let Some(t) = self.textures.get(&id) {
             return Ok(t.clone());
         }
@@ -158,20 +237,23 @@ impl<'a> Sampler<'a> {
     /// Colour at level-0 sample `(col, row)`, bilinear between the texels of the finest
     /// texture of pyramid `level`'s tile there.
     pub fn colour(&mut self, level: u32, col: f64, row: f64) -> Result<[u8; 3], SourceError> {
-        let scale = f64::from(1u32 << level);
-        let (id, u, v) = self.locate(level, col / scale, row / scale);
-        let step = f64::from(self.db.manifest().tile_size - 1);
+        let per_scale = 1.0 / f64::from(1u32 << level);
+        let (id, u, v) = self.locate(level, col * per_scale, row * per_scale);
+        let step = self.step;
         let t = self.tile_texture(id)?;
         let (w, h) = (t.width().max(1), t.height().max(1));
         // Texel i spans [i, i + 1] * step / size in sample units (`TextureInfo::size`).
         let tx = (u * f64::from(w) / step - 0.5).clamp(0.0, f64::from(w - 1));
         let ty = (v * f64::from(h) / step - 0.5).clamp(0.0, f64::from(h - 1));
-        let (x0, y0) = (tx.floor() as u32, ty.floor() as u32);
+        // Clamped non-negative: the casts are floors.
+        let (x0, y0) = (tx as u32, ty as u32);
         let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
         let (fx, fy) = (tx - f64::from(x0), ty - f64::from(y0));
+        let texels = t.as_raw();
+        let row = w as usize * 3;
         let mut out = [0u8; 3];
         for (k, o) in out.iter_mut().enumerate() {
-            let at = |x: u32, y: u32| f64::from(t.get_pixel(x, y).0[k]);
+            let at = |x: u32, y: u32| f64::from(texels[y as usize * row + x as usize * 3 + k]);
             let top = at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx;
             let bottom = at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx;
             *o = (top * (1.0 - fy) + bottom * fy).round().clamp(0.0, 255.0) as u8;
