@@ -213,7 +213,7 @@ fn mesh_height(grid: &[f64], side: u32, kept: &[u32], gx: f64, gy: f64) -> f64 {
     let step = kept.get(1).copied().unwrap_or(1).max(1);
     let last = kept.last().copied().unwrap_or(0);
     let find = |g: f64| {
-        let count = if !(g >= 0.0) {
+        let count = if g.is_nan() || g < 0.0 {
             0
         } else if g >= f64::from(last) {
             kept.len()
