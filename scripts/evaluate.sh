@@ -98,7 +98,7 @@ if [ -n "${TERRAIN_DATA_DIR:-}" ]; then
     | tee "$work/grids.txt"
 fi
 "$bin/terrain-client" bench accuracy --server "$jacksboro" --out "$docs/accuracy-jacksboro" \
-  --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches \
+  --methods strip-masks,geomipmap,pgm,projective-grid,quadtree-patches --block-grids \
   | tee "$work/accuracy-jacksboro.txt"
 "$bin/terrain-client" bench accuracy --server "$jacksboro" --out "$docs/accuracy-jacksboro-on-screen" \
   --methods strip-masks,geomipmap,projective-grid,quadtree-patches --fillers none \

@@ -291,8 +291,83 @@ pub fn block_grid_triangles(
     out
 }
 
+/// The fewest triangles one strip mask of the whole tile needs (the strip-mask paper's
+/// method draws one mask a tile) to keep every sample within `threshold_px`, each sample's
+/// error projected at the sample itself by `ppm(column, row)`: what such a method needs
+/// under the tightest sound bound there is, since a bound over a region can only raise a
+/// sample's projected error, never lower it. The coarsest mask level within the threshold,
+/// searched from the coarsest (errors are not monotone in the level); level 0, the full
+/// tile, always is. A mask's surface is `terrain_shared::mask`'s, in the builder's `f32`
+/// arithmetic ([`terrain_shared::mask::max_vertical_error`]). Zero for bad input, as [`rtin_triangles`].
+pub fn one_mask_triangles(
+    heights: &[f32],
+    n: u32,
+    ppm: impl Fn(u32, u32) -> f64,
+    threshold_px: f64,
+) -> u64 {
+    let square = (n as usize).checked_mul(n as usize);
+    if n < 2 || square != Some(heights.len()) {
+        return 0;
+    }
+    // The error each sample may have, metres.
+    let allowed: Vec<f64> = (0..n * n)
+        .map(|i| threshold_px / ppm(i % n, i / n))
+        .collect();
+    let within = |level: u32| -> bool {
+        let kept = terrain_shared::mask::kept_indices(n, level);
+        let at = |c: u32, r: u32| heights[(r * n + c) as usize];
+        for rows in kept.windows(2) {
+            let (r0, r1) = (rows[0], rows[1]);
+            for cols in kept.windows(2) {
+                let (c0, c1) = (cols[0], cols[1]);
+                let (h00, h10, h01, h11) = (at(c0, r0), at(c1, r0), at(c0, r1), at(c1, r1));
+                for r in r0..=r1 {
+                    let v = (r - r0) as f32 / (r1 - r0) as f32;
+                    for c in c0..=c1 {
+                        let u = (c - c0) as f32 / (c1 - c0) as f32;
+                        let surface = terrain_shared::mask::cell_height(h00, h10, h01, h11, u, v);
+                        let i = (r * n + c) as usize;
+                        if f64::from((heights[i] - surface).abs()) > allowed[i] {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
+    };
+    let level = (1..terrain_shared::mask::level_count(n))
+        .rev()
+        .find(|&l| within(l))
+        .unwrap_or(0);
+    u64::from(terrain_shared::mask::triangle_count(n, level))
+}
+
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn one_mask_per_tile_takes_the_coarsest_level_every_sample_allows() {
+        let n = 17;
+        let plane: Vec<f32> = (0..n * n)
+            .map(|i| (i % n) as f32 * 0.5 + (i / n) as f32)
+            .collect();
+        // A plane is one cell (two triangles) at any depth.
+        assert_eq!(one_mask_triangles(&plane, n, |_, _| 1.0, 1.0), 2);
+        // A spike of 1 m at (5, 5), seen at 10 px a metre there and a thousandth of that
+        // elsewhere: only masks keeping column and row 5 hold it within 1 px, the coarsest
+        // of them the grid of every 5th sample (4 x 4 cells, 32 triangles).
+        let mut spike = plane.clone();
+        spike[(5 * n + 5) as usize] += 1.0;
+        let near_spike = |c: u32, r: u32| if (c, r) == (5, 5) { 10.0 } else { 1e-3 };
+        assert_eq!(one_mask_triangles(&spike, n, near_spike, 1.0), 32);
+        // Seen from far off (a tenth of a pixel a metre) it needs nothing.
+        assert_eq!(one_mask_triangles(&spike, n, |_, _| 0.1, 1.0), 2);
+        // Everywhere near: every sample exact, the full tile (16 x 16 cells).
+        assert_eq!(one_mask_triangles(&spike, n, |_, _| 1e6, 1.0), 512);
+        // Bad input counts nothing.
+        assert_eq!(one_mask_triangles(&spike[1..], n, near_spike, 1.0), 0);
+    }
 
     #[test]
     fn block_grids_keep_a_plane_coarse_and_refine_only_the_block_with_a_spike() {

@@ -1,26 +1,46 @@
 //! What regular grids chosen per block of a tile need against the oracle
 //! (`bench accuracy --block-grids`): how near the oracle a regular-grid method (GeoMipMaps,
-//! strip masks) can come by choosing its level per block rather than per tile.
+//! strip masks) can come by choosing its level per block rather than per tile, and what one
+//! strip mask a tile needs under the tightest sound bound.
 
 use super::{AccuracyReport, for_full_resolution_tiles_in_view};
-use crate::eval::oracle::{BlockGrids, block_grid_triangles};
+use crate::eval::oracle::{BlockGrids, block_grid_triangles, one_mask_triangles};
 use crate::render::Camera;
 
 /// The blocks [`block_grid_counts`] cuts tiles into, cells.
 const BLOCKS: [u32; 6] = [128, 64, 32, 16, 8, 4];
 
+/// One camera's counts: per block size, the regular grids chosen per block; and one strip
+/// mask a tile with each sample's error projected at the sample ([`one_mask_triangles`]).
+#[derive(Debug, Clone, Default)]
+pub(super) struct BlockCounts {
+    pub blocks: Vec<(u32, BlockGrids)>,
+    pub one_mask: u64,
+}
+
 /// Per block size of [`BLOCKS`] smaller than a tile, what regular grids chosen per block need
 /// for `camera`'s frame ([`block_grid_triangles`]), over the tiles the oracle
-/// counts ([`oracle_triangles`]), each block's pixels per metre at its own box.
+/// counts ([`oracle_triangles`]), each block's pixels per metre at its own box; and what one
+/// mask a tile needs, each sample's pixels per metre at the sample, as the oracle's.
 pub(super) fn block_grid_counts(
     scene: &crate::scene::Scene,
     camera: &Camera,
     viewport: [u32; 2],
     threshold_px: f64,
-) -> Vec<(u32, BlockGrids)> {
+) -> BlockCounts {
     let projection = crate::lod::plan::error_projection(camera, viewport);
     let mut totals: Vec<(u32, BlockGrids)> = Vec::new();
+    let mut one_mask = 0;
     for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
+        let at_sample = |c: u32, r: u32| {
+            let p = [
+                x0 + f64::from(c) * spacing[0],
+                y0 + f64::from(r) * spacing[1],
+                f64::from(samples[(r * n + c) as usize]),
+            ];
+            projection.pixels_per_metre(p, p, threshold_px)
+        };
+        one_mask += one_mask_triangles(samples, n, at_sample, threshold_px);
         for block in BLOCKS.into_iter().filter(|&b| b < n) {
             let ppm = |bc: u32, br: u32| {
                 let (c0, r0) = (bc * block, br * block);
@@ -54,15 +74,15 @@ pub(super) fn block_grid_counts(
             }
         }
     });
-    totals
+    BlockCounts {
+        blocks: totals,
+        one_mask,
+    }
 }
 
 /// The table of OUT/block-grids.md: per block size, the regular grids' triangles summed over
 /// the cameras against the oracle's at the threshold.
-pub(super) fn block_grids_markdown(
-    report: &AccuracyReport,
-    per_camera: &[Vec<(u32, BlockGrids)>],
-) -> String {
+pub(super) fn block_grids_markdown(report: &AccuracyReport, per_camera: &[BlockCounts]) -> String {
     let oracle: u64 = report
         .oracle
         .iter()
@@ -85,7 +105,7 @@ pub(super) fn block_grids_markdown(
     for block in BLOCKS {
         let (mut geomipmap, mut strip, mut seen) = (0, 0, false);
         for camera in per_camera {
-            if let Some((_, c)) = camera.iter().find(|(b, _)| *b == block) {
+            if let Some((_, c)) = camera.blocks.iter().find(|(b, _)| *b == block) {
                 geomipmap += c.geomipmap;
                 strip += c.strip;
                 seen = true;
@@ -99,5 +119,12 @@ pub(super) fn block_grids_markdown(
             );
         }
     }
+    let one_mask: u64 = per_camera.iter().map(|c| c.one_mask).sum();
+    out += &format!(
+        "\nOne strip mask a tile, as the strip-mask method draws, with each sample's error \
+         projected at the sample itself (the tightest sound bound, so the least any bound can \
+         give one mask a tile): {one_mask} triangles, {:.2} times the oracle.\n",
+        ratio(one_mask)
+    );
     out
 }
