@@ -3,7 +3,7 @@
 //! strip masks) can come by choosing its level per block rather than per tile, and what one
 //! strip mask a tile needs under the tightest sound bound.
 
-use super::{AccuracyReport, for_full_resolution_tiles_in_view};
+use super::{AccuracyReport, at_sample, for_full_resolution_tiles_in_view};
 use crate::eval::oracle::{BlockGrids, block_grid_triangles, one_mask_triangles};
 use crate::render::Camera;
 
@@ -32,15 +32,18 @@ pub(super) fn block_grid_counts(
     let mut totals: Vec<(u32, BlockGrids)> = Vec::new();
     let mut one_mask = 0;
     for_full_resolution_tiles_in_view(scene, camera, viewport, |[x0, y0], spacing, samples, n| {
-        let at_sample = |c: u32, r: u32| {
-            let p = [
-                x0 + f64::from(c) * spacing[0],
-                y0 + f64::from(r) * spacing[1],
-                f64::from(samples[(r * n + c) as usize]),
-            ];
-            projection.pixels_per_metre(p, p, threshold_px)
+        let ppm = |c: u32, r: u32| {
+            at_sample(
+                &projection,
+                [x0, y0],
+                spacing,
+                samples,
+                n,
+                (c, r),
+                threshold_px,
+            )
         };
-        one_mask += one_mask_triangles(samples, n, at_sample, threshold_px);
+        one_mask += one_mask_triangles(samples, n, ppm, threshold_px);
         for block in BLOCKS.into_iter().filter(|&b| b < n) {
             let ppm = |bc: u32, br: u32| {
                 let (c0, r0) = (bc * block, br * block);

@@ -708,17 +708,42 @@ pub fn oracle_triangles(
                 if in_view.as_ref().is_some_and(|v| !v[(r * n + c) as usize]) {
                     return 0.0;
                 }
-                let p = [
-                    x0 + f64::from(c) * spacing[0],
-                    y0 + f64::from(r) * spacing[1],
-                    f64::from(samples[(r * n + c) as usize]),
-                ];
-                projection.pixels_per_metre(p, p, threshold_px)
+                at_sample(
+                    &projection,
+                    [x0, y0],
+                    spacing,
+                    samples,
+                    n,
+                    (c, r),
+                    threshold_px,
+                )
             };
             *total += super::oracle::rtin_triangles(samples, n, ppm, threshold_px);
         }
     });
     totals
+}
+
+/// The oracle's pixels per metre of vertical error at sample `(c, r)` of a level-0 tile of
+/// `n x n` `samples` whose corner is at `origin` ([`ErrorProjection::pixels_per_metre`] at
+/// the sample itself).
+///
+/// [`ErrorProjection::pixels_per_metre`]: crate::lod::needed::ErrorProjection::pixels_per_metre
+pub(super) fn at_sample(
+    projection: &crate::lod::needed::ErrorProjection,
+    [x0, y0]: [f64; 2],
+    spacing: [f64; 2],
+    samples: &[f32],
+    n: u32,
+    (c, r): (u32, u32),
+    threshold_px: f64,
+) -> f64 {
+    let p = [
+        x0 + f64::from(c) * spacing[0],
+        y0 + f64::from(r) * spacing[1],
+        f64::from(samples[(r * n + c) as usize]),
+    ];
+    projection.pixels_per_metre(p, p, threshold_px)
 }
 
 /// Calls `each(origin_m, spacing_m, samples_m, n)` for every resident level-0 tile in
