@@ -8,7 +8,8 @@
 # "NOT RUN" and return. REQUIRE_DATA=1 (set by .ci/run) turns that into a failure; so does
 # REQUIRE_GPU=1 for render tests without a Vulkan adapter, and REQUIRE_BROWSER=1 for the
 # browser tests (MapLibre and Cesium in headless Chromium) without Chromium and the npm
-# packages, which viewer/setup.sh installs here when it can (apt-get, npm ci), and for the
+# packages, which viewer/setup.sh installs here when it can (apt-get, npm ci), or without
+# the wasm client's page, which scripts/build-web.sh builds (rustup, cargo install), and for the
 # windowed client's check (scripts/view-check.sh) without Xvfb and Weston; and
 # REQUIRE_STORE=1 for the scale-out tests (tests/e2e/scale.rs) without SeaweedFS's weed
 # and nginx, which scripts/scale-setup.sh installs when it can (pip into a virtual
@@ -48,6 +49,16 @@ if ! bash viewer/setup.sh; then
     exit 1
   fi
   echo "note: viewer/setup.sh failed: the browser tests will say NOT RUN"
+fi
+
+# The wasm client's page (the client compiled for the browser, viewer/dist/client): adds
+# the wasm32 target and wasm-bindgen-cli when missing (rustup, crates.io).
+if ! bash scripts/build-web.sh; then
+  if [ "${REQUIRE_BROWSER:-}" = 1 ]; then
+    echo "error: REQUIRE_BROWSER=1 but scripts/build-web.sh failed" >&2
+    exit 1
+  fi
+  echo "note: scripts/build-web.sh failed: the wasm client's browser test will say NOT RUN"
 fi
 
 if ! bash scripts/scale-setup.sh; then

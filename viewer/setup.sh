@@ -97,6 +97,8 @@ node -e '
   process.stdout.write(JSON.stringify({"maplibre-gl": v("maplibre-gl"), pmtiles: v("pmtiles"),
     cesium: v("cesium"), "puppeteer-core": v("puppeteer-core")}, null, 1) + "\n");
 ' > "$TMP/versions.json" || fail "could not read the packages' versions"
+# The wasm client's page (scripts/build-web.sh builds it into dist/client) stays.
+[ -d dist/client ] && mv dist/client "$TMP/client"
 rm -rf dist
 mv "$TMP" dist
 chmod 755 dist

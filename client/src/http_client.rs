@@ -8,11 +8,12 @@
 //! [`FetchError::is_transient`] tells such a caller which failures are worth another.
 
 use bytes::Bytes;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use terrain_shared::manifest::{ManifestError, content_hash};
 use terrain_shared::tile_blob::TileBlobError;
 use terrain_shared::{Blob, DecodeError, Heights, Manifest, TileBlob, TileId, routes};
 use thiserror::Error;
+use web_time::Instant;
 
 /// Longest wait for a TCP connection. A tile server is usually near (same host, LAN or a
 /// CDN edge), where a connection takes milliseconds; 5 s separates "slow" from "not there".
@@ -34,6 +35,7 @@ pub const MAX_MANIFEST_BYTES: u64 = 256 << 20;
 /// finer texture level fetched unverified), far above any tile's.
 pub const MAX_UNSIZED_BODY: u64 = 64 << 20;
 
+#[cfg(not(target_arch = "wasm32"))]
 const USER_AGENT: &str = concat!("terrain-client/", env!("CARGO_PKG_VERSION"));
 
 /// A client for one tile server. Cheap to clone (the connection pool is shared), so hand
@@ -176,10 +178,15 @@ impl TileClient {
         if url.query().is_some() || url.fragment().is_some() {
             return Err(bad("a server URL takes no query or fragment"));
         }
+        // In a page the browser sets the user agent and its own connection timeouts.
+        #[cfg(not(target_arch = "wasm32"))]
         let http = reqwest::Client::builder()
             .connect_timeout(CONNECT_TIMEOUT)
             .timeout(REQUEST_TIMEOUT)
-            .user_agent(USER_AGENT)
+            .user_agent(USER_AGENT);
+        #[cfg(target_arch = "wasm32")]
+        let http = reqwest::Client::builder();
+        let http = http
             .build()
             .map_err(|source| FetchError::ClientSetup { source })?;
         Ok(TileClient {
@@ -313,14 +320,14 @@ impl TileClient {
             url: url.to_string(),
             source,
         };
-        let mut response = self.http.get(url).send().await.map_err(transport)?;
+        let response = self.http.get(url).send().await.map_err(transport)?;
         let status = response.status();
         let span = tracing::Span::current();
         span.record("status", status.as_u16());
         if status.is_client_error() || status.is_server_error() {
             // The error body is best effort (the status alone says what happened), and only
             // its start is read.
-            let body = read_body(&mut response, MAX_ERROR_BODY as u64, true)
+            let body = read_body(response, MAX_ERROR_BODY as u64, true)
                 .await
                 .unwrap_or_default();
             let body = error_body_text(&body);
@@ -344,7 +351,7 @@ impl TileClient {
         if let Some(declared) = response.content_length().filter(|&d| d > limit) {
             return Err(too_large(Some(declared)));
         }
-        let body = read_body(&mut response, limit, false)
+        let body = read_body(response, limit, false)
             .await
             .map_err(|e| match e {
                 BodyError::Transport(source) => transport(source),
@@ -365,8 +372,9 @@ enum BodyError {
 
 /// Reads `response`'s body a chunk at a time, never holding more than `limit` bytes: past
 /// them it stops, with the bytes so far when `truncate`, else [`BodyError::TooLarge`].
+#[cfg(not(target_arch = "wasm32"))]
 async fn read_body(
-    response: &mut reqwest::Response,
+    mut response: reqwest::Response,
     limit: u64,
     truncate: bool,
 ) -> Result<Bytes, BodyError> {
@@ -393,6 +401,24 @@ async fn read_body(
         body.extend_from_slice(&chunk);
     }
     Ok(Bytes::from(body))
+}
+
+/// [`read_body`] in a page: the browser's `fetch` hands the body over whole, so a body
+/// whose length was stated is refused before it is read when too long (the caller checks),
+/// and one whose length was not is held by the browser whole before the limit applies.
+#[cfg(target_arch = "wasm32")]
+async fn read_body(
+    response: reqwest::Response,
+    limit: u64,
+    truncate: bool,
+) -> Result<Bytes, BodyError> {
+    let limit = usize::try_from(limit).unwrap_or(usize::MAX);
+    let body = response.bytes().await.map_err(BodyError::Transport)?;
+    match body.len() > limit {
+        false => Ok(body),
+        true if truncate => Ok(body.slice(..limit)),
+        true => Err(BodyError::TooLarge),
+    }
 }
 
 /// `error` and every cause under it, joined by `: `. Causes whose text the one above
@@ -422,7 +448,7 @@ pub struct FetchedTile {
     pub heights: Heights,
 }
 
-/// Decodes a tile blob fetched from `url` on tokio's blocking pool: a large tile takes
+/// Decodes a tile blob fetched from `url` off the async threads ([`crate::requests::tasks::off_thread`]): a large tile takes
 /// milliseconds of CPU, which would stall every other request sharing the async thread.
 pub async fn decode_tile(url: String, body: Bytes) -> Result<FetchedTile, FetchError> {
     let decode = move || -> Result<FetchedTile, FetchError> {
@@ -438,15 +464,13 @@ pub async fn decode_tile(url: String, body: Bytes) -> Result<FetchedTile, FetchE
             heights,
         })
     };
-    match tokio::task::spawn_blocking(decode).await {
-        Ok(decoded) => decoded,
-        Err(join) => match join.try_into_panic() {
-            Ok(panic) => std::panic::resume_unwind(panic),
-            Err(_) => Err(FetchError::Cancelled {
+    crate::requests::tasks::off_thread(decode)
+        .await
+        .unwrap_or_else(|| {
+            Err(FetchError::Cancelled {
                 url: "a tile blob being decoded".into(),
-            }),
-        },
-    }
+            })
+        })
 }
 
 fn record(manifest: &Manifest, id: TileId) -> Result<&terrain_shared::TileRecord, FetchError> {

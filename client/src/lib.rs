@@ -29,19 +29,27 @@
 //! (a method's own data is checked when its hash is given).
 //! **Invariant:** the pager never awaits, reads a clock or touches the GPU.
 
+#[cfg(not(target_arch = "wasm32"))]
 pub mod charts;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod cli;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod eval;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod flight;
+pub mod fly;
 pub mod http_client;
 pub mod lod;
 pub mod memory;
 pub mod method;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod output;
 pub mod overview;
 pub mod page;
 pub mod path;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod process;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod record;
 pub mod render;
 pub mod report;
@@ -49,4 +57,5 @@ pub mod requests;
 pub mod scene;
 #[cfg(test)]
 mod testing;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod viewer;

@@ -198,6 +198,19 @@ impl CameraPath {
     }
 }
 
+/// The camera's heading along the path: towards where the path is in a second, or the last
+/// heading when the path holds still.
+pub fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
+    let a = path.position_at(time_s);
+    let b = path.position_at(time_s + 1.0);
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    if dx.hypot(dy) < 1e-3 {
+        previous
+    } else {
+        dy.atan2(dx)
+    }
+}
+
 fn parse_json(text: &str, name: &str, manifest: &Manifest) -> Result<Vec<Keyframe>, PathError> {
     let file: PathFile = serde_json::from_str(text).map_err(|e| PathError::Json {
         path: name.into(),

@@ -85,6 +85,7 @@ impl Coder {
 
 const HEADER_LEN: usize = 44;
 
+#[cfg(not(target_arch = "wasm32"))]
 thread_local! {
     /// One zstd decompression context per thread: creating one per call costs more than
     /// decompressing a small plane (measured: decode throughput +15% on puget_sound_1k).
@@ -244,8 +245,7 @@ impl Heights {
                     for (dst, z) in plane.iter_mut().zip(&zigzag) {
                         *dst = (z >> (8 * index)) as u8;
                     }
-                    let frame = zstd::bulk::compress(&plane, zstd_level)
-                        .map_err(|e| EncodeError::Zstd(e.to_string()))?;
+                    let frame = zstd_compress(&plane, zstd_level)?;
                     payload.extend_from_slice(&frame);
                 }
                 (ZSTD_CODEC_VERSION, planes as u8, payload)
@@ -330,7 +330,32 @@ fn reconstruct_row(codes: &mut [i32], w: usize, y: usize, zigzag: &[u32]) {
     }
 }
 
+/// One zstd frame of `plane` at `level`.
+#[cfg(not(target_arch = "wasm32"))]
+fn zstd_compress(plane: &[u8], level: i32) -> Result<Vec<u8>, EncodeError> {
+    zstd::bulk::compress(plane, level).map_err(|e| EncodeError::Zstd(e.to_string()))
+}
+
+/// The browser build has no zstd (its C library does not build for the page without a C
+/// toolchain for it): it neither writes nor reads codec version 1.
+#[cfg(target_arch = "wasm32")]
+fn zstd_compress(_plane: &[u8], _level: i32) -> Result<Vec<u8>, EncodeError> {
+    Err(EncodeError::Zstd(NO_ZSTD.into()))
+}
+
+/// Why codec version 1 is not read in the browser build.
+#[cfg(target_arch = "wasm32")]
+const NO_ZSTD: &str = "heights coded with planar-zstd/1 are not read by the browser build: \
+                       build the database with the default codec (rans)";
+
+/// Codec version 1 in the browser build: refused (see [`NO_ZSTD`]).
+#[cfg(target_arch = "wasm32")]
+fn decode_planes(_header: &Header, _payload: &[u8], _codes: &mut [i32]) -> Result<(), DecodeError> {
+    Err(DecodeError::Zstd(NO_ZSTD.into()))
+}
+
 /// Codec version 1: decompresses the byte planes and reconstructs the codes from them.
+#[cfg(not(target_arch = "wasm32"))]
 fn decode_planes(header: &Header, payload: &[u8], codes: &mut [i32]) -> Result<(), DecodeError> {
     let (w, h) = (usize::from(header.width), usize::from(header.height));
     let n = w * h;
@@ -492,6 +517,7 @@ impl Header {
 }
 
 /// Why a frame without a stated size did not fit its plane.
+#[cfg(not(target_arch = "wasm32"))]
 enum Unsized {
     PastTile,
     Zstd(std::io::Error),
@@ -499,6 +525,7 @@ enum Unsized {
 
 /// Decompresses one frame into `plane`, returning the bytes written; stops with
 /// [`Unsized::PastTile`] at the first byte beyond it.
+#[cfg(not(target_arch = "wasm32"))]
 fn decompress_unsized(frame: &[u8], plane: &mut [u8]) -> Result<usize, Unsized> {
     use std::io::Read as _;
     let mut decoder = zstd::stream::read::Decoder::with_buffer(frame)

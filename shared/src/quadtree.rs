@@ -702,8 +702,33 @@ pub fn encode_patch(
     out.extend_from_slice(&[tree.n as u8, 0, 0, 0]);
     out.extend_from_slice(&(bits.len as u32).to_le_bytes());
     out.extend_from_slice(&bits.bytes);
-    out.extend_from_slice(&zstd::bulk::compress(&values, zstd_level).unwrap_or_default());
+    out.extend_from_slice(&compress(&values, zstd_level));
     out
+}
+
+/// One zstd frame of a patch's values (empty if zstd fails, which it does not on a buffer).
+#[cfg(not(target_arch = "wasm32"))]
+fn compress(values: &[u8], level: i32) -> Vec<u8> {
+    zstd::bulk::compress(values, level).unwrap_or_default()
+}
+
+/// A patch's values, at most `max` bytes.
+#[cfg(not(target_arch = "wasm32"))]
+fn decompress(frame: &[u8], max: usize) -> Result<Vec<u8>, String> {
+    zstd::bulk::decompress(frame, max).map_err(|e| e.to_string())
+}
+
+/// The browser build has no zstd (its C library does not build for the page without a C
+/// toolchain for it): it neither writes nor reads patches, whose values are zstd frames.
+#[cfg(target_arch = "wasm32")]
+fn compress(_values: &[u8], _level: i32) -> Vec<u8> {
+    Vec::new()
+}
+
+/// See the native `decompress`: refused in the browser build.
+#[cfg(target_arch = "wasm32")]
+fn decompress(_frame: &[u8], _max: usize) -> Result<Vec<u8>, String> {
+    Err("quadtree patches are not read by the browser build (their values are zstd frames)".into())
 }
 
 /// Decodes a patch's body against what its parent gives; any bytes give a patch or an
@@ -741,8 +766,8 @@ pub fn decode_patch(
     };
     let given = parent.map_or_else(|| Cut::root(tree), Parent::given);
     let cut = decode_splits(&given, &bits).ok_or(PatchError::Splits)?;
-    let values = zstd::bulk::decompress(&rest[bit_bytes..], max_patch_bytes(tree))
-        .map_err(|e| PatchError::Compressed(e.to_string()))?;
+    let values =
+        decompress(&rest[bit_bytes..], max_patch_bytes(tree)).map_err(PatchError::Compressed)?;
     let values =
         varints(&values).ok_or_else(|| PatchError::Compressed("a varint runs on".into()))?;
     let new = new_nodes(&cut, parent);

@@ -27,17 +27,17 @@ const HEIGHT: u32 = 500;
 /// Terrarium's quantum, metres.
 const TERRARIUM_QUANTUM: f64 = 1.0 / 256.0;
 
-fn repo() -> PathBuf {
+pub(crate) fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
-fn chromium() -> PathBuf {
+pub(crate) fn chromium() -> PathBuf {
     std::env::var_os("CHROMIUM").map_or_else(|| PathBuf::from("/usr/bin/chromium"), PathBuf::from)
 }
 
 /// Whether the browser side is there; says NOT RUN (or fails under `REQUIRE_BROWSER=1`)
 /// when it is not.
-fn browser_ready(test: &str) -> bool {
+pub(crate) fn browser_ready(test: &str) -> bool {
     let node = Command::new("node")
         .arg("--version")
         .output()
@@ -275,7 +275,7 @@ fn page(base: &str, query: &str) -> String {
 
 /// Serves `db` with the viewer and, beside it, `extra` files (the PMTiles archive): the
 /// viewer's files are linked into a directory of the test's own.
-fn serve(db: &Path, tmp: &Path, extra: &[&Path]) -> TestServer {
+pub(crate) fn serve(db: &Path, tmp: &Path, extra: &[&Path]) -> TestServer {
     let view = tmp.join("view");
     std::fs::create_dir_all(&view).expect("view dir");
     for entry in std::fs::read_dir(repo().join("viewer/dist")).expect("viewer/dist") {

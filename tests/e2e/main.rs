@@ -21,3 +21,4 @@ mod render;
 mod round_trip;
 mod scale;
 mod web;
+mod web_client;

@@ -602,6 +602,23 @@ async fn the_viewer_directory_is_the_only_one_served_and_never_left() {
         .expect("GET /");
     assert_eq!(root.status().as_u16(), 302);
     assert_eq!(root.headers()["location"], "/view/index.html");
+    // A directory without its slash (the wasm client's page, /view/client) is redirected to
+    // it under /view, not to the server's root.
+    std::fs::create_dir_all(view.join("client")).expect("client dir");
+    std::fs::write(view.join("client/index.html"), "<p>client</p>").expect("write");
+    let no_redirects = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .expect("client");
+    let bare = no_redirects
+        .get(format!("{base}/view/client"))
+        .send()
+        .await
+        .expect("GET /view/client");
+    assert!(bare.status().is_redirection(), "{}", bare.status());
+    assert_eq!(bare.headers()["location"], "/view/client/");
+    let page = get(&format!("{base}/view/client/")).await;
+    assert_eq!(String::from_utf8_lossy(&page.body), "<p>client</p>");
     for target in [
         "/view/../secret.txt",
         "/view/%2e%2e/secret.txt",

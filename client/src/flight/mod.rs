@@ -110,18 +110,7 @@ pub enum FlightError {
 
 pub use crate::record::{CSV_HEADER, FrameRecord, RenderRecord, windowed_fps};
 
-/// The camera's heading along the path: towards where the path is in a second, or the last
-/// heading when the path holds still.
-pub fn heading(path: &CameraPath, time_s: f64, previous: f64) -> f64 {
-    let a = path.position_at(time_s);
-    let b = path.position_at(time_s + 1.0);
-    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-    if dx.hypot(dy) < 1e-3 {
-        previous
-    } else {
-        dy.atan2(dx)
-    }
-}
+pub use crate::path::heading;
 
 /// The least manifest cap a flight sets, whatever its budget.
 pub const MANIFEST_FLOOR_BYTES: u64 = 1 << 20;

@@ -48,12 +48,14 @@ pub fn gpu_required() -> bool {
 
 impl Gpu {
     /// A device for offscreen rendering.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn headless() -> Result<Gpu, GpuError> {
         Self::headless_with(gpu_required())
     }
 
     /// A device for offscreen rendering; with `require_vulkan`, a Vulkan one or an error
     /// (what `REQUIRE_GPU=1` asks for).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn headless_with(require_vulkan: bool) -> Result<Gpu, GpuError> {
         Self::open(Self::instance_with(require_vulkan), None, require_vulkan)
     }
@@ -73,6 +75,7 @@ impl Gpu {
     }
 
     /// A device from `instance` able to present to `surface`, when given.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn with_instance(
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
@@ -80,18 +83,39 @@ impl Gpu {
         Self::open(instance, surface, gpu_required())
     }
 
+    #[cfg(not(target_arch = "wasm32"))]
     fn open(
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
         require_vulkan: bool,
     ) -> Result<Gpu, GpuError> {
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            force_fallback_adapter: false,
-            compatible_surface: surface,
-            apply_limit_buckets: false,
-        }))
-        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        pollster::block_on(Self::request(instance, surface, require_vulkan))
+    }
+
+    /// A device of the page's (WebGPU, or WebGL2 where the page has no WebGPU) able to
+    /// present to `surface`, a canvas's.
+    #[cfg(target_arch = "wasm32")]
+    pub async fn for_page(
+        instance: wgpu::Instance,
+        surface: &wgpu::Surface<'_>,
+    ) -> Result<Gpu, GpuError> {
+        Self::request(instance, Some(surface), false).await
+    }
+
+    async fn request(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+        require_vulkan: bool,
+    ) -> Result<Gpu, GpuError> {
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                force_fallback_adapter: false,
+                compatible_surface: surface,
+                apply_limit_buckets: false,
+            })
+            .await
+            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
         if require_vulkan && info.backend != wgpu::Backend::Vulkan {
             return Err(GpuError::NotVulkan(describe(&info)));
@@ -106,16 +130,18 @@ impl Gpu {
             max_buffer_size: available.max_buffer_size,
             ..wgpu::Limits::default().using_resolution(available)
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("terrain"),
-            required_features,
-            required_limits,
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::Device {
-            adapter: describe(&info),
-            message: e.to_string(),
-        })?;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("terrain"),
+                required_features,
+                required_limits,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::Device {
+                adapter: describe(&info),
+                message: e.to_string(),
+            })?;
         Ok(Gpu {
             instance,
             adapter,

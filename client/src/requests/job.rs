@@ -10,8 +10,9 @@ use crate::http_client::{FetchError, FetchedTile, TileClient, decode_tile, verif
 use bytes::Bytes;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use terrain_shared::{Manifest, TileId, routes};
+use web_time::Instant;
 
 /// What one try of one blob ended with, and what to do next.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -180,7 +181,7 @@ impl Job {
                 tile = %self.request.id, ?part, tries, ?kind, %error,
                 delay_ms = delay.as_millis() as u64, "retrying"
             );
-            tokio::time::sleep(delay).await;
+            super::tasks::sleep(delay).await;
         }
     }
 

@@ -20,6 +20,7 @@
 //! current is dropped in [`Fetcher::poll`].
 
 mod job;
+pub mod tasks;
 
 use self::job::{Job, Verdict, verdict};
 use crate::http_client::{FetchError, TileClient};
@@ -29,9 +30,10 @@ use std::hash::BuildHasher;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
+pub use tasks::Spawner;
+use tasks::TaskHandle;
 use terrain_shared::{Heights, Manifest, TileId, routes};
 use tokio::sync::{Notify, mpsc};
-use tokio::task::JoinHandle;
 
 /// Requests running at once: the same as `terrain-client fetch`, for the same reason (keeps a
 /// local server and a LAN busy without queueing behind the server's own limit).
@@ -178,7 +180,7 @@ pub struct Fetcher {
     client: TileClient,
     manifest: Arc<Manifest>,
     config: FetcherConfig,
-    runtime: tokio::runtime::Handle,
+    runtime: Spawner,
     queue: RequestQueue,
     running: HashMap<Request, Running>,
     /// Requests queued or running, per tile: what [`Fetcher::pending`] lists.
@@ -208,14 +210,14 @@ impl Fetcher {
         client: TileClient,
         manifest: Arc<Manifest>,
         config: FetcherConfig,
-        runtime: tokio::runtime::Handle,
+        runtime: impl Into<Spawner>,
     ) -> Fetcher {
         let (finished_sender, finished) = mpsc::unbounded_channel();
         Fetcher {
             client,
             manifest,
             config,
-            runtime,
+            runtime: runtime.into(),
             queue: RequestQueue::default(),
             running: HashMap::new(),
             pending_tiles: HashMap::new(),
@@ -411,6 +413,7 @@ impl Fetcher {
     /// Waits until a running request finishes (one that finished since the last wait
     /// counts) or `at_most` passes; at once when none is running. What a flight that does
     /// not pace itself in wall-clock time waits on between frames (`fly --no-wait`).
+    #[cfg(not(target_arch = "wasm32"))]
     pub async fn next_finished(&self, at_most: Duration) {
         if self.running.is_empty() {
             return;
@@ -538,7 +541,7 @@ pub async fn fetch_manifest(
             "manifest: {}; trying again",
             error.chain()
         );
-        tokio::time::sleep(delay).await;
+        tasks::sleep(delay).await;
     }
 }
 
@@ -664,7 +667,7 @@ impl RequestQueue {
 #[derive(Debug)]
 struct Running {
     ticket: u64,
-    handle: JoinHandle<()>,
+    handle: TaskHandle,
 }
 
 /// What a task sends back when it ends on its own.

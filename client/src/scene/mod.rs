@@ -46,8 +46,9 @@ use crate::render::{Camera, Gpu, RenderStats, Renderer};
 use crate::requests::{FailureKind, FetchEvent, Fetcher, Want};
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use terrain_shared::{Manifest, TileId};
+use web_time::Instant;
 
 mod drawing;
 mod residency;
@@ -320,7 +321,7 @@ impl Scene {
     pub async fn connect(
         server: &str,
         config: crate::requests::FetcherConfig,
-        runtime: tokio::runtime::Handle,
+        runtime: impl Into<crate::requests::Spawner>,
     ) -> Result<Connection, crate::http_client::FetchError> {
         let client = crate::http_client::TileClient::new(server)?
             .with_max_manifest_bytes(config.max_manifest_bytes);

@@ -274,7 +274,24 @@ pub fn app_with(state: Arc<AppState>, options: &ServeOptions) -> Router {
         // The one route that reads files: tower-http's ServeDir, which refuses any path
         // that would leave `dir` (`..`, absolute paths, symbolic links are followed only
         // inside what the OS resolves under it).
-        operations = operations.nest_service("/view", tower_http::services::ServeDir::new(dir));
+        // A directory asked for without its slash is redirected to it: ServeDir sees the
+        // path without `/view`, so its `Location` gets the prefix back here.
+        let files = tower::ServiceBuilder::new()
+            .map_response(|mut response: axum::http::Response<_>| {
+                let location = response.headers().get(axum::http::header::LOCATION);
+                if let Some(fixed) = location
+                    .and_then(|l| l.to_str().ok())
+                    .filter(|l| l.starts_with('/'))
+                    .and_then(|l| axum::http::HeaderValue::from_str(&format!("/view{l}")).ok())
+                {
+                    response
+                        .headers_mut()
+                        .insert(axum::http::header::LOCATION, fixed);
+                }
+                response
+            })
+            .service(tower_http::services::ServeDir::new(dir));
+        operations = operations.nest_service("/view", files);
     }
 
     tile_api

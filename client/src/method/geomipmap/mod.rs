@@ -22,8 +22,8 @@ use crate::lod::strips::MaskSet;
 use crate::render::{Camera, Frame, Gpu, IndexSet, TileExtras};
 use glam::DVec3;
 use std::collections::HashMap;
-use std::time::Instant;
 use terrain_shared::{Heights, TileId, TileRecord};
+use web_time::Instant;
 
 /// What an index set of [`GeoMipMaps`] draws.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

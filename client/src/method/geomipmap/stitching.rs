@@ -400,7 +400,7 @@ impl Grid<'_> {
 mod tests {
     use super::*;
     use std::collections::{BTreeSet, HashMap};
-    use std::time::Instant;
+    use web_time::Instant;
 
     /// The exact error of one triangle: its samples and its edges' crossings.
     fn triangle_error(samples: &[f32], n: u32, t: &Triangle) -> f64 {

@@ -32,12 +32,12 @@ use super::{Build, LodMethod, MethodBytes, MethodConfig, MethodInput, MethodKind
 use crate::lod::plan::{self, LodSettings};
 use crate::lod::strips::MaskSet;
 use crate::render::{Frame, Gpu};
-use std::time::Instant;
 use terrain_shaders::{
     ERROR_UNCOVERED, GRID, GRID_MAX_LEVELS, GridCounters, GridUniform, WARP_LINES, grid_entry,
     grid_flag,
 };
 use terrain_shared::{Manifest, TileId, TileRecord};
+use web_time::Instant;
 
 /// Default grid: vertices per row and per column.
 pub const DEFAULT_GRID: [u32; 2] = [256, 144];

@@ -38,10 +38,10 @@ use crate::render::{Frame, Gpu};
 use bytes::Bytes;
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, mpsc};
-use std::time::Instant;
 use terrain_shaders::{PATCHES, PatchUniform, patch_entry};
 use terrain_shared::quadtree::{self, PatchData, PatchEntry, Tree};
 use terrain_shared::{Manifest, TileId, TileRecord, routes};
+use web_time::Instant;
 
 /// The key of the patch index among the method's data (asked for with the root tile).
 const INDEX_KEY: u32 = 1;

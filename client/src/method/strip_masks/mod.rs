@@ -11,8 +11,8 @@ use crate::lod::strips::MaskSet;
 use crate::render::{Frame, IndexSet, TileExtras};
 use std::collections::HashMap;
 use std::sync::Arc;
-use std::time::Instant;
 use terrain_shared::{TileId, mask};
+use web_time::Instant;
 
 /// The strip-mask method. See the module documentation.
 #[derive(Debug)]

@@ -40,9 +40,9 @@ use super::camera::Camera;
 use super::gpu::{GPU_TIMEOUT, Gpu};
 use super::layout::Layout;
 use super::tiles::TileStore;
-use std::time::Instant;
 use terrain_shaders::{FrameUniform, TileUniform};
 use terrain_shared::TileId;
+use web_time::Instant;
 
 /// Background colour: what a crack shows when nothing fills it.
 pub const SKY: [f64; 3] = [0.55, 0.71, 0.88];

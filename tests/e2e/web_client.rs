@@ -1,0 +1,362 @@
+//! Our own client in a browser tab: the wasm build of the client (`web/`, built into
+//! `viewer/dist/client` by `scripts/build-web.sh`) flies the default flight in headless
+//! Chromium (WebGPU on SwiftShader), driven by `tests/browser/client.mjs`, against a real
+//! server, beside the native client's flight of the same cameras on lavapipe: over jacksboro
+//! (bundled) and over the data kit's himalaya_4097 in 16 MiB.
+//!
+//! Needs what the browser tests need (`bash viewer/setup.sh`) and the page
+//! (`bash scripts/build-web.sh`; `scripts/test.sh` runs both); without them the test says
+//! NOT RUN, and fails when `REQUIRE_BROWSER=1` (CI).
+
+use crate::browser::{browser_ready, chromium, repo, serve};
+use std::io::Write;
+use std::process::Command;
+use terrain_tests::data::{jacksboro, kit_file, run_binary};
+use terrain_tests::fixtures::{Options, database};
+
+const WIDTH: u32 = 960;
+const HEIGHT: u32 = 540;
+/// A fixed triangle budget, so that both clients draw the same triangles whatever their
+/// frame times (the page's SwiftShader and the native lavapipe differ).
+const FIXED_BUDGET: &str = "60000";
+/// The page's frame may differ from the native one as a browser's screenshot may differ
+/// from its golden image: at most this share of the pixels by more than
+/// [`CHANNEL_TOLERANCE`] in a channel (two rasterisers, SwiftShader in Chromium and
+/// lavapipe, and their texture filtering, an edge or a texel apart).
+use terrain_tests::golden::{CHANNEL_TOLERANCE, MAX_DIFFERING_SHARE};
+
+/// Whether the page is built; says NOT RUN (or fails under `REQUIRE_BROWSER=1`) when not.
+fn page_built(test: &str) -> bool {
+    let wasm = repo().join("viewer/dist/client/pkg/terrain_web_bg.wasm");
+    if wasm.exists() {
+        return true;
+    }
+    let required = std::env::var("REQUIRE_BROWSER").is_ok_and(|v| v == "1");
+    assert!(
+        !required,
+        "{test}: REQUIRE_BROWSER=1 but {} is missing (run `bash scripts/build-web.sh`)",
+        wasm.display()
+    );
+    let _ = writeln!(
+        std::io::stderr(),
+        "NOT RUN: {test} needs the wasm client's page (run `bash scripts/build-web.sh`)"
+    );
+    false
+}
+
+/// The share of pixels that are not the frame's most common colour (the sky, or a blank
+/// canvas's one colour): a frame with terrain in it has many.
+fn drawn_share(image: &image::RgbaImage) -> f64 {
+    let mut counts = std::collections::HashMap::<[u8; 4], u64>::new();
+    for p in image.pixels() {
+        *counts.entry(p.0).or_default() += 1;
+    }
+    let most = counts.values().copied().max().unwrap_or(0);
+    let total = u64::from(image.width()) * u64::from(image.height());
+    1.0 - most as f64 / total as f64
+}
+
+/// What a flight of both clients gave.
+struct Flown {
+    /// The native flight's directory (its `frames/frame-NNNNNN.png`).
+    native: std::path::PathBuf,
+    /// The frames both wrote, in order.
+    frames: Vec<u64>,
+    /// The page's directory (`frame-N.png`, `settled.png`, `result.json`).
+    page: std::path::PathBuf,
+    result: serde_json::Value,
+    /// The limit both flew under, bytes.
+    limit: u64,
+    /// Peaks over the page's frames: resident bytes, the wasm heap.
+    peak: u64,
+    heap_peak: u64,
+    seconds: f64,
+}
+
+/// Flies the default flight over `db` natively and in the page, both at `fps` frames a
+/// second of flight, in `memory_mib` MiB, with [`FIXED_BUDGET`]; checks what holds for
+/// every page flight (no error, no failed or external request, WebGPU, the limit at every
+/// frame's end) and returns both.
+fn fly_both(name: &str, db: &std::path::Path, memory_mib: u64, fps: u32, settle: bool) -> Flown {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let server = serve(db, tmp.path(), &[]);
+    let base = server.base_url().to_string();
+    let memory = format!("{memory_mib}MiB");
+
+    // The native flight: its frames every 30 and the last.
+    let native = repo().join(format!("tests/out/web_client/{name}/native"));
+    let _ = std::fs::remove_dir_all(&native);
+    let (ok, stdout, stderr) = run_binary(
+        "terrain-client",
+        &[
+            "fly".as_ref(),
+            "--server".as_ref(),
+            base.as_ref(),
+            "--out".as_ref(),
+            native.as_os_str(),
+            "--memory".as_ref(),
+            memory.as_ref(),
+            "--fixed-budget".as_ref(),
+            FIXED_BUDGET.as_ref(),
+            "--fps".as_ref(),
+            fps.to_string().as_ref(),
+            "--size".as_ref(),
+            format!("{WIDTH}x{HEIGHT}").as_ref(),
+            "--quiet".as_ref(),
+        ],
+    );
+    assert!(ok, "{name}: native flight failed: {stdout}{stderr}");
+    let mut frames: Vec<u64> = std::fs::read_dir(native.join("frames"))
+        .expect("frames")
+        .filter_map(|e| {
+            let name = e.ok()?.file_name().into_string().ok()?;
+            name.strip_prefix("frame-")?
+                .strip_suffix(".png")?
+                .parse()
+                .ok()
+        })
+        .collect();
+    frames.sort_unstable();
+    assert!(frames.len() >= 3, "{name}: frames {frames:?}");
+    let last = *frames.last().expect("a frame");
+
+    // The page: the same flight, frame by frame, stopping at the native frames.
+    let out = repo().join(format!("tests/out/web_client/{name}/page"));
+    let _ = std::fs::remove_dir_all(&out);
+    let stops: Vec<String> = frames.iter().map(u64::to_string).collect();
+    let page = format!(
+        "{base}/view/client/index.html?mode=flight&memory={memory}&fixed_budget={FIXED_BUDGET}&flight_fps={fps}"
+    );
+    let started = std::time::Instant::now();
+    let output = Command::new("node")
+        .arg(repo().join("tests/browser/client.mjs"))
+        .args(["--page", &page, "--frames", &stops.join(",")])
+        .args(["--timeout-s", "600"])
+        .args(if settle {
+            &["--settle-frames", "600"][..]
+        } else {
+            &[][..]
+        })
+        .args([
+            "--width",
+            &WIDTH.to_string(),
+            "--height",
+            &HEIGHT.to_string(),
+        ])
+        .arg("--out")
+        .arg(&out)
+        .arg("--chromium")
+        .arg(chromium())
+        .output()
+        .expect("node runs");
+    let result: serde_json::Value = std::fs::read(out.join("result.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_else(|| {
+            panic!(
+                "{name}: client.mjs wrote no result.json: {}",
+                String::from_utf8_lossy(&output.stderr)
+            )
+        });
+    assert_eq!(
+        result["ok"], true,
+        "{name}: the page did not fly: {} ({page}); console: {}",
+        result["reason"], result["console_messages"]
+    );
+    for key in [
+        "errors",
+        "console_errors",
+        "failed_requests",
+        "external_requests",
+    ] {
+        let list = result[key].as_array().map_or(0, Vec::len);
+        assert_eq!(list, 0, "{name}: {key}: {}", result[key]);
+    }
+    assert_eq!(
+        result["info"]["backend"], "BrowserWebGpu",
+        "{name}: the page should draw with WebGPU: {}",
+        result["info"]
+    );
+
+    // The limit held at every frame's end, and it is the native flight's limit.
+    let history = result["history"].as_array().expect("history");
+    assert!(
+        history.len() as u64 > last,
+        "{name}: {} frames",
+        history.len()
+    );
+    let limit = (memory_mib << 20) * 9 / 10;
+    let (mut peak, mut heap_peak) = (0, 0);
+    for s in history {
+        let resident = s["resident_bytes"].as_u64().expect("resident_bytes");
+        assert_eq!(s["limit_bytes"].as_u64(), Some(limit), "{name}: {s}");
+        assert!(
+            resident <= limit,
+            "{name}: frame {}: {resident} bytes over the limit {limit}",
+            s["frame"]
+        );
+        peak = peak.max(resident);
+        heap_peak = heap_peak.max(s["wasm_heap_bytes"].as_u64().unwrap_or(0));
+    }
+    // The limit binds: the tiles at every texture level would not fit.
+    assert!(
+        peak as f64 > 0.9 * limit as f64,
+        "{name}: the limit never bound: peak {peak} of {limit} bytes"
+    );
+    Flown {
+        native,
+        frames,
+        page: out,
+        result,
+        limit,
+        peak,
+        heap_peak,
+        seconds: started.elapsed().as_secs_f64(),
+    }
+}
+
+fn open(path: &std::path::Path) -> image::RgbaImage {
+    let image = image::open(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .into_rgba8();
+    assert_eq!(image.dimensions(), (WIDTH, HEIGHT), "{}", path.display());
+    image
+}
+
+/// The page's frame `k` and the native one's.
+fn pair(flown: &Flown, k: u64) -> (image::RgbaImage, image::RgbaImage) {
+    (
+        open(&flown.page.join(format!("frame-{k}.png"))),
+        open(&flown.native.join(format!("frames/frame-{k:06}.png"))),
+    )
+}
+
+/// Pixels of terrain (anything but the sky's clear colour, [`terrain_client::render::SKY`]
+/// written to an sRGB target).
+fn terrain_pixels(image: &image::RgbaImage) -> u64 {
+    let srgb = |c: f64| {
+        let s = if c <= 0.003_130_8 {
+            12.92 * c
+        } else {
+            1.055 * c.powf(1.0 / 2.4) - 0.055
+        };
+        (s * 255.0).round() as i32
+    };
+    let sky = terrain_client::render::SKY.map(srgb);
+    image
+        .pixels()
+        .filter(|p| (0..3).any(|i| (i32::from(p.0[i]) - sky[i]).abs() > 3))
+        .count() as u64
+}
+
+#[test]
+fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it() {
+    let test =
+        "the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it";
+    if !browser_ready(test) || !page_built(test) {
+        return;
+    }
+    // 2 MiB: small enough that the limit binds (jacksboro's tiles at every texture level
+    // would not fit).
+    let db = database(&jacksboro(), Options::Defaults);
+    let flown = fly_both("jacksboro", &db, 2, 30, true);
+    // Every stop but the first (frame 0, before any tile has arrived) drew terrain.
+    let total = f64::from(WIDTH * HEIGHT);
+    for &k in &flown.frames[1..] {
+        let (page, _) = pair(&flown, k);
+        let drawn = terrain_pixels(&page) as f64 / total;
+        assert!(
+            drawn > 0.3,
+            "jacksboro frame {k}: only {drawn:.3} of it is terrain"
+        );
+    }
+    // Once settled, the page draws the native flight's last frame.
+    let last = *flown.frames.last().expect("frames");
+    let settled = &flown.result["settled"];
+    assert_eq!(
+        settled["settled"], true,
+        "the page never settled: {settled}"
+    );
+    let (page_last, native_last) = pair(&flown, last);
+    let page_settled = open(&flown.page.join("settled.png"));
+    let share =
+        |a, b| terrain_tests::golden::differing_pixels_by(a, b, CHANNEL_TOLERANCE) as f64 / total;
+    let (last_share, settled_share) = (
+        share(&page_last, &native_last),
+        share(&page_settled, &native_last),
+    );
+    println!(
+        "web client, jacksboro: {} frames in {:.1} s ({}); peak resident {} of {} bytes, wasm heap peak {}; \
+         last frame {last}: {:.2}% of the pixels differ from the native frame by more than {CHANNEL_TOLERANCE} \
+         ({:.2}% once settled, frame {})",
+        flown.result["history"].as_array().map_or(0, Vec::len),
+        flown.seconds,
+        flown.result["info"]["backend"],
+        flown.peak,
+        flown.limit,
+        flown.heap_peak,
+        100.0 * last_share,
+        100.0 * settled_share,
+        settled["frame"]
+    );
+    assert!(
+        settled_share <= MAX_DIFFERING_SHARE,
+        "the settled page differs from the native last frame on {:.2}% of the pixels (at most {:.2}%): see {}",
+        100.0 * settled_share,
+        100.0 * MAX_DIFFERING_SHARE,
+        flown.page.display()
+    );
+}
+
+/// The least share of the native frame's terrain pixels the page's frame of the same camera
+/// has: terrain to the horizon in 16 MiB.
+const HORIZON_SHARE: f64 = 0.99;
+
+#[test]
+fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_does() {
+    let test = "the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_does";
+    let Some(heights) = kit_file(test, "himalaya_4097/g10g_himalaya_4097.png") else {
+        return;
+    };
+    if !browser_ready(test) || !page_built(test) {
+        return;
+    }
+    let db = database(&heights, Options::Defaults);
+    // The default flight at 10 frames a second of flight: the same path and cameras as at
+    // 30, a third of the frames (SwiftShader draws a few a second).
+    let flown = fly_both("himalaya", &db, 16, 10, false);
+    let mut worst = (f64::INFINITY, 0);
+    let mut lines = Vec::new();
+    for &k in &flown.frames {
+        let (page, native) = pair(&flown, k);
+        let (p, n) = (terrain_pixels(&page), terrain_pixels(&native));
+        if n == 0 {
+            continue;
+        }
+        let share = p as f64 / n as f64;
+        lines.push(format!("{k}: {p}/{n}"));
+        if share < worst.0 {
+            worst = (share, k);
+        }
+    }
+    println!(
+        "web client, himalaya in 16 MiB: {} frames in {:.1} s; peak resident {} of {} bytes, wasm heap peak {}; \
+         terrain pixels, page against native, at the worst frame {}: {:.4} ({})",
+        flown.result["history"].as_array().map_or(0, Vec::len),
+        flown.seconds,
+        flown.peak,
+        flown.limit,
+        flown.heap_peak,
+        worst.1,
+        worst.0,
+        lines.join(", ")
+    );
+    assert!(lines.len() >= 3, "too few frames with terrain: {lines:?}");
+    assert!(
+        worst.0 >= HORIZON_SHARE,
+        "himalaya frame {}: the page has {:.4} of the native frame's terrain pixels (at least {HORIZON_SHARE}): see {}",
+        worst.1,
+        worst.0,
+        flown.page.display()
+    );
+}
