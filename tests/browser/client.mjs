@@ -4,15 +4,15 @@
 //
 //   node tests/browser/client.mjs --page <url of /view/client/index.html with its query>
 //        --out <dir> --frames 30,60,90 [--settle-frames 600] [--timeout-s 300]
-//        [--width 960 --height 540] [--chromium /usr/bin/chromium] [--webgl]
+//        [--width 960 --height 540] [--chromium /usr/bin/chromium] [--no-webgpu]
 //        [--run-seconds S] [--ui] [--shot FILE]
 //
 // The page is opened paused; for each of --frames it draws up to that frame and takes
 // <out>/frame-<N>.png of the canvas; with --settle-frames it then draws on (the camera where
 // the last frame left it) until the scene has settled or that many more frames have passed,
 // and takes <out>/settled.png; with --run-seconds it then lets the page draw freely (at its
-// own pace, as a user's tab does) for S seconds. --webgl hides WebGPU from the page (WebGL2
-// then). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
+// own pace, as a user's tab does) for S seconds. --no-webgpu runs Chromium without WebGPU
+// (as a browser that has none). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
 // the whole page at the end.
 // Writes <out>/result.json:
 //   { ok, reason?, info: {backend, adapter, dataset, server}, history: [one object a frame:
@@ -33,7 +33,7 @@ const since = t => Math.round((Date.now() - t) / 10) / 100;
 
 function parseArgs(argv) {
   const a = { timeoutS: 300, width: 960, height: 540, frames: [], settleFrames: 0,
-    chromium: process.env.CHROMIUM || '/usr/bin/chromium', webgl: false };
+    chromium: process.env.CHROMIUM || '/usr/bin/chromium', noWebgpu: false };
   for (let i = 0; i < argv.length; i++) {
     const k = argv[i];
     const v = () => { if (i + 1 >= argv.length) throw new Error(`${k} needs a value`); return argv[++i]; };
@@ -46,7 +46,7 @@ function parseArgs(argv) {
       case '--width': a.width = Number(v()); break;
       case '--height': a.height = Number(v()); break;
       case '--chromium': a.chromium = v(); break;
-      case '--webgl': a.webgl = true; break;
+      case '--no-webgpu': a.noWebgpu = true; break;
       case '--run-seconds': a.runSeconds = Number(v()); break;
       case '--ui': a.ui = true; break;
       case '--shot': a.shot = v(); break;
@@ -105,10 +105,12 @@ function withTimeout(promise, what) {
 const flags = ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader', `--window-size=${args.width},${args.height}`];
 // WebGPU on SwiftShader; its canvases reach the page's compositor (and so screenshots) only
 // when the compositor runs on SwiftShader's Vulkan too.
-if (!args.webgl) flags.push('--enable-unsafe-webgpu', '--enable-features=Vulkan', '--use-vulkan=swiftshader');
+if (args.noWebgpu) flags.push('--disable-features=WebGPU', '--disable-webgpu');
+else flags.push('--enable-unsafe-webgpu', '--enable-features=Vulkan', '--use-vulkan=swiftshader');
 let browser;
 try {
-  browser = await puppeteer.launch({ executablePath: args.chromium, headless: true, args: flags });
+  browser = await puppeteer.launch({ executablePath: args.chromium, headless: true, args: flags,
+    protocolTimeout: args.timeoutS * 1000 + 60000 });
   result.chromium = await browser.version();
   const page = await browser.newPage();
   await page.setViewport({ width: args.width, height: args.height });

@@ -44,18 +44,6 @@ fn page_built(test: &str) -> bool {
     false
 }
 
-/// The share of pixels that are not the frame's most common colour (the sky, or a blank
-/// canvas's one colour): a frame with terrain in it has many.
-fn drawn_share(image: &image::RgbaImage) -> f64 {
-    let mut counts = std::collections::HashMap::<[u8; 4], u64>::new();
-    for p in image.pixels() {
-        *counts.entry(p.0).or_default() += 1;
-    }
-    let most = counts.values().copied().max().unwrap_or(0);
-    let total = u64::from(image.width()) * u64::from(image.height());
-    1.0 - most as f64 / total as f64
-}
-
 /// What a flight of both clients gave.
 struct Flown {
     /// The native flight's directory (its `frames/frame-NNNNNN.png`).
@@ -67,6 +55,7 @@ struct Flown {
     result: serde_json::Value,
     /// The limit both flew under, bytes.
     limit: u64,
+    size: [u32; 2],
     /// Peaks over the page's frames: resident bytes, the wasm heap.
     peak: u64,
     heap_peak: u64,
@@ -77,7 +66,15 @@ struct Flown {
 /// second of flight, in `memory_mib` MiB, with [`FIXED_BUDGET`]; checks what holds for
 /// every page flight (no error, no failed or external request, WebGPU, the limit at every
 /// frame's end) and returns both.
-fn fly_both(name: &str, db: &std::path::Path, memory_mib: u64, fps: u32, settle: bool) -> Flown {
+fn fly_both(
+    name: &str,
+    db: &std::path::Path,
+    memory_mib: u64,
+    fps: u32,
+    size: [u32; 2],
+    settle: bool,
+) -> Flown {
+    let [width, height] = size;
     let tmp = tempfile::tempdir().expect("tmp");
     let server = serve(db, tmp.path(), &[]);
     let base = server.base_url().to_string();
@@ -101,7 +98,7 @@ fn fly_both(name: &str, db: &std::path::Path, memory_mib: u64, fps: u32, settle:
             "--fps".as_ref(),
             fps.to_string().as_ref(),
             "--size".as_ref(),
-            format!("{WIDTH}x{HEIGHT}").as_ref(),
+            format!("{width}x{height}").as_ref(),
             "--quiet".as_ref(),
         ],
     );
@@ -139,9 +136,9 @@ fn fly_both(name: &str, db: &std::path::Path, memory_mib: u64, fps: u32, settle:
         })
         .args([
             "--width",
-            &WIDTH.to_string(),
+            &width.to_string(),
             "--height",
-            &HEIGHT.to_string(),
+            &height.to_string(),
         ])
         .arg("--out")
         .arg(&out)
@@ -209,25 +206,29 @@ fn fly_both(name: &str, db: &std::path::Path, memory_mib: u64, fps: u32, settle:
         page: out,
         result,
         limit,
+        size,
         peak,
         heap_peak,
         seconds: started.elapsed().as_secs_f64(),
     }
 }
 
-fn open(path: &std::path::Path) -> image::RgbaImage {
+fn open(path: &std::path::Path, size: [u32; 2]) -> image::RgbaImage {
     let image = image::open(path)
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
         .into_rgba8();
-    assert_eq!(image.dimensions(), (WIDTH, HEIGHT), "{}", path.display());
+    assert_eq!(image.dimensions(), (size[0], size[1]), "{}", path.display());
     image
 }
 
 /// The page's frame `k` and the native one's.
 fn pair(flown: &Flown, k: u64) -> (image::RgbaImage, image::RgbaImage) {
     (
-        open(&flown.page.join(format!("frame-{k}.png"))),
-        open(&flown.native.join(format!("frames/frame-{k:06}.png"))),
+        open(&flown.page.join(format!("frame-{k}.png")), flown.size),
+        open(
+            &flown.native.join(format!("frames/frame-{k:06}.png")),
+            flown.size,
+        ),
     )
 }
 
@@ -259,7 +260,7 @@ fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_on
     // 2 MiB: small enough that the limit binds (jacksboro's tiles at every texture level
     // would not fit).
     let db = database(&jacksboro(), Options::Defaults);
-    let flown = fly_both("jacksboro", &db, 2, 30, true);
+    let flown = fly_both("jacksboro", &db, 2, 30, [WIDTH, HEIGHT], true);
     // Every stop but the first (frame 0, before any tile has arrived) drew terrain.
     let total = f64::from(WIDTH * HEIGHT);
     for &k in &flown.frames[1..] {
@@ -278,7 +279,7 @@ fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_on
         "the page never settled: {settled}"
     );
     let (page_last, native_last) = pair(&flown, last);
-    let page_settled = open(&flown.page.join("settled.png"));
+    let page_settled = open(&flown.page.join("settled.png"), flown.size);
     let share =
         |a, b| terrain_tests::golden::differing_pixels_by(a, b, CHANNEL_TOLERANCE) as f64 / total;
     let (last_share, settled_share) = (
@@ -322,9 +323,10 @@ fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_doe
         return;
     }
     let db = database(&heights, Options::Defaults);
-    // The default flight at 10 frames a second of flight: the same path and cameras as at
-    // 30, a third of the frames (SwiftShader draws a few a second).
-    let flown = fly_both("himalaya", &db, 16, 10, false);
+    // The default flight at 10 frames a second of flight (the same path and cameras as at
+    // 30, a third of the frames) at a quarter of the pixels: SwiftShader draws a few frames
+    // a second, and coverage needs no more.
+    let flown = fly_both("himalaya", &db, 16, 10, [WIDTH / 2, HEIGHT / 2], false);
     let mut worst = (f64::INFINITY, 0);
     let mut lines = Vec::new();
     for &k in &flown.frames {
@@ -358,5 +360,59 @@ fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_doe
         worst.1,
         worst.0,
         flown.page.display()
+    );
+}
+
+#[test]
+fn a_browser_without_webgpu_is_told_why_the_page_draws_nothing() {
+    let test = "a_browser_without_webgpu_is_told_why_the_page_draws_nothing";
+    if !browser_ready(test) || !page_built(test) {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tmp");
+    let db = database(&jacksboro(), Options::Defaults);
+    let server = serve(&db, tmp.path(), &[]);
+    let out = tmp.path().join("page");
+    let page = format!("{}/view/client/index.html", server.base_url());
+    let output = Command::new("node")
+        .arg(repo().join("tests/browser/client.mjs"))
+        .args([
+            "--page",
+            &page,
+            "--frames",
+            "1",
+            "--no-webgpu",
+            "--timeout-s",
+            "60",
+        ])
+        .arg("--out")
+        .arg(&out)
+        .arg("--chromium")
+        .arg(chromium())
+        .output()
+        .expect("node runs");
+    let result: serde_json::Value = std::fs::read(out.join("result.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_else(|| {
+            panic!(
+                "no result.json: {}",
+                String::from_utf8_lossy(&output.stderr)
+            )
+        });
+    assert_eq!(
+        result["ok"], false,
+        "the page drew without WebGPU: {result}"
+    );
+    let said = result["console_errors"].to_string();
+    assert!(
+        said.contains("needs WebGPU") && said.contains("WebGL2"),
+        "the page did not say why: {said} ({})",
+        result["reason"]
+    );
+    assert_eq!(
+        result["failed_requests"].as_array().map_or(0, Vec::len),
+        0,
+        "{result}"
     );
 }

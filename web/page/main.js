@@ -37,7 +37,7 @@ const api = window.terrainClient = {
 };
 api.ready.catch(() => {});
 
-const HISTORY_MAX = 100000; // a day at one frame a second would be more: the oldest go first
+const HISTORY_MAX = 20000; // about five minutes at 60 fps: the oldest go first, so the page stays bounded
 
 function mib(bytes) { return (bytes / 1048576).toFixed(1); }
 

@@ -8,7 +8,8 @@
 //! planar shadow, the other methods), with three things of the page's at its rim: requests
 //! go through the browser's `fetch` as the page's own tasks
 //! ([`terrain_client::requests::Spawner::page`]), the clock is the page's, and frames are
-//! drawn into the canvas with WebGPU, or WebGL2 where the page has no WebGPU.
+//! drawn into the canvas with WebGPU. Without WebGPU the page says why and draws nothing: the
+//! terrain's vertex shader reads the samples from storage buffers, which WebGL2 lacks.
 //!
 //! **Memory.** The limit covers what it covers natively
 //! ([`terrain_client::memory::MEMORY_INVARIANT`]): tiles, textures, GPU copies and what the
@@ -30,6 +31,12 @@ use terrain_client::scene::{RenderConfig, Scene};
 use terrain_shared::Manifest;
 use wasm_bindgen::prelude::*;
 use web_time::Instant;
+
+/// Why the page does not draw without WebGPU.
+const NO_WEBGPU: &str = "this page needs WebGPU, which this browser does not offer here: the \
+     terrain's vertex shader reads the tiles' samples from storage buffers, which WebGL2 does \
+     not have. Open it in a browser with WebGPU (Chrome or Edge 113+, Safari 26+, Firefox 141+ \
+     on Windows), or use the native client (terrain-client view).";
 
 /// What the page asks for (a JSON object; every field optional).
 #[derive(Debug, Clone, serde::Deserialize)]
@@ -232,9 +239,12 @@ impl Client {
         let budget = budget(&options)?;
         let (width, height) = (canvas.width().max(1), canvas.height().max(1));
 
+        if !wgpu::util::is_browser_webgpu_supported().await {
+            return Err(js_error(NO_WEBGPU));
+        }
         let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
-        descriptor.backends = wgpu::Backends::BROWSER_WEBGPU | wgpu::Backends::GL;
-        let instance = wgpu::util::new_instance_with_webgpu_detection(descriptor).await;
+        descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
+        let instance = wgpu::Instance::new(descriptor);
         let surface = instance
             .create_surface(wgpu::SurfaceTarget::Canvas(canvas))
             .map_err(|e| js_error(format!("cannot draw into the canvas: {e}")))?;
@@ -326,7 +336,7 @@ impl Client {
         })
     }
 
-    /// The graphics API drawing: `BrowserWebGpu` or `Gl` (WebGL2).
+    /// The graphics API drawing (`BrowserWebGpu`).
     pub fn backend(&self) -> String {
         self.backend.clone()
     }

@@ -92,7 +92,7 @@ impl Gpu {
         pollster::block_on(Self::request(instance, surface, require_vulkan))
     }
 
-    /// A device of the page's (WebGPU, or WebGL2 where the page has no WebGPU) able to
+    /// A device of the page's WebGPU able to
     /// present to `surface`, a canvas's.
     #[cfg(target_arch = "wasm32")]
     pub async fn for_page(
