@@ -5,7 +5,7 @@
 //   node tests/browser/client.mjs --page <url of /view/client/index.html with its query>
 //        --out <dir> --frames 30,60,90 [--settle-frames 600] [--timeout-s 300]
 //        [--width 960 --height 540] [--chromium /usr/bin/chromium] [--no-webgpu]
-//        [--run-seconds S] [--ui] [--shot FILE]
+//        [--run-seconds S] [--ui] [--shot FILE] [--steer]
 //
 // The page is opened paused; for each of --frames it draws up to that frame and takes
 // <out>/frame-<N>.png of the canvas; with --settle-frames it then draws on (the camera where
@@ -13,7 +13,9 @@
 // and takes <out>/settled.png; with --run-seconds it then lets the page draw freely (at its
 // own pace, as a user's tab does) for S seconds. --no-webgpu runs Chromium without WebGPU
 // (as a browser that has none). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
-// the whole page at the end.
+// the whole page at the end. --steer (for ?mode=fly) then holds W for 40 frames and drags
+// the mouse 200 px to the right, as a user flies: result.steer has the camera (x, y, z, yaw,
+// pitch) before, after the key and after the drag, and <out>/steer.png the view at the end.
 // Writes <out>/result.json:
 //   { ok, reason?, info: {backend, adapter, dataset, server}, history: [one object a frame:
 //     the page's figures, wasm_heap_bytes], stops: [{frame, file}], settled: {frame, file}?,
@@ -50,6 +52,7 @@ function parseArgs(argv) {
       case '--run-seconds': a.runSeconds = Number(v()); break;
       case '--ui': a.ui = true; break;
       case '--shot': a.shot = v(); break;
+      case '--steer': a.steer = true; break;
       case '-h': case '--help':
         process.stdout.write(fs.readFileSync(fileURLToPath(import.meta.url), 'utf8').split('\n').slice(1, 20).map(l => l.replace(/^\/\/ ?/, '')).join('\n') + '\n');
         process.exit(0);
@@ -154,6 +157,24 @@ try {
       return api.runTo(s.frame + 1);
     }, args.settleFrames), 'waiting for the scene to settle');
     result.settled = { frame: stats.frame, settled: stats.settled, file: await shot('settled.png') };
+  }
+  if (args.steer) {
+    const runTo = n => withTimeout(page.evaluate(f => window.terrainClient.runTo(f), n), `drawing up to frame ${n}`);
+    const start = await page.evaluate(() => window.terrainClient.last ? window.terrainClient.last.frame : 0);
+    const before = await runTo(start + 20);
+    await page.focus('#terrain');
+    await page.keyboard.down('KeyW');
+    const afterKey = await runTo(before.frame + 40);
+    await page.keyboard.up('KeyW');
+    const box = await canvas.boundingBox();
+    const [x, y] = [box.x + box.width / 2, box.y + box.height / 2];
+    await page.mouse.move(x, y);
+    await page.mouse.down();
+    await page.mouse.move(x + 200, y, { steps: 10 });
+    await page.mouse.up();
+    const afterDrag = await runTo(afterKey.frame + 10);
+    result.steer = { before: before.camera, after_key: afterKey.camera, after_drag: afterDrag.camera };
+    await shot('steer.png');
   }
   if (args.runSeconds > 0) {
     await withTimeout(page.evaluate(s => window.terrainClient.runFor(s), args.runSeconds), `running ${args.runSeconds} s`);

@@ -416,3 +416,93 @@ fn a_browser_without_webgpu_is_told_why_the_page_draws_nothing() {
         "{result}"
     );
 }
+
+#[test]
+fn the_page_flies_where_the_keys_and_the_mouse_steer_it() {
+    let test = "the_page_flies_where_the_keys_and_the_mouse_steer_it";
+    if !browser_ready(test) || !page_built(test) {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tmp");
+    let db = database(&jacksboro(), Options::Defaults);
+    let server = serve(&db, tmp.path(), &[]);
+    let out = repo().join("tests/out/web_client/steer");
+    let _ = std::fs::remove_dir_all(&out);
+    let page = format!(
+        "{}/view/client/index.html?mode=fly&memory=16MiB",
+        server.base_url()
+    );
+    let output = Command::new("node")
+        .arg(repo().join("tests/browser/client.mjs"))
+        .args([
+            "--page",
+            &page,
+            "--frames",
+            "30",
+            "--steer",
+            "--timeout-s",
+            "120",
+        ])
+        .args(["--width", "480", "--height", "270"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--chromium")
+        .arg(chromium())
+        .output()
+        .expect("node runs");
+    let result: serde_json::Value = std::fs::read(out.join("result.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_else(|| {
+            panic!(
+                "no result.json: {}",
+                String::from_utf8_lossy(&output.stderr)
+            )
+        });
+    assert_eq!(
+        result["ok"], true,
+        "{}: {}",
+        result["reason"], result["console_messages"]
+    );
+    for key in ["errors", "console_errors", "failed_requests"] {
+        assert_eq!(
+            result[key].as_array().map_or(0, Vec::len),
+            0,
+            "{key}: {}",
+            result[key]
+        );
+    }
+    let camera = |key: &str| -> Vec<f64> {
+        result["steer"][key]
+            .as_array()
+            .unwrap_or_else(|| panic!("steer.{key}: {}", result["steer"]))
+            .iter()
+            .map(|v| v.as_f64().expect("number"))
+            .collect()
+    };
+    let (before, after_key, after_drag) =
+        (camera("before"), camera("after_key"), camera("after_drag"));
+    // It starts looking north (yaw -pi/2 is towards -y, y running south) and W flies forward.
+    assert!(
+        after_key[1] < before[1] - 1.0,
+        "W did not fly north: {before:?} -> {after_key:?}"
+    );
+    assert!(
+        (after_key[0] - before[0]).abs() < 1e-6,
+        "W moved sideways: {before:?} -> {after_key:?}"
+    );
+    // A drag of 200 px to the right turns the view right by 200 x 0.003 rad.
+    let turned = (after_drag[3] - after_key[3]).rem_euclid(std::f64::consts::TAU);
+    let expected = 200.0 * terrain_client::fly::LOOK_RADIANS_PER_PIXEL;
+    assert!(
+        (turned - expected).abs() < 0.05,
+        "the drag turned the view by {turned} rad, not {expected}"
+    );
+    let view = image::open(out.join("steer.png"))
+        .expect("steer.png")
+        .into_rgba8();
+    assert!(
+        terrain_pixels(&view) > u64::from(480u32 * 270) / 4,
+        "the flown view shows little terrain"
+    );
+}
