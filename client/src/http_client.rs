@@ -448,7 +448,7 @@ pub struct FetchedTile {
     pub heights: Heights,
 }
 
-/// Decodes a tile blob fetched from `url` off the async threads ([`crate::requests::tasks::off_thread`]): a large tile takes
+/// Decodes a tile blob fetched from `url` off the async threads ([`crate::tasks::off_thread`]): a large tile takes
 /// milliseconds of CPU, which would stall every other request sharing the async thread.
 pub async fn decode_tile(url: String, body: Bytes) -> Result<FetchedTile, FetchError> {
     let decode = move || -> Result<FetchedTile, FetchError> {
@@ -464,13 +464,11 @@ pub async fn decode_tile(url: String, body: Bytes) -> Result<FetchedTile, FetchE
             heights,
         })
     };
-    crate::requests::tasks::off_thread(decode)
-        .await
-        .unwrap_or_else(|| {
-            Err(FetchError::Cancelled {
-                url: "a tile blob being decoded".into(),
-            })
+    crate::tasks::off_thread(decode).await.unwrap_or_else(|| {
+        Err(FetchError::Cancelled {
+            url: "a tile blob being decoded".into(),
         })
+    })
 }
 
 fn record(manifest: &Manifest, id: TileId) -> Result<&terrain_shared::TileRecord, FetchError> {

@@ -22,8 +22,9 @@
 //!
 //! Deciding code (paging, level of detail, camera paths, the [`overview`] mosaic, the
 //! [`report`] of a fetch) is pure: values in, values out, no sockets, clocks or GPU, so it
-//! is tested with plain data. IO sits at the rim: [`http_client`] and [`requests`] talk HTTP,
-//! [`cli`] and [`flight`] write files and draw progress.
+//! is tested with plain data. IO sits at the rim: [`http_client`] and [`requests`] talk HTTP
+//! (their tasks and waits in [`tasks`]: a tokio runtime natively, the page's event loop in a
+//! browser), [`cli`] and [`flight`] write files and draw progress.
 //!
 //! **Invariant:** nothing downstream of [`http_client`] sees bytes whose hash was not checked
 //! (a method's own data is checked when its hash is given).
@@ -55,6 +56,7 @@ pub mod render;
 pub mod report;
 pub mod requests;
 pub mod scene;
+pub mod tasks;
 #[cfg(test)]
 mod testing;
 #[cfg(not(target_arch = "wasm32"))]

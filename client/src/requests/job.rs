@@ -181,7 +181,7 @@ impl Job {
                 tile = %self.request.id, ?part, tries, ?kind, %error,
                 delay_ms = delay.as_millis() as u64, "retrying"
             );
-            super::tasks::sleep(delay).await;
+            crate::tasks::sleep(delay).await;
         }
     }
 

@@ -20,18 +20,17 @@
 //! current is dropped in [`Fetcher::poll`].
 
 mod job;
-pub mod tasks;
 
 use self::job::{Job, Verdict, verdict};
 use crate::http_client::{FetchError, TileClient};
+pub use crate::tasks::Spawner;
+use crate::tasks::{self, TaskHandle};
 use bytes::Bytes;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::hash::BuildHasher;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-pub use tasks::Spawner;
-use tasks::TaskHandle;
 use terrain_shared::{Heights, Manifest, TileId, routes};
 use tokio::sync::{Notify, mpsc};
 
