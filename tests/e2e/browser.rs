@@ -14,60 +14,16 @@
 //! `scripts/test.sh` runs); without them the tests say NOT RUN, and fail when
 //! `REQUIRE_BROWSER=1` (CI).
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
+use terrain_tests::browser::{browser_ready, chromium, repo, serve};
 use terrain_tests::data::{geotiff_i16, jacksboro, kit_file, png_codes, run_binary};
-use terrain_tests::server::TestServer;
 
-const REQUIRE_BROWSER_VAR: &str = "REQUIRE_BROWSER";
 /// Screenshot size: small, to keep SwiftShader's frames quick.
 const WIDTH: u32 = 800;
 const HEIGHT: u32 = 500;
 /// Terrarium's quantum, metres.
 const TERRARIUM_QUANTUM: f64 = 1.0 / 256.0;
-
-pub(crate) fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-pub(crate) fn chromium() -> PathBuf {
-    std::env::var_os("CHROMIUM").map_or_else(|| PathBuf::from("/usr/bin/chromium"), PathBuf::from)
-}
-
-/// Whether the browser side is there; says NOT RUN (or fails under `REQUIRE_BROWSER=1`)
-/// when it is not.
-pub(crate) fn browser_ready(test: &str) -> bool {
-    let node = Command::new("node")
-        .arg("--version")
-        .output()
-        .is_ok_and(|o| o.status.success());
-    let missing: Vec<String> = [
-        (!node).then(|| "node".to_string()),
-        (!chromium().exists()).then(|| format!("{}", chromium().display())),
-        (!repo().join("viewer/dist/index.html").exists()).then(|| "viewer/dist".to_string()),
-        (!repo().join("viewer/node_modules/puppeteer-core").exists())
-            .then(|| "viewer/node_modules".to_string()),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
-    if missing.is_empty() {
-        return true;
-    }
-    let required = std::env::var(REQUIRE_BROWSER_VAR).is_ok_and(|v| v == "1");
-    assert!(
-        !required,
-        "{test}: {REQUIRE_BROWSER_VAR}=1 but {} missing (run `bash viewer/setup.sh`)",
-        missing.join(", ")
-    );
-    let _ = writeln!(
-        std::io::stderr(),
-        "NOT RUN: {test} needs {} (run `bash viewer/setup.sh`)",
-        missing.join(", ")
-    );
-    false
-}
 
 /// A source raster: size, samples in metres (`None` for no-data) and where sample (0, 0)
 /// is, with the step, degrees.
@@ -271,21 +227,6 @@ fn run_page(name: &str, url: &str, points: &[(f64, f64)], out: &Path) -> Run {
 /// The URL `check.mjs` opens.
 fn page(base: &str, query: &str) -> String {
     format!("{base}/view/index.html?status=0&{query}")
-}
-
-/// Serves `db` with the viewer and, beside it, `extra` files (the PMTiles archive): the
-/// viewer's files are linked into a directory of the test's own.
-pub(crate) fn serve(db: &Path, tmp: &Path, extra: &[&Path]) -> TestServer {
-    let view = tmp.join("view");
-    std::fs::create_dir_all(&view).expect("view dir");
-    for entry in std::fs::read_dir(repo().join("viewer/dist")).expect("viewer/dist") {
-        let entry = entry.expect("entry");
-        std::os::unix::fs::symlink(entry.path(), view.join(entry.file_name())).expect("link");
-    }
-    for file in extra {
-        std::fs::copy(file, view.join(file.file_name().expect("name"))).expect("copy");
-    }
-    TestServer::start_with_viewer(db, &view)
 }
 
 /// A JSON document from the server.

@@ -21,4 +21,3 @@ mod render;
 mod round_trip;
 mod scale;
 mod web;
-mod web_client;

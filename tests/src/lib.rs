@@ -1,5 +1,6 @@
 //! Test harness shared by the end-to-end tests.
 
+pub mod browser;
 pub mod child;
 pub mod data;
 pub mod fixtures;

@@ -4,13 +4,17 @@
 //! server, beside the native client's flight of the same cameras on lavapipe: over jacksboro
 //! (bundled) and over the data kit's himalaya_4097 in 16 MiB.
 //!
+//! Its own test binary, so it runs alone: SwiftShader takes both cores for minutes, and
+//! beside the other end-to-end tests it would stretch their timing (a method's data meshed
+//! later than a still flight measures its memory).
+//!
 //! Needs what the browser tests need (`bash viewer/setup.sh`) and the page
 //! (`bash scripts/build-web.sh`; `scripts/test.sh` runs both); without them the test says
 //! NOT RUN, and fails when `REQUIRE_BROWSER=1` (CI).
 
-use crate::browser::{browser_ready, chromium, repo, serve};
 use std::io::Write;
 use std::process::Command;
+use terrain_tests::browser::{browser_ready, chromium, repo, serve};
 use terrain_tests::data::{jacksboro, kit_file, run_binary};
 use terrain_tests::fixtures::{Options, database};
 
