@@ -338,27 +338,15 @@ impl View {
             .create_surface(Arc::clone(&window))
             .map_err(|e| GpuError::Surface(e.to_string()))?;
         let gpu = Gpu::with_instance(instance, Some(&surface))?;
-        let capabilities = surface.get_capabilities(&gpu.adapter);
         let inner = window.inner_size();
-        let mut config = surface
-            .get_default_config(&gpu.adapter, inner.width.max(1), inner.height.max(1))
+        let (mut config, view_format) = gpu
+            .surface_config(&surface, inner.width, inner.height)
             .ok_or_else(|| {
                 GpuError::Surface(format!(
                     "the adapter {} cannot present to this window",
                     gpu.description()
                 ))
             })?;
-        // sRGB, as the offscreen frames are: the shader writes linear colour.
-        config.format = capabilities
-            .formats
-            .iter()
-            .copied()
-            .find(wgpu::TextureFormat::is_srgb)
-            .unwrap_or(config.format);
-        let view_format = config.format.add_srgb_suffix();
-        if view_format != config.format {
-            config.view_formats = vec![view_format];
-        }
         config.present_mode = wgpu::PresentMode::AutoVsync;
         surface.configure(&gpu.device, &config);
         tracing::info!(

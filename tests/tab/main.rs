@@ -48,6 +48,28 @@ fn page_built(test: &str) -> bool {
     false
 }
 
+/// Runs `tests/browser/client.mjs` with `args`, writing into `out`; its `result.json`.
+fn drive(args: &[&str], out: &std::path::Path) -> serde_json::Value {
+    let output = Command::new("node")
+        .arg(repo().join("tests/browser/client.mjs"))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .arg("--chromium")
+        .arg(chromium())
+        .output()
+        .expect("node runs");
+    std::fs::read(out.join("result.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_else(|| {
+            panic!(
+                "client.mjs wrote no result.json: {}",
+                String::from_utf8_lossy(&output.stderr)
+            )
+        })
+}
+
 /// What a flight of both clients gave.
 struct Flown {
     /// The native flight's directory (its `frames/frame-NNNNNN.png`).
@@ -129,36 +151,20 @@ fn fly_both(
         "{base}/view/client/index.html?mode=flight&memory={memory}&fixed_budget={FIXED_BUDGET}&flight_fps={fps}"
     );
     let started = std::time::Instant::now();
-    let output = Command::new("node")
-        .arg(repo().join("tests/browser/client.mjs"))
-        .args(["--page", &page, "--frames", &stops.join(",")])
-        .args(["--timeout-s", "600"])
-        .args(if settle {
-            &["--settle-frames", "600"][..]
-        } else {
-            &[][..]
-        })
-        .args([
-            "--width",
-            &width.to_string(),
-            "--height",
-            &height.to_string(),
-        ])
-        .arg("--out")
-        .arg(&out)
-        .arg("--chromium")
-        .arg(chromium())
-        .output()
-        .expect("node runs");
-    let result: serde_json::Value = std::fs::read(out.join("result.json"))
-        .ok()
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_else(|| {
-            panic!(
-                "{name}: client.mjs wrote no result.json: {}",
-                String::from_utf8_lossy(&output.stderr)
-            )
-        });
+    let (w, h, stop_list) = (width.to_string(), height.to_string(), stops.join(","));
+    let mut args = vec![
+        "--page",
+        &page,
+        "--frames",
+        &stop_list,
+        "--timeout-s",
+        "600",
+    ];
+    args.extend(["--width", &w, "--height", &h]);
+    if settle {
+        args.extend(["--settle-frames", "600"]);
+    }
+    let result = drive(&args, &out);
     assert_eq!(
         result["ok"], true,
         "{name}: the page did not fly: {} ({page}); console: {}",
@@ -378,9 +384,8 @@ fn a_browser_without_webgpu_is_told_why_the_page_draws_nothing() {
     let server = serve(&db, tmp.path(), &[]);
     let out = tmp.path().join("page");
     let page = format!("{}/view/client/index.html", server.base_url());
-    let output = Command::new("node")
-        .arg(repo().join("tests/browser/client.mjs"))
-        .args([
+    let result = drive(
+        &[
             "--page",
             &page,
             "--frames",
@@ -388,22 +393,9 @@ fn a_browser_without_webgpu_is_told_why_the_page_draws_nothing() {
             "--no-webgpu",
             "--timeout-s",
             "60",
-        ])
-        .arg("--out")
-        .arg(&out)
-        .arg("--chromium")
-        .arg(chromium())
-        .output()
-        .expect("node runs");
-    let result: serde_json::Value = std::fs::read(out.join("result.json"))
-        .ok()
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_else(|| {
-            panic!(
-                "no result.json: {}",
-                String::from_utf8_lossy(&output.stderr)
-            )
-        });
+        ],
+        &out,
+    );
     assert_eq!(
         result["ok"], false,
         "the page drew without WebGPU: {result}"
@@ -436,9 +428,8 @@ fn the_page_flies_where_the_keys_and_the_mouse_steer_it() {
         "{}/view/client/index.html?mode=fly&memory=16MiB",
         server.base_url()
     );
-    let output = Command::new("node")
-        .arg(repo().join("tests/browser/client.mjs"))
-        .args([
+    let result = drive(
+        &[
             "--page",
             &page,
             "--frames",
@@ -446,23 +437,13 @@ fn the_page_flies_where_the_keys_and_the_mouse_steer_it() {
             "--steer",
             "--timeout-s",
             "120",
-        ])
-        .args(["--width", "480", "--height", "270"])
-        .arg("--out")
-        .arg(&out)
-        .arg("--chromium")
-        .arg(chromium())
-        .output()
-        .expect("node runs");
-    let result: serde_json::Value = std::fs::read(out.join("result.json"))
-        .ok()
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_else(|| {
-            panic!(
-                "no result.json: {}",
-                String::from_utf8_lossy(&output.stderr)
-            )
-        });
+            "--width",
+            "480",
+            "--height",
+            "270",
+        ],
+        &out,
+    );
     assert_eq!(
         result["ok"], true,
         "{}: {}",

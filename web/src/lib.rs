@@ -250,27 +250,13 @@ impl Client {
             .map_err(|e| js_error(format!("cannot draw into the canvas: {e}")))?;
         let gpu = Gpu::for_page(instance, &surface).await.map_err(js_error)?;
         let backend = format!("{:?}", gpu.adapter.get_info().backend);
-        let capabilities = surface.get_capabilities(&gpu.adapter);
-        let mut config = surface
-            .get_default_config(&gpu.adapter, width, height)
-            .ok_or_else(|| {
+        let (config, view_format) =
+            gpu.surface_config(&surface, width, height).ok_or_else(|| {
                 js_error(format!(
                     "{} cannot draw into this canvas",
                     gpu.description()
                 ))
             })?;
-        // sRGB views, as the offscreen frames are: the shader writes linear colour. A
-        // canvas's own formats are not sRGB; its views may be.
-        config.format = capabilities
-            .formats
-            .iter()
-            .copied()
-            .find(wgpu::TextureFormat::is_srgb)
-            .unwrap_or(config.format);
-        let view_format = config.format.add_srgb_suffix();
-        if view_format != config.format {
-            config.view_formats = vec![view_format];
-        }
         surface.configure(&gpu.device, &config);
 
         let connection = Scene::connect(&server, FetcherConfig::default(), Spawner::page())

@@ -162,6 +162,32 @@ impl Gpu {
             .contains(wgpu::Features::TIMESTAMP_QUERY)
     }
 
+    /// How `surface` (a window's or a canvas's) is configured for frames of `width` x
+    /// `height`, and the format of the views frames are drawn through: sRGB, as the
+    /// offscreen frames are (the shader writes linear colour); a surface whose own formats
+    /// are not sRGB (a canvas's) gets sRGB views. `None` when this adapter cannot present
+    /// to it.
+    pub fn surface_config(
+        &self,
+        surface: &wgpu::Surface<'_>,
+        width: u32,
+        height: u32,
+    ) -> Option<(wgpu::SurfaceConfiguration, wgpu::TextureFormat)> {
+        let capabilities = surface.get_capabilities(&self.adapter);
+        let mut config = surface.get_default_config(&self.adapter, width.max(1), height.max(1))?;
+        config.format = capabilities
+            .formats
+            .iter()
+            .copied()
+            .find(wgpu::TextureFormat::is_srgb)
+            .unwrap_or(config.format);
+        let view_format = config.format.add_srgb_suffix();
+        if view_format != config.format {
+            config.view_formats = vec![view_format];
+        }
+        Some((config, view_format))
+    }
+
     /// Largest texture side the device accepts.
     pub fn max_texture_side(&self) -> u32 {
         self.device.limits().max_texture_dimension_2d
