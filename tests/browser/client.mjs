@@ -14,8 +14,10 @@
 // own pace, as a user's tab does) for S seconds. --no-webgpu runs Chromium without WebGPU
 // (as a browser that has none). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
 // the whole page at the end. --steer (for ?mode=fly) then holds W for 40 frames and drags
-// the mouse 200 px to the right, as a user flies: result.steer has the camera (x, y, z, yaw,
-// pitch) before, after the key and after the drag, and <out>/steer.png the view at the end.
+// the mouse 200 px to the right, as a user flies, then sets the panel (target 30 fps, 8MiB,
+// GeoMipMaps): result.steer has the camera (x, y, z, yaw, pitch) before, after the key and
+// after the drag, and the target, limit and method the frames after each setting reported;
+// <out>/steer.png is the view at the end.
 // Writes <out>/result.json:
 //   { ok, reason?, info: {backend, adapter, dataset, server}, history: [one object a frame:
 //     the page's figures, wasm_heap_bytes], stops: [{frame, file}], settled: {frame, file}?,
@@ -173,7 +175,16 @@ try {
     await page.mouse.move(x + 200, y, { steps: 10 });
     await page.mouse.up();
     const afterDrag = await runTo(afterKey.frame + 10);
-    result.steer = { before: before.camera, after_key: afterKey.camera, after_drag: afterDrag.camera };
+    // The panel, as a user sets it: each control's change event, then a few frames.
+    const set = (id, value) => page.$eval(id, (el, v) => { el.value = v; el.dispatchEvent(new Event('change')); }, value);
+    await set('#fps', '30');
+    const afterFps = await runTo(afterDrag.frame + 5);
+    await set('#memory', '8MiB');
+    const afterMemory = await runTo(afterFps.frame + 5);
+    await set('#method', 'geomipmap');
+    const afterMethod = await runTo(afterMemory.frame + 5);
+    result.steer = { before: before.camera, after_key: afterKey.camera, after_drag: afterDrag.camera,
+      target_fps: afterFps.target_fps, limit_bytes: afterMemory.limit_bytes, method: afterMethod.method };
     await shot('steer.png');
   }
   if (args.runSeconds > 0) {

@@ -483,6 +483,26 @@ fn the_page_flies_where_the_keys_and_the_mouse_steer_it() {
         (turned - expected).abs() < 0.05,
         "the drag turned the view by {turned} rad, not {expected}"
     );
+    // The panel: each setting reaches the client.
+    assert_eq!(
+        result["steer"]["target_fps"].as_f64(),
+        Some(30.0),
+        "{}",
+        result["steer"]
+    );
+    assert_eq!(
+        result["steer"]["limit_bytes"].as_u64(),
+        Some((8u64 << 20) * 9 / 10),
+        "{}",
+        result["steer"]
+    );
+    assert!(
+        result["steer"]["method"]
+            .as_str()
+            .is_some_and(|m| m.starts_with("geomipmap")),
+        "{}",
+        result["steer"]
+    );
     let view = image::open(out.join("steer.png"))
         .expect("steer.png")
         .into_rgba8();
