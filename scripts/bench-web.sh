@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # The wasm client in a browser tab over a long flight: the frame rate against its target and
 # the wasm heap, as a user's tab runs it (the page's own clock and pace), in headless Chromium
-# on SwiftShader (a CPU: the figures are SwiftShader's, not a GPU's).
+# on SwiftShader (a CPU: the figures are SwiftShader's, not a GPU's), with WebGPU and again
+# with WebGL2 (Chromium without WebGPU).
 #
-#   bash scripts/bench-web.sh [SECONDS]     # default 300
+#   bash scripts/bench-web.sh [SECONDS]     # default 300, for each backend
 #
 # Flies the default flight of himalaya_4097 ($TERRAIN_DATA_DIR; jacksboro without it) again and
-# again by the page's clock in 16 MiB for SECONDS, then writes docs/benchmarks/web-client.md
-# (inserted into BENCHMARKS.md) and docs/images/web-client.png (the page at the end, overlay
-# included). Needs the release binaries (cargo build --release --workspace), viewer/setup.sh
+# again by the page's clock in 16 MiB for SECONDS on each backend, then writes
+# docs/benchmarks/web-client.md (inserted into BENCHMARKS.md) and docs/images/web-client.png
+# (the WebGPU page at the end, overlay included). Needs the release binaries (cargo build --release --workspace), viewer/setup.sh
 # and scripts/build-web.sh to have run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -39,55 +40,72 @@ for _ in $(seq 100); do
 done
 [ -n "$url" ] || { cat "$work/server.log" >&2; echo "error: the server did not start" >&2; exit 1; }
 mkdir -p docs/benchmarks docs/images
-echo "flying for $SECONDS_RUN s in headless Chromium ..."
-node tests/browser/client.mjs --page "$url/view/client/index.html?mode=flight&wall_clock=1&loop=1&memory=$MEMORY" \
-  --run-seconds "$SECONDS_RUN" --timeout-s $((SECONDS_RUN + 120)) --ui --shot "$work/shot.png" --out "$work/page"
+page="$url/view/client/index.html?mode=flight&wall_clock=1&loop=1&memory=$MEMORY"
+echo "flying for $SECONDS_RUN s in headless Chromium with WebGPU ..."
+node tests/browser/client.mjs --page "$page" \
+  --run-seconds "$SECONDS_RUN" --timeout-s $((SECONDS_RUN + 120)) --ui --shot "$work/shot.png" --out "$work/webgpu"
 cp "$work/shot.png" docs/images/web-client.png
-python3 - "$work/page/result.json" "$(stamp_line)" "$SECONDS_RUN" "$MEMORY" "$(basename "$dem")" > docs/benchmarks/web-client.md <<'PY'
+echo "flying for $SECONDS_RUN s in headless Chromium without WebGPU (WebGL2) ..."
+node tests/browser/client.mjs --page "$page" --no-webgpu \
+  --run-seconds "$SECONDS_RUN" --timeout-s $((SECONDS_RUN + 120)) --ui --out "$work/webgl2"
+python3 - "$work/webgpu/result.json" "$work/webgl2/result.json" "$(stamp_line)" "$SECONDS_RUN" "$MEMORY" "$(basename "$dem")" > docs/benchmarks/web-client.md <<'PY'
 import json, statistics, sys
-path, stamp, seconds, memory, dem = sys.argv[1:]
-r = json.load(open(path))
-for key in ("errors", "console_errors", "failed_requests"):
-    if r[key]:
-        sys.exit(f"the page saw {key}: {r[key][:3]}")
-h = r["history"]
-t0 = h[0]["t_ms"]
-# One sample a whole second of the run (the page counts the frames of the second before),
-# after the first 5 s (the first tiles arriving).
-by_second = {}
-for s in h:
-    sec = (s["t_ms"] - t0) // 1000
-    if sec >= 5:
-        by_second[sec] = s
-rates = [s["fps"] for s in by_second.values()]
-target = next((s["target_fps"] for s in h if s.get("target_fps")), None)
-within = sum(1 for f in rates if target and abs(f - target) <= 0.1 * target)
-frame_ms = [s["frame_ms"] for s in h[len(h) // 20:] if s["frame_ms"] > 0]
-heap = [s["wasm_heap_bytes"] for s in h]
-minute = max(1, len(h) // max(1, int(seconds) // 60))
-first, last = heap[:minute], heap[-minute:]
-limit = h[-1]["limit_bytes"]
-peak = max(s["resident_bytes"] for s in h)
-over = sum(1 for s in h if s["resident_bytes"] > s["limit_bytes"])
+paths, (stamp, seconds, memory, dem) = sys.argv[1:3], sys.argv[3:]
 mib = lambda b: f"{b / 1048576:.1f}"
+
+def measures(path):
+    r = json.load(open(path))
+    for key in ("errors", "console_errors", "failed_requests"):
+        if r[key]:
+            sys.exit(f"{path}: the page saw {key}: {r[key][:3]}")
+    h = r["history"]
+    t0 = h[0]["t_ms"]
+    # One sample a whole second of the run (the page counts the frames of the second
+    # before), after the first 5 s (the first tiles arriving).
+    by_second = {}
+    for s in h:
+        sec = (s["t_ms"] - t0) // 1000
+        if sec >= 5:
+            by_second[sec] = s
+    rates = [s["fps"] for s in by_second.values()]
+    target = next((s["target_fps"] for s in h if s.get("target_fps")), None)
+    within = sum(1 for f in rates if target and abs(f - target) <= 0.1 * target)
+    frame_ms = [s["frame_ms"] for s in h[len(h) // 20:] if s["frame_ms"] > 0]
+    heap = [s["wasm_heap_bytes"] for s in h]
+    minute = max(1, len(h) // max(1, int(seconds) // 60))
+    first, last = heap[:minute], heap[-minute:]
+    limit = h[-1]["limit_bytes"]
+    peak = max(s["resident_bytes"] for s in h)
+    over = sum(1 for s in h if s["resident_bytes"] > s["limit_bytes"])
+    return r, h, {
+        "adapter": f"{r['info']['adapter']} ({r['info']['backend']})",
+        "frames drawn": f"{len(h)}",
+        "target frame rate": f"{target} fps",
+        "frame rate, per second after the first 5 s: median (min-max)":
+            f"{statistics.median(rates):.0f} ({min(rates)}-{max(rates)}) fps",
+        "seconds within 10% of the target": f"{within} of {len(rates)}",
+        "frame time as the controller measured it, median / 90th percentile":
+            f"{statistics.median(frame_ms):.1f} / {statistics.quantiles(frame_ms, n=10)[-1]:.1f} ms",
+        "triangles a frame, median": f"{statistics.median(s['triangles'] for s in h):,.0f}",
+        "resident bytes, peak, against the limit":
+            f"{mib(peak)} of {mib(limit)} MiB, over it at {over} frames",
+        "wasm heap: first minute, peak": f"{mib(max(first))} MiB",
+        "wasm heap: last minute, peak": f"{mib(max(last))} MiB",
+        "wasm heap: peak of the run": f"{mib(max(heap))} MiB",
+        "downloaded": f"{mib(h[-1]['bytes_downloaded'])} MiB in {h[-1]['requests']} requests, {h[-1]['failures']} failed",
+    }
+
+(r, h, gpu), (_, _, gl) = measures(paths[0]), measures(paths[1])
 print("<!-- written by `bash scripts/bench-web.sh`; do not edit -->")
-print(f"{stamp}; {r['chromium']}, adapter {r['info']['adapter']} ({r['info']['backend']}), SwiftShader on the CPU")
+print(f"{stamp}; {r['chromium']}, SwiftShader on the CPU")
 print()
 print(f"The default flight of {dem}, flown again and again by the page's clock for {seconds} s in {memory} "
-      f"({len(h)} frames; method {h[-1]['method']}).")
+      f"with each backend (method {h[-1]['method']}).")
 print()
-print("| measure | value |")
-print("|---|---|")
-print(f"| target frame rate | {target} fps |")
-print(f"| frame rate, per second after the first 5 s: median (min-max) | {statistics.median(rates):.0f} ({min(rates)}-{max(rates)}) fps |")
-print(f"| seconds within 10% of the target | {within} of {len(rates)} |")
-print(f"| frame time as the controller measured it, median / 90th percentile | {statistics.median(frame_ms):.1f} / {statistics.quantiles(frame_ms, n=10)[-1]:.1f} ms |")
-print(f"| triangles a frame, median | {statistics.median(s['triangles'] for s in h):,.0f} |")
-print(f"| resident bytes, peak, against the limit | {mib(peak)} of {mib(limit)} MiB, over it at {over} frames |")
-print(f"| wasm heap: first minute, peak | {mib(max(first))} MiB |")
-print(f"| wasm heap: last minute, peak | {mib(max(last))} MiB |")
-print(f"| wasm heap: peak of the run | {mib(max(heap))} MiB |")
-print(f"| downloaded | {mib(h[-1]['bytes_downloaded'])} MiB in {h[-1]['requests']} requests, {h[-1]['failures']} failed |")
+print("| measure | WebGPU | WebGL2 (no WebGPU) |")
+print("|---|---|---|")
+for key in gpu:
+    print(f"| {key} | {gpu[key]} | {gl[key]} |")
 PY
 bash scripts/insert-generated.sh BENCHMARKS.md docs/benchmarks/web-client.md
 cat docs/benchmarks/web-client.md

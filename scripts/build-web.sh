@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Builds the terrain client's browser page: the client compiled to wasm32 (web/, with
-# wgpu's WebGPU backend), bound to JavaScript by wasm-bindgen, and the page
+# wgpu's WebGPU and WebGL2 backends), bound to JavaScript by wasm-bindgen, and the page
 # (web/page/) around it, into viewer/dist/client/. `terrain-server serve --viewer viewer/dist`
 # serves it at /view/client/.
 #

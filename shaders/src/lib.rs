@@ -10,8 +10,24 @@
 
 use bytemuck::{Pod, Zeroable};
 
-/// The terrain shader's WGSL source.
-pub const TERRAIN: &str = include_str!("terrain.wgsl");
+/// The terrain shader's WGSL source, reading the sample arena from a storage buffer.
+pub const TERRAIN: &str = concat!(
+    include_str!("terrain.wgsl"),
+    include_str!("samples_buffer.wgsl")
+);
+
+/// The same shader reading the sample arena from an integer texture of
+/// [`SAMPLE_TEXTURE_WIDTH`] words a row (`R32Uint`, word `k` at column `k %` width, row `k /`
+/// width): for backends whose vertex shaders read no storage buffers (WebGL2).
+pub const TERRAIN_TEXTURE_SAMPLES: &str = concat!(
+    include_str!("terrain.wgsl"),
+    include_str!("samples_texture.wgsl")
+);
+
+/// Words a row of the sample arena's texture ([`TERRAIN_TEXTURE_SAMPLES`]). Slots follow one
+/// another word by word, so the texture's last row holds at most this many words less one
+/// that no slot uses (1 KiB); the rows are as many as the device's largest texture side.
+pub const SAMPLE_TEXTURE_WIDTH: u32 = 256;
 
 /// The projected grids' WGSL source: persistent grid mapping and the error-bounded
 /// projective grid, with its ray-casting pass.
@@ -266,26 +282,77 @@ mod tests {
         assert!(GRID.contains(&format!("const UNCOVERED: f32 = {ERROR_UNCOVERED:.1};")));
     }
 
-    #[test]
-    fn the_terrain_shader_parses_and_validates() {
-        let module = module();
-        naga::valid::Validator::new(
+    const TERRAIN_ENTRIES: [&str; 4] = [
+        entry::SURFACE,
+        entry::SURFACE_CLIPPED,
+        entry::FRAGMENT,
+        entry::FRAGMENT_CLIPPED,
+    ];
+
+    fn validate(source: &str) -> (naga::Module, naga::valid::ModuleInfo) {
+        let module = parse(source);
+        let info = naga::valid::Validator::new(
             naga::valid::ValidationFlags::all(),
             naga::valid::Capabilities::empty(),
         )
         .validate(&module)
-        .expect("the terrain shader validates");
-        for name in [
-            entry::SURFACE,
-            entry::SURFACE_CLIPPED,
-            entry::FRAGMENT,
-            entry::FRAGMENT_CLIPPED,
-        ] {
-            assert!(
-                module.entry_points.iter().any(|e| e.name == name),
-                "entry point {name} is missing"
-            );
+        .unwrap_or_else(|e| panic!("the terrain shader validates: {}", e.emit_to_string(source)));
+        (module, info)
+    }
+
+    #[test]
+    fn the_terrain_shader_parses_and_validates() {
+        for source in [TERRAIN, TERRAIN_TEXTURE_SAMPLES] {
+            let (module, _) = validate(source);
+            for name in TERRAIN_ENTRIES {
+                assert!(
+                    module.entry_points.iter().any(|e| e.name == name),
+                    "entry point {name} is missing"
+                );
+            }
         }
+        assert!(TERRAIN_TEXTURE_SAMPLES.contains(&format!(
+            "const SAMPLE_TEXTURE_WIDTH: u32 = {SAMPLE_TEXTURE_WIDTH}u;"
+        )));
+    }
+
+    /// GLSL ES 3.00 (WebGL2) of every entry point, or the translator's error.
+    fn glsl_es_300(source: &str) -> Result<(), String> {
+        let (module, info) = validate(source);
+        for ep in &module.entry_points {
+            let options = naga::back::glsl::Options {
+                version: naga::back::glsl::Version::Embedded {
+                    version: 300,
+                    is_webgl: true,
+                },
+                ..Default::default()
+            };
+            let pipeline = naga::back::glsl::PipelineOptions {
+                shader_stage: ep.stage,
+                entry_point: ep.name.clone(),
+                multiview: None,
+            };
+            let mut out = String::new();
+            naga::back::glsl::Writer::new(
+                &mut out,
+                &module,
+                &info,
+                &options,
+                &pipeline,
+                naga::proc::BoundsCheckPolicies::default(),
+            )
+            .and_then(|mut w| w.write())
+            .map_err(|e| format!("{}: {e}", ep.name))?;
+        }
+        Ok(())
+    }
+
+    /// What WebGL2 runs: the texture-sample variant translates to GLSL ES 3.00 for every
+    /// entry point; the storage-buffer one does not (why the variant exists).
+    #[test]
+    fn the_texture_sample_variant_translates_to_webgl2s_glsl_and_the_storage_one_does_not() {
+        glsl_es_300(TERRAIN_TEXTURE_SAMPLES).expect("GLSL ES 3.00 of every entry point");
+        assert!(glsl_es_300(TERRAIN).is_err());
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //
 // Everything a tile needs is bound once a pass: the frame's tiles' parameters (one buffer of
 // per-instance vertex attributes: a draw's first instance picks its tile) and the resident
-// tiles' samples (one storage array of 16-bit height codes, two a word). Only the texture
+// tiles' samples (16-bit height codes, two a word, in one storage array or, on WebGL2, one
+// integer texture). Only the texture
 // changes between draws. Per-instance attributes are fetched once per draw, where a storage
 // read of the same data would be repeated for every vertex.
 //
@@ -58,8 +59,10 @@ struct Tile {
 };
 
 @group(0) @binding(0) var<uniform> frame: Frame;
-// The resident tiles' height codes, 16 bits each, two a word (sample 2k in the low half).
-@group(1) @binding(0) var<storage, read> words: array<u32>;
+// The resident tiles' height codes, 16 bits each, two a word (sample 2k in the low half), are
+// read by `word_at(k)`, word k of the sample arena (group 1). It is declared by one of two
+// files appended to this one (see the crate's `TERRAIN` and `TERRAIN_TEXTURE_SAMPLES`): a
+// storage array, or where vertex shaders have no storage buffers (WebGL2) an integer texture.
 // The texture a tile is drawn with: its own, or its MapBlock's, bound once for every tile of
 // the block.
 @group(2) @binding(0) var tile_texture: texture_2d<f32>;
@@ -128,7 +131,7 @@ fn vs_clipped(@builtin(vertex_index) vertex: u32, drawn: Tile) -> Varyings {
 // Height of sample `i` (row-major), metres above the datum. Two tiles of a level share
 // their border samples' codes, quantum and offset, so they place them identically.
 fn height_at(i: u32) -> f32 {
-    let word = words[u32(tile.codes.x) + i / 2u];
+    let word = word_at(u32(tile.codes.x) + i / 2u);
     let local = (word >> ((i & 1u) * 16u)) & 0xffffu;
     let code = tile.codes.y + (i32(local) << u32(tile.codes.z));
     return f32(code) * tile.metres.x + tile.metres.y;

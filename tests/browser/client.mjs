@@ -12,7 +12,7 @@
 // the last frame left it) until the scene has settled or that many more frames have passed,
 // and takes <out>/settled.png; with --run-seconds it then lets the page draw freely (at its
 // own pace, as a user's tab does) for S seconds. --no-webgpu runs Chromium without WebGPU
-// (as a browser that has none). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
+// (as a browser that has none): the page draws with WebGL2 (SwiftShader through ANGLE). --ui keeps the page's overlay and controls, and --shot FILE writes a screenshot of
 // the whole page at the end. --steer (for ?mode=fly) then holds W for 40 frames and drags
 // the mouse 200 px to the right, as a user flies, then sets the panel (target 30 fps, 8MiB,
 // GeoMipMaps): result.steer has the camera (x, y, z, yaw, pitch) before, after the key and

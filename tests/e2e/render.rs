@@ -11,7 +11,7 @@ use terrain_client::lod::strips::MaskSet;
 use terrain_client::memory::MemorySize;
 use terrain_client::method::strip_masks::StripMasks;
 use terrain_client::method::{CrackFiller, MethodConfig, MethodKind};
-use terrain_client::render::{Camera, Gpu, GpuError, Offscreen, Renderer, TileStore};
+use terrain_client::render::{Camera, Gpu, GpuError, Offscreen, Renderer, SampleStore, TileStore};
 use terrain_shared::{Manifest, TileId};
 use terrain_tests::data::build_jacksboro;
 use terrain_tests::golden;
@@ -192,21 +192,7 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
         .collect();
     let tiles = candidates(&terrain, &minima);
     for (name, camera) in cameras() {
-        // A fixed budget: golden images must not depend on the machine's speed.
-        let plan = plan_frame(
-            &camera,
-            [WIDTH, HEIGHT],
-            &layout(&terrain.manifest),
-            &tiles,
-            60_000,
-            &masks,
-            // The renderer is under test, not the error cap: golden images as every tile's
-            // share of the budget alone decides.
-            &LodSettings {
-                cap_at_needed: false,
-                ..LodSettings::default()
-            },
-        );
+        let plan = golden_plan(&terrain, &tiles, &masks, &camera);
         assert!(!plan.draws.is_empty(), "{name}: the terrain is in view");
         assert!(
             plan.triangles <= 60_000,
@@ -218,6 +204,29 @@ fn fixed_cameras_over_jacksboro_match_their_golden_images() {
     }
 }
 
+/// What `camera` draws of `tiles` at a fixed budget of 60k triangles (golden images must not
+/// depend on the machine's speed), every tile by its share alone: the renderer is under
+/// test, not the error cap.
+fn golden_plan(
+    terrain: &Terrain,
+    tiles: &[Candidate<'_>],
+    masks: &std::sync::Arc<MaskSet>,
+    camera: &Camera,
+) -> terrain_client::lod::plan::FramePlan {
+    plan_frame(
+        camera,
+        [WIDTH, HEIGHT],
+        &layout(&terrain.manifest),
+        tiles,
+        60_000,
+        masks,
+        &LodSettings {
+            cap_at_needed: false,
+            ..LodSettings::default()
+        },
+    )
+}
+
 /// The first golden camera and the tiles it draws at a 60k budget, every tile by its
 /// share alone (no error cap).
 fn overview_plan(terrain: &Terrain) -> (Camera, Vec<Draw>) {
@@ -225,18 +234,7 @@ fn overview_plan(terrain: &Terrain) -> (Camera, Vec<Draw>) {
     let minima = vec![Vec::new(); terrain.tiles.len()];
     let tiles = candidates(terrain, &minima);
     let (_, camera) = cameras().remove(0);
-    let plan = plan_frame(
-        &camera,
-        [WIDTH, HEIGHT],
-        &layout(&terrain.manifest),
-        &tiles,
-        60_000,
-        &masks,
-        &LodSettings {
-            cap_at_needed: false,
-            ..LodSettings::default()
-        },
-    );
+    let plan = golden_plan(terrain, &tiles, &masks, &camera);
     (camera, plan.draws)
 }
 
@@ -250,6 +248,74 @@ fn the_sample_arena_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
     let Some(gpu) = golden::gpu(test) else {
         return;
     };
+    arena_grows_and_compacts(&gpu);
+}
+
+/// The same with the arena in a texture, as on WebGL2 (rows of words: slots cross rows,
+/// and compaction copies them between rows).
+#[test]
+fn the_sample_arena_in_a_texture_keeps_every_tiles_samples_as_it_grows_and_is_compacted() {
+    let test = "render::the_sample_arena_in_a_texture_keeps_every_tiles_samples_as_it_grows_and_is_compacted";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    arena_grows_and_compacts(&gpu.with_samples(SampleStore::Texture));
+}
+
+/// The arena's samples read from a texture (WebGL2's path, here on the native adapter) draw
+/// every golden camera, with each crack filler, pixel for pixel as from the storage buffer;
+/// the texture holds the slots' bytes and less than a row more.
+#[test]
+fn samples_read_from_a_texture_draw_what_the_storage_buffer_draws() {
+    let test = "render::samples_read_from_a_texture_draw_what_the_storage_buffer_draws";
+    let Some(gpu) = golden::gpu(test) else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let terrain = fetch_jacksboro(tmp.path());
+    let textured = gpu.clone().with_samples(SampleStore::Texture);
+    let mut buffer = Painter::finest(&gpu, &terrain);
+    let mut texture = Painter::finest(&textured, &terrain);
+    let masks = std::sync::Arc::new(MaskSet::new(terrain.manifest.tile_size));
+    let minima = vec![Vec::new(); terrain.tiles.len()];
+    let tiles = candidates(&terrain, &minima);
+    let sky = buffer.draw(&cameras()[0].1, &[], CrackFiller::None);
+    for (name, camera) in cameras() {
+        let plan = golden_plan(&terrain, &tiles, &masks, &camera);
+        for filler in [
+            CrackFiller::PlanarShadow,
+            CrackFiller::PlanarShadowPaper,
+            CrackFiller::Skirts,
+        ] {
+            let expected = buffer.draw(&camera, &plan.draws, filler);
+            let got = texture.draw(&camera, &plan.draws, filler);
+            assert!(
+                golden::differing_pixels(&expected, &sky) > u64::from(WIDTH * HEIGHT) / 10,
+                "{name}: terrain in view"
+            );
+            assert_eq!(
+                golden::differing_pixels(&expected, &got),
+                0,
+                "{name}, {filler:?}: the texture's samples draw otherwise"
+            );
+        }
+        let (b, t) = (
+            buffer.renderer.tiles.residency(),
+            texture.renderer.tiles.residency(),
+        );
+        assert_eq!(b.sample_buffers, t.sample_buffers, "{name}");
+        let row = 4 * u64::from(terrain_shaders::SAMPLE_TEXTURE_WIDTH);
+        assert!(
+            t.sample_bytes >= b.sample_bytes && t.sample_bytes < b.sample_bytes + row,
+            "{name}: the texture holds {} bytes for {} of slots",
+            t.sample_bytes,
+            b.sample_bytes
+        );
+    }
+}
+
+fn arena_grows_and_compacts(gpu: &Gpu) {
+    let gpu = gpu.clone();
     let tmp = tempfile::tempdir().expect("tempdir");
     let terrain = fetch_jacksboro(tmp.path());
     let (camera, all) = overview_plan(&terrain);

@@ -1,8 +1,9 @@
 //! Our own client in a browser tab: the wasm build of the client (`web/`, built into
 //! `viewer/dist/client` by `scripts/build-web.sh`) flies the default flight in headless
-//! Chromium (WebGPU on SwiftShader), driven by `tests/browser/client.mjs`, against a real
-//! server, beside the native client's flight of the same cameras on lavapipe: over jacksboro
-//! (bundled) and over the data kit's himalaya_4097 in 16 MiB.
+//! Chromium (WebGPU on SwiftShader, and WebGL2 on SwiftShader through ANGLE as a browser
+//! without WebGPU), driven by `tests/browser/client.mjs`, against a real server, beside the
+//! native client's flight of the same cameras on lavapipe: over jacksboro (bundled) and over
+//! the data kit's himalaya_4097 in 16 MiB.
 //!
 //! Its own test binary, so it runs alone: SwiftShader takes both cores for minutes, and
 //! beside the other end-to-end tests it would stretch their timing (a method's data meshed
@@ -70,6 +71,23 @@ fn drive(args: &[&str], out: &std::path::Path) -> serde_json::Value {
         })
 }
 
+/// What the page draws with: the browser's WebGPU, or WebGL2 in a browser without it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Backend {
+    WebGpu,
+    WebGl2,
+}
+
+impl Backend {
+    /// wgpu's name of it, as the page reports it.
+    fn reported(self) -> &'static str {
+        match self {
+            Backend::WebGpu => "BrowserWebGpu",
+            Backend::WebGl2 => "Gl",
+        }
+    }
+}
+
 /// What a flight of both clients gave.
 struct Flown {
     /// The native flight's directory (its `frames/frame-NNNNNN.png`).
@@ -88,10 +106,10 @@ struct Flown {
     seconds: f64,
 }
 
-/// Flies the default flight over `db` natively and in the page, both at `fps` frames a
-/// second of flight, in `memory_mib` MiB, with [`FIXED_BUDGET`]; checks what holds for
-/// every page flight (no error, no failed or external request, WebGPU, the limit at every
-/// frame's end) and returns both.
+/// Flies the default flight over `db` natively and in the page (drawing with `backend`),
+/// both at `fps` frames a second of flight, in `memory_mib` MiB, with [`FIXED_BUDGET`];
+/// checks what holds for every page flight (no error, no failed or external request, the
+/// backend asked for, the limit at every frame's end) and returns both.
 fn fly_both(
     name: &str,
     db: &std::path::Path,
@@ -99,6 +117,7 @@ fn fly_both(
     fps: u32,
     size: [u32; 2],
     settle: bool,
+    backend: Backend,
 ) -> Flown {
     let [width, height] = size;
     let tmp = tempfile::tempdir().expect("tmp");
@@ -164,6 +183,9 @@ fn fly_both(
     if settle {
         args.extend(["--settle-frames", "600"]);
     }
+    if backend == Backend::WebGl2 {
+        args.push("--no-webgpu");
+    }
     let result = drive(&args, &out);
     assert_eq!(
         result["ok"], true,
@@ -180,8 +202,9 @@ fn fly_both(
         assert_eq!(list, 0, "{name}: {key}: {}", result[key]);
     }
     assert_eq!(
-        result["info"]["backend"], "BrowserWebGpu",
-        "{name}: the page should draw with WebGPU: {}",
+        result["info"]["backend"],
+        backend.reported(),
+        "{name}: the page should draw with {backend:?}: {}",
         result["info"]
     );
 
@@ -262,15 +285,37 @@ fn terrain_pixels(image: &image::RgbaImage) -> u64 {
 
 #[test]
 fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it() {
-    let test =
-        "the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it";
+    jacksboro_in_the_page_as_natively(
+        "the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it",
+        Backend::WebGpu,
+    );
+}
+
+/// WebGL2's vertex shaders read no storage buffers: the page reads the samples from a
+/// texture there, and draws the strip masks and the planar shadow as natively.
+#[test]
+fn on_webgl2_the_wasm_client_draws_jacksboro_with_strip_masks_and_the_planar_shadow_as_natively() {
+    jacksboro_in_the_page_as_natively(
+        "on_webgl2_the_wasm_client_draws_jacksboro_with_strip_masks_and_the_planar_shadow_as_natively",
+        Backend::WebGl2,
+    );
+}
+
+/// The default flight over jacksboro (strip masks, the planar shadow) in 2 MiB, in the
+/// page drawing with `backend` and natively: every stop draws terrain, and the settled page
+/// draws the native flight's last frame within the golden tolerance.
+fn jacksboro_in_the_page_as_natively(test: &str, backend: Backend) {
     if !browser_ready(test) || !page_built(test) {
         return;
     }
+    let name = match backend {
+        Backend::WebGpu => "jacksboro",
+        Backend::WebGl2 => "jacksboro-webgl2",
+    };
     // 2 MiB: small enough that the limit binds (jacksboro's tiles at every texture level
     // would not fit).
     let db = database(&jacksboro(), Options::Defaults);
-    let flown = fly_both("jacksboro", &db, 2, 30, [WIDTH, HEIGHT], true);
+    let flown = fly_both(name, &db, 2, 30, [WIDTH, HEIGHT], true, backend);
     // Every stop but the first (frame 0, before any tile has arrived) drew terrain.
     let total = f64::from(WIDTH * HEIGHT);
     for &k in &flown.frames[1..] {
@@ -278,7 +323,7 @@ fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_on
         let drawn = terrain_pixels(&page) as f64 / total;
         assert!(
             drawn > 0.3,
-            "jacksboro frame {k}: only {drawn:.3} of it is terrain"
+            "{name} frame {k}: only {drawn:.3} of it is terrain"
         );
     }
     // Once settled, the page draws the native flight's last frame.
@@ -297,7 +342,7 @@ fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_on
         share(&page_settled, &native_last),
     );
     println!(
-        "web client, jacksboro: {} frames in {:.1} s ({}); peak resident {} of {} bytes, wasm heap peak {}; \
+        "web client, {name}: {} frames in {:.1} s ({}); peak resident {} of {} bytes, wasm heap peak {}; \
          last frame {last}: {:.2}% of the pixels differ from the native frame by more than {CHANNEL_TOLERANCE} \
          ({:.2}% once settled, frame {})",
         flown.result["history"].as_array().map_or(0, Vec::len),
@@ -336,7 +381,15 @@ fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_doe
     // The default flight at 10 frames a second of flight (the same path and cameras as at
     // 30, a third of the frames) at a quarter of the pixels: SwiftShader draws a few frames
     // a second, and coverage needs no more.
-    let flown = fly_both("himalaya", &db, 16, 10, [WIDTH / 2, HEIGHT / 2], false);
+    let flown = fly_both(
+        "himalaya",
+        &db,
+        16,
+        10,
+        [WIDTH / 2, HEIGHT / 2],
+        false,
+        Backend::WebGpu,
+    );
     let mut worst = (f64::INFINITY, 0);
     let mut lines = Vec::new();
     for &k in &flown.frames {
@@ -373,44 +426,53 @@ fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_doe
     );
 }
 
+/// On WebGL2, a method that needs what WebGL2 lacks is refused with the reason, and the
+/// page fetches nothing for it.
 #[test]
-fn a_browser_without_webgpu_is_told_why_the_page_draws_nothing() {
-    let test = "a_browser_without_webgpu_is_told_why_the_page_draws_nothing";
+fn on_webgl2_a_method_it_cannot_draw_is_refused_with_the_reason() {
+    let test = "on_webgl2_a_method_it_cannot_draw_is_refused_with_the_reason";
     if !browser_ready(test) || !page_built(test) {
         return;
     }
     let tmp = tempfile::tempdir().expect("tmp");
     let db = database(&jacksboro(), Options::Defaults);
     let server = serve(&db, tmp.path(), &[]);
-    let out = tmp.path().join("page");
-    let page = format!("{}/view/client/index.html", server.base_url());
-    let result = drive(
-        &[
-            "--page",
-            &page,
-            "--frames",
-            "1",
-            "--no-webgpu",
-            "--timeout-s",
-            "60",
-        ],
-        &out,
-    );
-    assert_eq!(
-        result["ok"], false,
-        "the page drew without WebGPU: {result}"
-    );
-    let said = result["console_errors"].to_string();
-    assert!(
-        said.contains("needs WebGPU") && said.contains("WebGL2"),
-        "the page did not say why: {said} ({})",
-        result["reason"]
-    );
-    assert_eq!(
-        result["failed_requests"].as_array().map_or(0, Vec::len),
-        0,
-        "{result}"
-    );
+    for (method, lacking) in [
+        ("geomipmap", "BASE_VERTEX"),
+        ("projective-grid", "VERTEX_STORAGE"),
+    ] {
+        let out = tmp.path().join(method);
+        let page = format!(
+            "{}/view/client/index.html?method={method}",
+            server.base_url()
+        );
+        let result = drive(
+            &[
+                "--page",
+                &page,
+                "--frames",
+                "1",
+                "--no-webgpu",
+                "--timeout-s",
+                "60",
+            ],
+            &out,
+        );
+        assert_eq!(result["ok"], false, "{method} drew on WebGL2: {result}");
+        let said = result["console_errors"].to_string();
+        assert!(
+            said.contains(&format!("--method {method} needs"))
+                && said.contains(lacking)
+                && said.contains("strip-masks and reference draw here"),
+            "{method}: the page did not say why: {said} ({})",
+            result["reason"]
+        );
+        assert_eq!(
+            result["failed_requests"].as_array().map_or(0, Vec::len),
+            0,
+            "{result}"
+        );
+    }
 }
 
 #[test]

@@ -8,8 +8,11 @@
 //! planar shadow, the other methods), with three things of the page's at its rim: requests
 //! go through the browser's `fetch` as the page's own tasks
 //! ([`terrain_client::requests::Spawner::page`]), the clock is the page's, and frames are
-//! drawn into the canvas with WebGPU. Without WebGPU the page says why and draws nothing: the
-//! terrain's vertex shader reads the samples from storage buffers, which WebGL2 lacks.
+//! drawn into the canvas with WebGPU, or with WebGL2 where the browser has no WebGPU. On
+//! WebGL2 the tiles' samples are read from a texture ([`terrain_client::render::SampleStore`]),
+//! and the methods that need what WebGL2 lacks (GeoMipMaps' base vertex, the projected grids'
+//! storage buffers) say so when chosen ([`terrain_client::method::check_gpu`]): the strip
+//! masks with every crack filler, and the reference, draw on both.
 //!
 //! **Memory.** The limit covers what it covers natively
 //! ([`terrain_client::memory::MEMORY_INVARIANT`]): tiles, textures, GPU copies and what the
@@ -32,11 +35,10 @@ use terrain_shared::Manifest;
 use wasm_bindgen::prelude::*;
 use web_time::Instant;
 
-/// Why the page does not draw without WebGPU.
-const NO_WEBGPU: &str = "this page needs WebGPU, which this browser does not offer here: the \
-     terrain's vertex shader reads the tiles' samples from storage buffers, which WebGL2 does \
-     not have. Open it in a browser with WebGPU (Chrome or Edge 113+, Safari 26+, Firefox 141+ \
-     on Windows), or use the native client (terrain-client view).";
+/// What the page says when the browser has neither WebGPU nor WebGL2.
+const NO_GPU: &str = "this page draws with WebGPU or WebGL2, and this browser offers neither \
+     here (is hardware acceleration turned off?). Open it in a browser with either, or use \
+     the native client (terrain-client view).";
 
 /// What the page asks for (a JSON object; every field optional).
 #[derive(Debug, Clone, serde::Deserialize)]
@@ -204,14 +206,16 @@ fn render_config(options: &Options) -> Result<RenderConfig, JsError> {
 }
 
 /// Methods the page has, or why not: the quadtree patches' data are zstd frames, which the
-/// page does not read (`terrain_shared::quadtree`).
-fn check_method(kind: MethodKind, manifest: &Manifest) -> Result<(), JsError> {
+/// page does not read (`terrain_shared::quadtree`); on WebGL2 some methods lack what they
+/// draw with ([`terrain_client::method::check_gpu`]).
+fn check_method(kind: MethodKind, manifest: &Manifest, gpu: &Gpu) -> Result<(), JsError> {
     if kind == MethodKind::QuadtreePatches {
         return Err(js_error(
             "quadtree-patches is not available in the browser: its patches are zstd frames, \
              which the page does not read; use it with the native client (terrain-client fly or view)",
         ));
     }
+    terrain_client::method::check_gpu(kind, gpu.downlevel()).map_err(js_error)?;
     terrain_client::method::check_database(kind, manifest).map_err(js_error)
 }
 
@@ -239,16 +243,21 @@ impl Client {
         let budget = budget(&options)?;
         let (width, height) = (canvas.width().max(1), canvas.height().max(1));
 
-        if !wgpu::util::is_browser_webgpu_supported().await {
-            return Err(js_error(NO_WEBGPU));
-        }
+        // WebGPU where the browser has it, else WebGL2 (a canvas takes one context only, so
+        // the choice is made before the surface).
         let mut descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
-        descriptor.backends = wgpu::Backends::BROWSER_WEBGPU;
+        descriptor.backends = if wgpu::util::is_browser_webgpu_supported().await {
+            wgpu::Backends::BROWSER_WEBGPU
+        } else {
+            wgpu::Backends::GL
+        };
         let instance = wgpu::Instance::new(descriptor);
         let surface = instance
             .create_surface(wgpu::SurfaceTarget::Canvas(canvas))
-            .map_err(|e| js_error(format!("cannot draw into the canvas: {e}")))?;
-        let gpu = Gpu::for_page(instance, &surface).await.map_err(js_error)?;
+            .map_err(|e| js_error(format!("{NO_GPU} ({e})")))?;
+        let gpu = Gpu::for_page(instance, &surface)
+            .await
+            .map_err(|e| js_error(format!("{NO_GPU} ({e})")))?;
         let backend = format!("{:?}", gpu.adapter.get_info().backend);
         let (config, view_format) =
             gpu.surface_config(&surface, width, height).ok_or_else(|| {
@@ -263,7 +272,7 @@ impl Client {
             .await
             .map_err(|e| js_error(terrain_client::http_client::cause_chain(&e)))?;
         let manifest = Arc::clone(&connection.manifest);
-        check_method(render.method, &manifest)?;
+        check_method(render.method, &manifest, &gpu)?;
         let mut scene = connection.scene(
             budget.limit_bytes(),
             true,
@@ -502,7 +511,7 @@ impl Client {
     /// Another method and crack filler, as `terrain-client fly --method --crack-filler`.
     pub fn set_method(&mut self, method: String, filler: String) -> Result<(), JsError> {
         let kind: MethodKind = parse_enum("method", &method)?;
-        check_method(kind, &self.manifest)?;
+        check_method(kind, &self.manifest, &self.gpu)?;
         self.render.method = kind;
         self.render.filler = parse_enum("crack filler", &filler)?;
         self.scene.reconfigure(self.render);

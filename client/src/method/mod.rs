@@ -367,6 +367,36 @@ pub fn check_database(kind: MethodKind, manifest: &Manifest) -> Result<(), Strin
     Ok(())
 }
 
+/// Whether a device with `downlevel` draws method `kind`, or a sentence saying what it
+/// lacks. Everything but WebGL2 has it all; on WebGL2 the strip masks (and the reference)
+/// draw, with every crack filler, reading the samples from a texture
+/// ([`crate::render::SampleStore::Texture`]).
+pub fn check_gpu(kind: MethodKind, downlevel: wgpu::DownlevelFlags) -> Result<(), String> {
+    use wgpu::DownlevelFlags as F;
+    let (needs, why) = match kind {
+        MethodKind::StripMasks | MethodKind::Reference => return Ok(()),
+        MethodKind::Geomipmap => (
+            F::BASE_VERTEX,
+            "it draws every block of a tile from one index set placed by a base vertex",
+        ),
+        MethodKind::Pgm | MethodKind::ProjectiveGrid => (
+            F::VERTEX_STORAGE | F::FRAGMENT_WRITABLE_STORAGE,
+            "its shaders read the heights' atlas from storage buffers and count pixels in one",
+        ),
+        // Its vertices are vertex buffers: nothing past WebGL2's.
+        MethodKind::QuadtreePatches => return Ok(()),
+    };
+    if downlevel.contains(needs) {
+        return Ok(());
+    }
+    Err(format!(
+        "--method {} needs {:?}, which this graphics backend lacks (WebGL2 does): {why}. \
+         strip-masks and reference draw here",
+        kind.name(),
+        needs.difference(downlevel)
+    ))
+}
+
 /// Builds the method `config.kind`.
 pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
     match config.kind {

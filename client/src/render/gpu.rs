@@ -39,6 +39,21 @@ pub struct Gpu {
     pub adapter: wgpu::Adapter,
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
+    /// Where the terrain's vertex shader reads the tiles' samples from.
+    pub samples: SampleStore,
+}
+
+/// Where the terrain's vertex shader reads the tiles' samples (the sample arena,
+/// [`super::tiles`]) from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SampleStore {
+    /// A storage buffer (`terrain_shaders::TERRAIN`): every backend with storage buffers in
+    /// vertex shaders.
+    Buffer,
+    /// An `R32Uint` texture of `terrain_shaders::SAMPLE_TEXTURE_WIDTH` words a row
+    /// (`terrain_shaders::TERRAIN_TEXTURE_SAMPLES`): WebGL2, whose vertex shaders read no
+    /// storage buffers. The same words at the same indices, so frames are the same.
+    Texture,
 }
 
 /// Whether `REQUIRE_GPU=1` is set.
@@ -120,15 +135,28 @@ impl Gpu {
         if require_vulkan && info.backend != wgpu::Backend::Vulkan {
             return Err(GpuError::NotVulkan(describe(&info)));
         }
+        let downlevel = adapter.get_downlevel_capabilities().flags;
+        let samples = if downlevel.contains(wgpu::DownlevelFlags::VERTEX_STORAGE) {
+            SampleStore::Buffer
+        } else {
+            SampleStore::Texture
+        };
         // Timestamps measure the GPU's share of a frame; adapters without them still render.
         let required_features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
         // The adapter's own texture sizes and buffer sizes: the sample arena and the grids'
         // atlas hold every drawn tile in one buffer, as large as the adapter allows.
+        // A downlevel adapter (WebGL2) gets its own floor of limits: the default ones ask for
+        // storage buffers and compute shaders it lacks.
         let available = adapter.limits();
+        let floor = if downlevel.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
+            wgpu::Limits::default()
+        } else {
+            wgpu::Limits::downlevel_webgl2_defaults()
+        };
         let required_limits = wgpu::Limits {
             max_storage_buffer_binding_size: available.max_storage_buffer_binding_size,
             max_buffer_size: available.max_buffer_size,
-            ..wgpu::Limits::default().using_resolution(available)
+            ..floor.using_resolution(available)
         };
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
@@ -147,7 +175,30 @@ impl Gpu {
             adapter,
             device,
             queue,
+            samples,
         })
+    }
+
+    /// This device reading the tiles' samples from `store`: the texture on a device that has
+    /// storage buffers too, to compare the two paths on one adapter (the tests do).
+    pub fn with_samples(mut self, store: SampleStore) -> Gpu {
+        if store == SampleStore::Buffer {
+            assert!(
+                self.adapter
+                    .get_downlevel_capabilities()
+                    .flags
+                    .contains(wgpu::DownlevelFlags::VERTEX_STORAGE),
+                "{} has no storage buffers in vertex shaders",
+                self.description()
+            );
+        }
+        self.samples = store;
+        self
+    }
+
+    /// What the adapter has of what WebGPU's full profile needs (WebGL2 lacks some).
+    pub fn downlevel(&self) -> wgpu::DownlevelFlags {
+        self.adapter.get_downlevel_capabilities().flags
     }
 
     /// "llvmpipe (LLVM 15.0.6, 256 bits), Vulkan, Cpu": what a benchmark names it ran on.

@@ -8,12 +8,14 @@
 //! - [`frame`]: the [`Renderer`] (frame uniforms, depth and its read-back, timestamps, the
 //!   tile pipeline) and one frame's recording ([`Frame`], [`FramePass`]).
 //! - [`tiles`]: the resident tiles' sample buffers and textures ([`TileStore`]).
+//! - `arena`: where the drawn tiles' samples lie, a storage buffer or (WebGL2) a texture.
 //! - [`textures`]: the texture budget, how fine each tile's texture goes.
 //! - [`mesh`]: a tile's samples and normals.
 //! - [`pool`]: the least-recently-used pool of sample buffers (the GeoMipMaps VBO manager).
 //! - [`blocks`]: MapBlocks, textures of `n x m` tiles bound once per block.
 //! - [`offscreen`]: a colour target read back into an image (headless flights, tests).
 
+mod arena;
 pub mod blocks;
 pub mod camera;
 pub mod frame;
@@ -27,7 +29,7 @@ pub mod tiles;
 
 pub use camera::Camera;
 pub use frame::{Frame, FramePass, IndexSet, RenderStats, Renderer, SKY, TileExtras};
-pub use gpu::{Gpu, GpuError};
+pub use gpu::{Gpu, GpuError, SampleStore};
 pub use layout::Layout;
 pub use offscreen::Offscreen;
 pub use tiles::{GpuResidency, TileStore};

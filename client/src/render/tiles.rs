@@ -1,8 +1,8 @@
 //! Resident tiles on the GPU, shared by every method: their sample buffers and textures.
 //!
 //! A tile drawn has a slot of its samples (16-bit height codes, 2 bytes each, see
-//! [`super::mesh`]) in one storage buffer shared by every tile (the sample arena, bound once a
-//! pass). Slots are handed to the tiles drawn, least recently used first ([`super::pool`],
+//! [`super::mesh`]) in one storage buffer (or, on WebGL2, one integer texture:
+//! [`super::arena`]) shared by every tile (the sample arena, bound once a pass). Slots are handed to the tiles drawn, least recently used first ([`super::pool`],
 //! the GeoMipMaps paper's VBO manager): a resident tile keeps only its heights (shared with
 //! the scene) until it is drawn. The arena holds exactly as many slots as the pool: it grows
 //! when a frame needs more, and is compacted (its live slots copied into a smaller buffer)
@@ -13,8 +13,9 @@
 //! Every allocation made here is labelled with [`TERRAIN_LABEL`] first, so the allocator's
 //! report can be checked against [`TileStore::residency`].
 
+use super::arena::Arena;
 use super::blocks::{BlockLayout, BlockRect, Blocks};
-use super::gpu::Gpu;
+use super::gpu::{Gpu, SampleStore};
 use super::layout::Layout;
 use super::mesh;
 use super::pool::LruPool;
@@ -28,10 +29,7 @@ pub const TERRAIN_LABEL: &str = "terrain/";
 
 /// Labels of the allocations made here.
 pub mod label {
-    pub const SAMPLES: &str = "terrain/sample arena";
-    /// The arena while it holds no slot: a 4-byte buffer so that its binding is never
-    /// empty, part of the renderer's fixed cost, not the terrain's.
-    pub const EMPTY_SAMPLES: &str = "empty sample arena";
+    pub use super::super::arena::label::{EMPTY_SAMPLES, SAMPLES};
     pub const TEXTURE: &str = "terrain/tile texture";
     pub const BLOCK: &str = "terrain/map block";
 }
@@ -74,15 +72,6 @@ pub(super) struct GpuTile {
     code_base: (i32, u32),
 }
 
-/// The sample arena: one storage buffer of `slots` slots, each the words of one tile.
-#[derive(Debug)]
-pub(super) struct Arena {
-    pub(super) buffer: wgpu::Buffer,
-    slots: u32,
-    /// Changes whenever the buffer does, so that bind groups holding it are made again.
-    pub(super) generation: u64,
-}
-
 /// The bind group layouts of the sample arena (group 1) and of a tile's texture (group 2),
 /// shared with the pipelines that draw tiles.
 #[derive(Debug)]
@@ -103,6 +92,8 @@ pub struct TileStore {
     /// Each slot's value is its position in the arena.
     pub(super) pool: LruPool<TileId, u32>,
     pub(super) arena: Arena,
+    /// Where the arena is kept: what the device's vertex shaders read.
+    store: SampleStore,
     /// Arena positions no pool slot holds.
     free_positions: Vec<u32>,
     /// The most slots the arena may hold: what one storage binding and one buffer of the
@@ -118,19 +109,10 @@ pub struct TileStore {
 impl TileStore {
     pub(super) fn new(gpu: &Gpu, layout: Layout) -> TileStore {
         let device = gpu.device.clone();
-        let storage = |binding: u32, size: u64| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::VERTEX,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only: true },
-                has_dynamic_offset: false,
-                min_binding_size: wgpu::BufferSize::new(size),
-            },
-            count: None,
-        };
+        let store = gpu.samples;
         let samples = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile samples"),
-            entries: &[storage(0, 4)],
+            entries: &[Arena::layout_entry(store)],
         });
         let texture = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tile texture"),
@@ -171,21 +153,10 @@ impl TileStore {
             sampler,
             tiles: HashMap::new(),
             pool: LruPool::default(),
-            arena: Arena {
-                buffer: arena_buffer(&gpu.device, 0, 4),
-                slots: 0,
-                generation: 0,
-            },
+            arena: Arena::new(&gpu.device, store, 0, slot_words(layout), 0),
+            store,
             free_positions: Vec::new(),
-            max_slots: {
-                let limits = gpu.device.limits();
-                let slot_bytes = 4 * mesh::words_for(u64::from(layout.tile_size).pow(2));
-                let most = limits
-                    .max_storage_buffer_binding_size
-                    .min(limits.max_buffer_size)
-                    / slot_bytes;
-                u32::try_from(most).unwrap_or(u32::MAX).max(1)
-            },
+            max_slots: Arena::max_slots(store, &gpu.device.limits(), slot_words(layout)),
             refused: 0,
             blocks: None,
             next_texture_version: 0,
@@ -268,7 +239,7 @@ impl TileStore {
 
     /// Words of one tile's slot.
     fn slot_words(&self) -> u64 {
-        mesh::words_for(u64::from(self.layout.tile_size).pow(2))
+        slot_words(self.layout)
     }
 
     /// What the tiles hold on the GPU now: every allocation made here.
@@ -276,7 +247,7 @@ impl TileStore {
         GpuResidency {
             tiles: self.tiles.len() as u64,
             sample_buffers: u64::from(self.arena.slots),
-            sample_bytes: u64::from(self.arena.slots) * self.sample_buffer_bytes(),
+            sample_bytes: self.arena.bytes(),
             texture_bytes: self.tiles.values().map(|t| t.texture_bytes).sum(),
             block_bytes: self.blocks.as_ref().map_or(0, Blocks::bytes),
         }
@@ -358,9 +329,13 @@ impl TileStore {
         if wanted == self.arena.slots && self.free_positions.is_empty() {
             return;
         }
-        let words = self.slot_words();
-        let slot_bytes = 4 * words;
-        let buffer = arena_buffer(&self.device, u64::from(wanted), slot_bytes);
+        let arena = Arena::new(
+            &self.device,
+            self.store,
+            wanted,
+            self.slot_words(),
+            self.arena.generation + 1,
+        );
         let mut encoder = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -369,23 +344,13 @@ impl TileStore {
         let old = &self.arena;
         for (next, position) in (0u32..).zip(self.pool.values_mut()) {
             if *position < old.slots {
-                encoder.copy_buffer_to_buffer(
-                    &old.buffer,
-                    u64::from(*position) * slot_bytes,
-                    &buffer,
-                    u64::from(next) * slot_bytes,
-                    slot_bytes,
-                );
+                old.copy_slot(&mut encoder, *position, &arena, next);
             }
             *position = next;
         }
         self.queue.submit([encoder.finish()]);
         self.free_positions.clear();
-        self.arena = Arena {
-            buffer,
-            slots: wanted,
-            generation: self.arena.generation + 1,
-        };
+        self.arena = arena;
     }
 
     /// Replaces `id`'s texture by `levels`, coarsest first: the last is the finest and the
@@ -619,11 +584,7 @@ impl TileStore {
             let packed = mesh::pack_codes(&self.tiles[&id].heights);
             let slot = self.pool.slot_of(id).expect("acquired this frame");
             let position = *self.pool.get(slot);
-            self.queue.write_buffer(
-                &self.arena.buffer,
-                u64::from(position) * 4 * words,
-                bytemuck::cast_slice(&packed.words),
-            );
+            self.arena.write(&self.queue, position, &packed.words);
             codes.insert(id, (packed.base, packed.shift));
         }
         let uploads = fresh.len() as u32;
@@ -768,21 +729,9 @@ fn blocks_mut(blocks: &mut Option<Blocks>) -> &mut Blocks {
     blocks.as_mut().expect("blocks on")
 }
 
-/// A sample arena of `slots` slots of `slot_bytes` (at least 4 bytes: a binding is never
-/// empty).
-fn arena_buffer(device: &wgpu::Device, slots: u64, slot_bytes: u64) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(if slots == 0 {
-            label::EMPTY_SAMPLES
-        } else {
-            label::SAMPLES
-        }),
-        size: (slots * slot_bytes).max(4),
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_DST
-            | wgpu::BufferUsages::COPY_SRC,
-        mapped_at_creation: false,
-    })
+/// Words of one tile's slot in the sample arena.
+fn slot_words(layout: Layout) -> u64 {
+    mesh::words_for(u64::from(layout.tile_size).pow(2))
 }
 
 /// A tile texture of `mips` levels whose top mip is `width` x `height`, contents undefined.

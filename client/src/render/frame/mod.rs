@@ -186,7 +186,7 @@ impl Renderer {
         });
         let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("terrain"),
-            source: wgpu::ShaderSource::Wgsl(terrain_shaders::TERRAIN.into()),
+            source: wgpu::ShaderSource::Wgsl(super::arena::terrain_shader(gpu.samples).into()),
         });
         let tile_pipeline = |vertex: &str, fragment: &str| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -469,7 +469,7 @@ impl Renderer {
                 layout: &self.tiles.bindings().samples,
                 entries: &[wgpu::BindGroupEntry {
                     binding: 0,
-                    resource: self.tiles.arena.buffer.as_entire_binding(),
+                    resource: self.tiles.arena.binding(),
                 }],
             });
         self.tiles_group = Some((group, generation));
