@@ -336,22 +336,48 @@ fn zstd_compress(plane: &[u8], level: i32) -> Result<Vec<u8>, EncodeError> {
     zstd::bulk::compress(plane, level).map_err(|e| EncodeError::Zstd(e.to_string()))
 }
 
-/// The browser build has no zstd (its C library does not build for the page without a C
-/// toolchain for it): it neither writes nor reads codec version 1.
+/// The browser build has no zstd C library (it does not build for the page without a C
+/// toolchain for it): it reads codec version 1 (with ruzstd) but does not write it.
 #[cfg(target_arch = "wasm32")]
 fn zstd_compress(_plane: &[u8], _level: i32) -> Result<Vec<u8>, EncodeError> {
-    Err(EncodeError::Zstd(NO_ZSTD.into()))
+    Err(EncodeError::Zstd(
+        "the browser build does not write planar-zstd/1 heights".into(),
+    ))
 }
 
-/// Why codec version 1 is not read in the browser build.
+/// Codec version 1 in the browser build: the planes' frames read with ruzstd
+/// ([`crate::zstd_frames`]), checked as natively.
 #[cfg(target_arch = "wasm32")]
-const NO_ZSTD: &str = "heights coded with planar-zstd/1 are not read by the browser build: \
-                       build the database with the default codec (rans)";
+fn decode_planes(header: &Header, payload: &[u8], codes: &mut [i32]) -> Result<(), DecodeError> {
+    decode_planes_in_rust(header, payload, codes)
+}
 
-/// Codec version 1 in the browser build: refused (see [`NO_ZSTD`]).
-#[cfg(target_arch = "wasm32")]
-fn decode_planes(_header: &Header, _payload: &[u8], _codes: &mut [i32]) -> Result<(), DecodeError> {
-    Err(DecodeError::Zstd(NO_ZSTD.into()))
+/// [`decode_planes`] with ruzstd instead of zstd's C library: the browser build's, and
+/// the tests', which check it against the native one.
+#[cfg(any(target_arch = "wasm32", test))]
+fn decode_planes_in_rust(
+    header: &Header,
+    payload: &[u8],
+    codes: &mut [i32],
+) -> Result<(), DecodeError> {
+    use crate::zstd_frames::{FrameError, decode_frame_into};
+    let n = usize::from(header.width) * usize::from(header.height);
+    let mut planar = vec![0u8; n * header.planes];
+    let mut rest = payload;
+    for (index, plane) in planar.chunks_exact_mut(n).enumerate() {
+        let (written, taken) = decode_frame_into(rest, plane).map_err(|e| match e {
+            FrameError::PastEnd => DecodeError::PlanePastTile {
+                plane: index,
+                allowed: n,
+                width: header.width,
+                height: header.height,
+            },
+            FrameError::Zstd(why) => DecodeError::Zstd(why),
+        })?;
+        whole_plane(written, n)?;
+        rest = &rest[taken..];
+    }
+    reassemble_planes(header, &planar, rest, codes)
 }
 
 /// Codec version 1: decompresses the byte planes and reconstructs the codes from them.
@@ -398,20 +424,38 @@ fn decode_planes(header: &Header, payload: &[u8], codes: &mut [i32]) -> Result<(
                 Unsized::Zstd(e) => DecodeError::Zstd(e.to_string()),
             })?,
         };
-        if written != n {
-            return Err(DecodeError::Zstd(format!(
-                "plane of {written} bytes, {n} expected"
-            )));
-        }
+        whole_plane(written, n)?;
         rest = tail;
     }
+    reassemble_planes(header, &planar, rest, codes)
+}
+
+/// A plane decompressed to `written` bytes of the tile's `n`: an error unless whole.
+fn whole_plane(written: usize, n: usize) -> Result<(), DecodeError> {
+    if written != n {
+        return Err(DecodeError::Zstd(format!(
+            "plane of {written} bytes, {n} expected"
+        )));
+    }
+    Ok(())
+}
+
+/// The codes from codec version 1's decompressed byte planes (`planar`, plane after plane),
+/// the payload's `rest` after the last plane being empty.
+fn reassemble_planes(
+    header: &Header,
+    planar: &[u8],
+    rest: &[u8],
+    codes: &mut [i32],
+) -> Result<(), DecodeError> {
     if !rest.is_empty() {
         return Err(DecodeError::Zstd(format!(
             "{} bytes after the last plane",
             rest.len()
         )));
     }
-
+    let (w, h) = (usize::from(header.width), usize::from(header.height));
+    let n = w * h;
     let mut zigzag = vec![0u32; w];
     for y in 0..h {
         // Reassemble this row's zig-zag residuals from the planes.
@@ -597,6 +641,67 @@ mod tests {
             let bytes = h.encode_with(coder).expect("encodes");
             assert_eq!(Heights::decode(&bytes).expect("decodes"), *h, "{coder:?}");
         }
+    }
+
+    /// Codec version 1 as the browser build reads it (ruzstd): the same codes as zstd's
+    /// own decoder gives, and the same refusals.
+    fn decode_in_rust(bytes: &[u8]) -> Result<Vec<i32>, DecodeError> {
+        let header = Header::parse(bytes)?;
+        let mut codes = vec![0i32; usize::from(header.width) * usize::from(header.height)];
+        decode_planes_in_rust(&header, &bytes[HEADER_LEN..], &mut codes)?;
+        Ok(codes.iter().map(|c| c.wrapping_add(header.min)).collect())
+    }
+
+    #[test]
+    fn the_browser_builds_reading_of_version_1_gives_zstds_codes_and_refusals() {
+        let tiles = [
+            tile(1, 1, |_, _| 7),
+            tile(129, 129, |x, y| (x * 3 + y * 5) as i32),
+            tile(65, 65, |x, y| {
+                ((x * 7919 + y * 104_729) % 65536) as i32 - 32768
+            }),
+            tile(
+                17,
+                9,
+                |x, y| if (x + y) % 2 == 0 { i32::MIN } else { i32::MAX },
+            ),
+        ];
+        for h in &tiles {
+            for level in [1, 3, 19] {
+                let bytes = h.encode_with(Coder::Zstd(level)).expect("encodes");
+                assert_eq!(
+                    decode_in_rust(&bytes).expect("decodes"),
+                    Heights::decode(&bytes).expect("decodes").codes,
+                    "{}x{} at level {level}",
+                    h.width,
+                    h.height
+                );
+            }
+        }
+        let bomb = vec![0u8; 10_000];
+        for frame in [
+            zstd::bulk::compress(&bomb, 3).expect("compresses"),
+            zstd::stream::encode_all(&bomb[..], 3).expect("compresses"),
+        ] {
+            let refused = decode_in_rust(&sealed(1, 4, &frame));
+            assert!(
+                matches!(
+                    refused,
+                    Err(DecodeError::PlanePastTile {
+                        plane: 0,
+                        allowed: 16,
+                        ..
+                    })
+                ),
+                "{refused:?}"
+            );
+        }
+        let mut two = zstd::bulk::compress(&[0u8; 16], 3).expect("compresses");
+        two.extend_from_slice(&[0u8; 3]);
+        assert!(
+            decode_in_rust(&sealed(1, 4, &two)).is_err(),
+            "bytes after the last plane"
+        );
     }
 
     #[test]

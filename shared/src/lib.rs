@@ -13,6 +13,8 @@ mod rans;
 pub mod routes;
 pub mod tile;
 pub mod tile_blob;
+#[cfg(any(target_arch = "wasm32", test))]
+mod zstd_frames;
 
 pub use heights::{DecodeError, EncodeError, Heights};
 pub use manifest::{Blob, Manifest, TileRecord};

@@ -718,17 +718,17 @@ fn decompress(frame: &[u8], max: usize) -> Result<Vec<u8>, String> {
     zstd::bulk::decompress(frame, max).map_err(|e| e.to_string())
 }
 
-/// The browser build has no zstd (its C library does not build for the page without a C
-/// toolchain for it): it neither writes nor reads patches, whose values are zstd frames.
+/// The browser build has no zstd C library (it does not build for the page without a C
+/// toolchain for it): it reads patches (with ruzstd) but does not write them.
 #[cfg(target_arch = "wasm32")]
 fn compress(_values: &[u8], _level: i32) -> Vec<u8> {
     Vec::new()
 }
 
-/// See the native `decompress`: refused in the browser build.
+/// A patch's values, at most `max` bytes, read with ruzstd ([`crate::zstd_frames`]).
 #[cfg(target_arch = "wasm32")]
-fn decompress(_frame: &[u8], _max: usize) -> Result<Vec<u8>, String> {
-    Err("quadtree patches are not read by the browser build (their values are zstd frames)".into())
+fn decompress(frame: &[u8], max: usize) -> Result<Vec<u8>, String> {
+    crate::zstd_frames::decode_frames(frame, max).map_err(|e| e.to_string())
 }
 
 /// Decodes a patch's body against what its parent gives; any bytes give a patch or an

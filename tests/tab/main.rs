@@ -106,24 +106,38 @@ struct Flown {
     seconds: f64,
 }
 
-/// Flies the default flight over `db` natively and in the page (drawing with `backend`),
-/// both at `fps` frames a second of flight, in `memory_mib` MiB, with [`FIXED_BUDGET`];
-/// checks what holds for every page flight (no error, no failed or external request, the
-/// backend asked for, the limit at every frame's end) and returns both.
-fn fly_both(
-    name: &str,
-    db: &std::path::Path,
-    memory_mib: u64,
+/// How both clients fly the default flight.
+#[derive(Debug, Clone, Copy)]
+struct Flight<'a> {
+    memory_kib: u64,
+    /// Frames a second of flight.
     fps: u32,
     size: [u32; 2],
+    /// Whether the page then draws on until the scene settles (`settled.png`).
     settle: bool,
+    /// What the page draws with.
     backend: Backend,
-) -> Flown {
+    method: &'a str,
+}
+
+/// Flies the default flight over `db` natively and in the page as `flight` says, with
+/// [`FIXED_BUDGET`]; checks what holds for every page flight (no error, no failed or
+/// external request, the backend asked for, the limit at every frame's end) and returns
+/// both.
+fn fly_both(name: &str, db: &std::path::Path, flight: Flight<'_>) -> Flown {
+    let Flight {
+        memory_kib,
+        fps,
+        size,
+        settle,
+        backend,
+        method,
+    } = flight;
     let [width, height] = size;
     let tmp = tempfile::tempdir().expect("tmp");
     let server = serve(db, tmp.path(), &[]);
     let base = server.base_url().to_string();
-    let memory = format!("{memory_mib}MiB");
+    let memory = format!("{memory_kib}KiB");
 
     // The native flight: its frames every 30 and the last.
     let native = repo().join(format!("tests/out/web_client/{name}/native"));
@@ -144,6 +158,8 @@ fn fly_both(
             fps.to_string().as_ref(),
             "--size".as_ref(),
             format!("{width}x{height}").as_ref(),
+            "--method".as_ref(),
+            method.as_ref(),
             "--quiet".as_ref(),
         ],
     );
@@ -167,7 +183,7 @@ fn fly_both(
     let _ = std::fs::remove_dir_all(&out);
     let stops: Vec<String> = frames.iter().map(u64::to_string).collect();
     let page = format!(
-        "{base}/view/client/index.html?mode=flight&memory={memory}&fixed_budget={FIXED_BUDGET}&flight_fps={fps}"
+        "{base}/view/client/index.html?mode=flight&memory={memory}&fixed_budget={FIXED_BUDGET}&flight_fps={fps}&method={method}"
     );
     let started = std::time::Instant::now();
     let (w, h, stop_list) = (width.to_string(), height.to_string(), stops.join(","));
@@ -215,7 +231,7 @@ fn fly_both(
         "{name}: {} frames",
         history.len()
     );
-    let limit = (memory_mib << 20) * 9 / 10;
+    let limit = (memory_kib << 10) * 9 / 10;
     let (mut peak, mut heap_peak) = (0, 0);
     for s in history {
         let resident = s["resident_bytes"].as_u64().expect("resident_bytes");
@@ -228,9 +244,11 @@ fn fly_both(
         peak = peak.max(resident);
         heap_peak = heap_peak.max(s["wasm_heap_bytes"].as_u64().unwrap_or(0));
     }
-    // The limit binds: the tiles at every texture level would not fit.
+    // The limit binds on the tiles' methods: the tiles at every texture level would not fit.
+    // (The projected grids hold an atlas of heights instead, which it need not bind.)
+    let grid = method == "pgm" || method == "projective-grid";
     assert!(
-        peak as f64 > 0.9 * limit as f64,
+        grid || peak as f64 > 0.9 * limit as f64,
         "{name}: the limit never bound: peak {peak} of {limit} bytes"
     );
     Flown {
@@ -288,6 +306,7 @@ fn the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_on
     jacksboro_in_the_page_as_natively(
         "the_wasm_client_flies_jacksboro_in_chromium_within_its_limit_as_the_native_one_draws_it",
         Backend::WebGpu,
+        "strip-masks",
     );
 }
 
@@ -298,26 +317,82 @@ fn on_webgl2_the_wasm_client_draws_jacksboro_with_strip_masks_and_the_planar_sha
     jacksboro_in_the_page_as_natively(
         "on_webgl2_the_wasm_client_draws_jacksboro_with_strip_masks_and_the_planar_shadow_as_natively",
         Backend::WebGl2,
+        "strip-masks",
     );
 }
 
-/// The default flight over jacksboro (strip masks, the planar shadow) in 2 MiB, in the
+/// The quadtree patches in the page: their values are zstd frames, which the page reads
+/// with a decoder in Rust (ruzstd), and it draws them as the native client does.
+#[test]
+fn the_wasm_client_draws_jacksboros_quadtree_patches_as_natively() {
+    jacksboro_in_the_page_as_natively(
+        "the_wasm_client_draws_jacksboros_quadtree_patches_as_natively",
+        Backend::WebGpu,
+        "quadtree-patches",
+    );
+}
+
+/// The same on WebGL2: the patches' vertices are vertex buffers, which it has.
+#[test]
+fn on_webgl2_the_wasm_client_draws_jacksboros_quadtree_patches_as_natively() {
+    jacksboro_in_the_page_as_natively(
+        "on_webgl2_the_wasm_client_draws_jacksboros_quadtree_patches_as_natively",
+        Backend::WebGl2,
+        "quadtree-patches",
+    );
+}
+
+/// The projected grids in the page (WebGPU: their shaders read storage buffers): persistent
+/// grid mapping and the error-bounded projective grid with its ray casting.
+#[test]
+fn the_wasm_client_draws_jacksboro_with_the_projected_grids_as_natively() {
+    for method in ["pgm", "projective-grid"] {
+        jacksboro_in_the_page_as_natively(
+            "the_wasm_client_draws_jacksboro_with_the_projected_grids_as_natively",
+            Backend::WebGpu,
+            method,
+        );
+    }
+}
+
+/// The default flight over jacksboro with `method` (and the planar shadow) in 2 MiB, in the
 /// page drawing with `backend` and natively: every stop draws terrain, and the settled page
 /// draws the native flight's last frame within the golden tolerance.
-fn jacksboro_in_the_page_as_natively(test: &str, backend: Backend) {
+fn jacksboro_in_the_page_as_natively(test: &str, backend: Backend, method: &str) {
     if !browser_ready(test) || !page_built(test) {
         return;
     }
-    let name = match backend {
-        Backend::WebGpu => "jacksboro",
-        Backend::WebGl2 => "jacksboro-webgl2",
+    let name = &format!("jacksboro-{method}-{backend:?}");
+    let options = if method == "quadtree-patches" {
+        Options::WithPatches
+    } else {
+        Options::Defaults
     };
     // 2 MiB: small enough that the limit binds (jacksboro's tiles at every texture level
-    // would not fit).
-    let db = database(&jacksboro(), Options::Defaults);
-    let flown = fly_both(name, &db, 2, 30, [WIDTH, HEIGHT], true, backend);
+    // would not fit). The projected grids need more (their atlas and screen grid), and
+    // SwiftShader draws them slowly (half a second a frame): 4 MiB, a sixth of the frames
+    // (the same flight at 5 frames a second) and a quarter of the pixels.
+    let db = database(&jacksboro(), options);
+    let grid = method == "pgm" || method == "projective-grid";
+    let (memory_kib, fps, size) = if grid {
+        (4096, 5, [WIDTH / 2, HEIGHT / 2])
+    } else {
+        (2048, 30, [WIDTH, HEIGHT])
+    };
+    let flown = fly_both(
+        name,
+        &db,
+        Flight {
+            memory_kib,
+            fps,
+            size,
+            settle: true,
+            backend,
+            method,
+        },
+    );
     // Every stop but the first (frame 0, before any tile has arrived) drew terrain.
-    let total = f64::from(WIDTH * HEIGHT);
+    let total = f64::from(size[0] * size[1]);
     for &k in &flown.frames[1..] {
         let (page, _) = pair(&flown, k);
         let drawn = terrain_pixels(&page) as f64 / total;
@@ -384,11 +459,14 @@ fn the_wasm_client_draws_himalaya_to_the_horizon_in_16_mib_as_the_native_one_doe
     let flown = fly_both(
         "himalaya",
         &db,
-        16,
-        10,
-        [WIDTH / 2, HEIGHT / 2],
-        false,
-        Backend::WebGpu,
+        Flight {
+            memory_kib: 16 << 10,
+            fps: 10,
+            size: [WIDTH / 2, HEIGHT / 2],
+            settle: false,
+            backend: Backend::WebGpu,
+            method: "strip-masks",
+        },
     );
     let mut worst = (f64::INFINITY, 0);
     let mut lines = Vec::new();

@@ -205,16 +205,10 @@ fn render_config(options: &Options) -> Result<RenderConfig, JsError> {
     })
 }
 
-/// Methods the page has, or why not: the quadtree patches' data are zstd frames, which the
-/// page does not read (`terrain_shared::quadtree`); on WebGL2 some methods lack what they
+/// Methods the page draws, or why not: the database must have what the method reads
+/// ([`terrain_client::method::check_database`]), and on WebGL2 some methods lack what they
 /// draw with ([`terrain_client::method::check_gpu`]).
 fn check_method(kind: MethodKind, manifest: &Manifest, gpu: &Gpu) -> Result<(), JsError> {
-    if kind == MethodKind::QuadtreePatches {
-        return Err(js_error(
-            "quadtree-patches is not available in the browser: its patches are zstd frames, \
-             which the page does not read; use it with the native client (terrain-client fly or view)",
-        ));
-    }
     terrain_client::method::check_gpu(kind, gpu.downlevel()).map_err(js_error)?;
     terrain_client::method::check_database(kind, manifest).map_err(js_error)
 }

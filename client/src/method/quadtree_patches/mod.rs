@@ -82,6 +82,23 @@ struct Made {
     result: Result<Mesh, String>,
 }
 
+/// Where bodies are decoded and meshed: a worker thread, or, where a program has no threads
+/// (the page), the render thread, as each is asked for.
+enum Worker {
+    Thread(mpsc::Sender<Job>),
+    Inline(mpsc::Sender<Made>),
+}
+
+impl Worker {
+    /// Runs `job`; whether its result will be collected.
+    fn run(&self, job: Job) -> bool {
+        match self {
+            Worker::Thread(jobs) => jobs.send(job).is_ok(),
+            Worker::Inline(made) => made.send(job()).is_ok(),
+        }
+    }
+}
+
 /// The quadtree patches method. See the module documentation.
 pub struct QuadtreePatches {
     lod: LodSettings,
@@ -100,8 +117,8 @@ pub struct QuadtreePatches {
     bodies: HashMap<TileId, Bytes>,
     building: HashSet<TileId>,
     ready: HashMap<TileId, Ready>,
-    /// Jobs for the worker thread that decodes and meshes bodies, and what it made.
-    jobs: mpsc::Sender<Job>,
+    /// What decodes and meshes bodies, and what it made.
+    worker: Worker,
     receiver: mpsc::Receiver<Made>,
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
@@ -232,8 +249,9 @@ impl QuadtreePatches {
         }
         let (jobs, work) = mpsc::channel::<Job>();
         let (sender, receiver) = mpsc::channel();
+        let inline = sender.clone();
         // One worker: meshes are built off the render thread, in the order asked.
-        let _ = std::thread::Builder::new()
+        let worker = match std::thread::Builder::new()
             .name("quadtree patches".into())
             .spawn(move || {
                 while let Ok(job) = work.recv() {
@@ -241,7 +259,10 @@ impl QuadtreePatches {
                         break;
                     }
                 }
-            });
+            }) {
+            Ok(_) => Worker::Thread(jobs),
+            Err(_) => Worker::Inline(inline),
+        };
         let tree = Tree::for_tile_size(with.manifest.tile_size);
         QuadtreePatches {
             lod: config.lod,
@@ -256,7 +277,7 @@ impl QuadtreePatches {
             bodies: HashMap::new(),
             building: HashSet::new(),
             ready: HashMap::new(),
-            jobs,
+            worker,
             receiver,
             pipeline,
             layout,
@@ -332,7 +353,7 @@ impl QuadtreePatches {
                 id,
                 result: build_mesh(tree, id, far, parent, heights, spacing, &body),
             });
-            if self.jobs.send(job).is_err() {
+            if !self.worker.run(job) {
                 self.building.remove(&id);
             }
         }
