@@ -2,7 +2,8 @@
 //!
 //! A tile drawn has a slot of its samples (16-bit height codes, 2 bytes each, see
 //! [`super::mesh`]) in one storage buffer (or, on WebGL2, one integer texture:
-//! [`super::arena`]) shared by every tile (the sample arena, bound once a pass). Slots are handed to the tiles drawn, least recently used first ([`super::pool`],
+//! `arena`) shared by every tile (the sample arena, bound once a pass). Slots are
+//! handed to the tiles drawn, least recently used first ([`super::pool`],
 //! the GeoMipMaps paper's VBO manager): a resident tile keeps only its heights (shared with
 //! the scene) until it is drawn. The arena holds exactly as many slots as the pool: it grows
 //! when a frame needs more, and is compacted (its live slots copied into a smaller buffer)
@@ -97,7 +98,7 @@ pub struct TileStore {
     /// Arena positions no pool slot holds.
     free_positions: Vec<u32>,
     /// The most slots the arena may hold: what one storage binding and one buffer of the
-    /// device take.
+    /// device take, or one texture.
     max_slots: u32,
     /// Tiles left undrawn for want of a slot, over the renderer's life (logged once).
     pub(super) refused: u64,
@@ -221,7 +222,7 @@ impl TileStore {
     }
 
     /// The most tiles whose samples the arena holds at once (the device's limits on one
-    /// buffer); a frame drawing more leaves the rest undrawn (logged).
+    /// buffer, or one texture); a frame drawing more leaves the rest undrawn (logged).
     pub fn sample_slots(&self) -> u32 {
         self.max_slots
     }
