@@ -347,6 +347,7 @@ impl View {
                     gpu.description()
                 ))
             })?;
+        crate::method::check_gpu(render.method, gpu.downlevel()).map_err(ViewError::BadOption)?;
         config.present_mode = wgpu::PresentMode::AutoVsync;
         surface.configure(&gpu.device, &config);
         tracing::info!(

@@ -173,6 +173,8 @@ pub async fn fly(args: &FlightArgs) -> Result<FlightSummary, FlightError> {
     let render = match render_config {
         Some(config) => {
             let gpu = Gpu::headless()?;
+            crate::method::check_gpu(config.method, gpu.downlevel())
+                .map_err(FlightError::BadOption)?;
             let (w, h) = args.render.size;
             let target = Offscreen::new(&gpu, w, h);
             Some((gpu, target, config))

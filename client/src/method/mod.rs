@@ -413,3 +413,35 @@ pub fn build(config: &MethodConfig, with: &Build<'_>) -> Box<dyn LodMethod> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use wgpu::DownlevelFlags as F;
+
+    #[test]
+    fn a_device_without_what_a_method_draws_with_refuses_it_by_name() {
+        // WebGL2's: no base vertex, no storage buffers.
+        let webgl2 = F::all() - F::BASE_VERTEX - F::VERTEX_STORAGE - F::FRAGMENT_WRITABLE_STORAGE;
+        for kind in [
+            MethodKind::StripMasks,
+            MethodKind::Reference,
+            MethodKind::QuadtreePatches,
+        ] {
+            assert_eq!(check_gpu(kind, webgl2), Ok(()), "{}", kind.name());
+        }
+        for (kind, lacking) in [
+            (MethodKind::Geomipmap, "BASE_VERTEX"),
+            (MethodKind::Pgm, "VERTEX_STORAGE"),
+            (MethodKind::ProjectiveGrid, "FRAGMENT_WRITABLE_STORAGE"),
+        ] {
+            let refused = check_gpu(kind, webgl2).expect_err(kind.name());
+            assert!(
+                refused.contains(lacking)
+                    && refused.starts_with(&format!("--method {}", kind.name())),
+                "{refused}"
+            );
+            assert_eq!(check_gpu(kind, F::all()), Ok(()), "{}", kind.name());
+        }
+    }
+}

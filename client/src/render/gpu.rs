@@ -184,9 +184,7 @@ impl Gpu {
     pub fn with_samples(mut self, store: SampleStore) -> Gpu {
         if store == SampleStore::Buffer {
             assert!(
-                self.adapter
-                    .get_downlevel_capabilities()
-                    .flags
+                self.downlevel()
                     .contains(wgpu::DownlevelFlags::VERTEX_STORAGE),
                 "{} has no storage buffers in vertex shaders",
                 self.description()
