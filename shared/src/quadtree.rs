@@ -271,7 +271,8 @@ impl Cut {
                 out.push((l, i, j));
             }
         }
-        out.sort_by_key(|&(l, i, j)| self.tree.index(l, i, j));
+        // Indices are distinct: an unstable sort gives the one order.
+        out.sort_unstable_by_key(|&(l, i, j)| self.tree.index(l, i, j));
         out
     }
 
@@ -328,10 +329,14 @@ impl Cut {
 /// `0..=side + 1`, the ring at 0 and `side + 1`.
 pub fn representative(cut: &Cut, a: u32, b: u32) -> Vertex {
     let p = cut.tree.side();
-    let node = |i: u32, j: u32| cut.leaf_of(i, j);
     let inner = |a: u32| a.clamp(1, p) - 1;
+    representative_on(cut.tree, a, b, cut.leaf_of(inner(a), inner(b)))
+}
+
+/// [`representative`] given the active node over the vertex's inner neighbour.
+fn representative_on(tree: Tree, a: u32, b: u32, (l, i, j): (u32, u32, u32)) -> Vertex {
+    let p = tree.side();
     let (ring_u, ring_v) = (a == 0 || a == p + 1, b == 0 || b == p + 1);
-    let (l, i, j) = node(inner(a), inner(b));
     let (l8, i16, j16) = (l as u8, i as u16, j as u16);
     match (ring_u, ring_v) {
         (false, false) => Vertex::Node {
@@ -414,6 +419,66 @@ pub fn triangles_in(
         }
     }
     out
+}
+
+/// The triangles of `cut` with a corner on leaf `(l, i, j)`: a corner of the extended grid
+/// whose inner vertex lies under the node, so that it moves onto the node or onto the
+/// node's ring vertex. Each once, sorted, in `out` (cleared first: a caller that merges
+/// node after node reuses one vector, and does not allocate for each).
+///
+/// When the node's four children have just been merged into it, these are exactly the
+/// triangles the merge made: those corners moved, no other did, and the vertices they
+/// moved onto were not active before. It is what [`triangles_in`] over the node's cells
+/// gives after the merge less what it gave before, found without listing either: a cell
+/// whose four corners are inner vertices under the node moves them all onto it and makes
+/// only flat triangles, so only the cells along the node's border are visited.
+pub fn triangles_of_leaf(cut: &Cut, (l, i, j): (u32, u32, u32), out: &mut Vec<[Vertex; 3]>) {
+    debug_assert!(cut.is_leaf(l, i, j), "({l}, {i}, {j}) is not a leaf");
+    let p = cut.tree.side();
+    let s = 1u32 << (cut.tree.n - l);
+    let inner = |a: u32| a.clamp(1, p) - 1;
+    let under = |(a, b): (u32, u32)| inner(a) / s == i && inner(b) / s == j;
+    // Cell `a`'s corners `a` and `a + 1` both inner vertices under index `k`'s span.
+    let inside = |a: u32, k: u32| a > k * s && a < (k + 1) * s;
+    out.clear();
+    for b in j * s..((j + 1) * s + 1).min(p + 1) {
+        let b_inside = inside(b, j);
+        let mut a = i * s;
+        let a_end = ((i + 1) * s + 1).min(p + 1);
+        while a < a_end {
+            if b_inside && inside(a, i) {
+                a = (i + 1) * s;
+                continue;
+            }
+            // Corners (a, b), (a + 1, b), (a, b + 1), (a + 1, b + 1), looked up once.
+            let corners = [(a, b), (a + 1, b), (a, b + 1), (a + 1, b + 1)];
+            let moved = corners.map(under);
+            // A corner under the leaf moves onto it (or its ring vertex) without a search.
+            let reps = [0, 1, 2, 3].map(|c| {
+                let (x, y) = corners[c];
+                if moved[c] {
+                    representative_on(cut.tree, x, y, (l, i, j))
+                } else {
+                    representative(cut, x, y)
+                }
+            });
+            // `cell_triangles`' two triangles, as corners of the cell.
+            for tri in [[0, 1, 2], [1, 3, 2]] {
+                if !tri.iter().any(|&c| moved[c]) {
+                    continue;
+                }
+                let t = tri.map(|c| reps[c]);
+                if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
+                    continue;
+                }
+                out.push(canonical(t));
+            }
+            a += 1;
+        }
+    }
+    // By the packed vertices, which order as the vertices do.
+    out.sort_unstable_by_key(|t| t.map(Vertex::key));
+    out.dedup();
 }
 
 /// The patch's whole triangulation under `cut` (see the module documentation).
@@ -674,6 +739,26 @@ pub fn encode_patch(
     finest_are_samples: bool,
     zstd_level: i32,
 ) -> Vec<u8> {
+    let triangles = triangulate(cut);
+    encode_triangulated_patch(
+        cut,
+        &triangles,
+        parent,
+        height,
+        finest_are_samples,
+        zstd_level,
+    )
+}
+
+/// [`encode_patch`] given the cut's triangulation, for a caller that has it already.
+pub fn encode_triangulated_patch(
+    cut: &Cut,
+    triangles: &[[Vertex; 3]],
+    parent: Option<&Parent<'_>>,
+    height: impl Fn(Vertex) -> i32,
+    finest_are_samples: bool,
+    zstd_level: i32,
+) -> Vec<u8> {
     let tree = cut.tree;
     let given = parent.map_or_else(|| Cut::root(tree), Parent::given);
     let bits = encode_splits(&given, cut);
@@ -692,7 +777,7 @@ pub fn encode_patch(
         put_varint(&mut values, zigzag(i64::from(h) - i64::from(predicted)));
     }
     let mut previous = 0i64;
-    for v in border_vertices(&triangulate(cut)) {
+    for v in border_vertices(triangles) {
         let h = i64::from(height(v));
         put_varint(&mut values, zigzag(h - previous));
         previous = h;
@@ -1004,6 +1089,55 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// What a merge makes, found from the node's border alone, is what listing the node's
+    /// cells before and after the merge finds.
+    #[test]
+    fn the_triangles_of_a_merged_leaf_are_what_the_merge_made() {
+        let mut merges = 0;
+        let mut found = Vec::new();
+        for n in 1..=5 {
+            let tree = Tree { n };
+            for seed in 0..24 {
+                let mut cut = random_cut(tree, seed, [0.3, 0.6, 0.9][seed as usize % 3]);
+                let p = tree.side();
+                for l in (0..n).rev() {
+                    let s = 1u32 << (n - l);
+                    for j in 0..1u32 << l {
+                        for i in 0..1u32 << l {
+                            let mergeable = cut.is_split(l, i, j)
+                                && cut.reached(l, i, j)
+                                && (0..4)
+                                    .all(|c| !cut.is_split(l + 1, 2 * i + c % 2, 2 * j + c / 2));
+                            if !mergeable {
+                                continue;
+                            }
+                            let a = i * s..((i + 1) * s + 1).min(p + 1);
+                            let b = j * s..((j + 1) * s + 1).min(p + 1);
+                            let before: FastSet<[Vertex; 3]> =
+                                triangles_in(&cut, a.clone(), b.clone())
+                                    .into_iter()
+                                    .collect();
+                            cut.set_split(l, i, j, false);
+                            let mut made: Vec<_> = triangles_in(&cut, a, b)
+                                .into_iter()
+                                .filter(|t| !before.contains(t))
+                                .collect();
+                            made.sort_unstable();
+                            assert!(!made.is_empty());
+                            triangles_of_leaf(&cut, (l, i, j), &mut found);
+                            assert_eq!(found, made, "n {n} seed {seed} node ({l}, {i}, {j})");
+                            merges += 1;
+                            if (seed + u64::from(i + j)) % 3 == 0 {
+                                cut.set_split(l, i, j, true);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(merges > 1000, "{merges} merges checked");
     }
 
     #[test]

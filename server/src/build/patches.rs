@@ -8,7 +8,10 @@
 //!    quadtree and merge, finest level first, every node whose four children are active
 //!    while the triangles the merge makes (`ΔT`) stay within the tolerance: the largest
 //!    vertical distance from a level-0 sample under a triangle to the triangle's plane
-//!    (section 3.4's `Err(ΔT) < τ`, measured against the samples themselves).
+//!    (section 3.4's `Err(ΔT) < τ`, measured against the samples themselves). The
+//!    triangles a merge makes are found along the merged node's border
+//!    ([`quadtree::triangles_of_leaf`]); a merge is undone at its first triangle past the
+//!    tolerance, and a triangle's samples are those of each row's span inside it.
 //! 3. **Coarser meta levels** start from their children's active vertices one level up
 //!    (the children's finest level dropped), take the error of that start as their
 //!    tolerance, and merge the same way. Their errors too are measured against every
@@ -56,10 +59,10 @@ impl Pyramid {
         data[y * w + x]
     }
 
-    /// Level-0 sample `(x, y)`, inside the raster.
-    fn sample(&self, x: usize, y: usize) -> f64 {
+    /// Row `y` of the level-0 samples, inside the raster.
+    fn row(&self, y: usize) -> &[f64] {
         let (data, w, _) = &self.levels[0];
-        data[y * w + x]
+        &data[y * w..(y + 1) * w]
     }
 
     /// The height code of vertex `v` of patch `(level, x, y)` (see the module docs of
@@ -117,6 +120,46 @@ impl Pyramid {
     }
 }
 
+/// The samples of one row of a triangle's bounding span, and what weighs them.
+struct Span<'a> {
+    samples: &'a [f64],
+    /// Column of `samples[0]`.
+    first: usize,
+    /// The corners: sample column, row and height.
+    p: &'a [[f64; 3]; 3],
+    /// `e2x (y - p0y)` and `e1x (y - p0y)`.
+    c: [f64; 2],
+    /// `e1y` and `e2y`.
+    e: [f64; 2],
+}
+
+impl Span<'_> {
+    /// The largest of `worst` and the distances of the span's samples inside the triangle
+    /// to its plane; `weigh` divides a weight's numerator by the determinant (a
+    /// monomorphised closure, so that a division is not paid where a multiplication does).
+    #[inline(always)]
+    fn worst(&self, mut worst: f64, weigh: impl Fn(f64) -> f64) -> f64 {
+        let eps = 1e-9;
+        let p = self.p;
+        for (k, &sample) in self.samples.iter().enumerate() {
+            let dx = (self.first + k) as f64 - p[0][0];
+            let w1 = weigh(dx * self.e[1] - self.c[0]);
+            let w2 = weigh(self.c[1] - dx * self.e[0]);
+            let w0 = 1.0 - w1 - w2;
+            if w0 < -eps || w1 < -eps || w2 < -eps {
+                continue;
+            }
+            let z = w0 * p[0][2] + w1 * p[1][2] + w2 * p[2][2];
+            let distance = (sample - z).abs();
+            // Heights are finite: no NaN for `max` to take care of.
+            if distance > worst {
+                worst = distance;
+            }
+        }
+        worst
+    }
+}
+
 /// One patch while it is built.
 struct Patch<'a> {
     pyramid: &'a Pyramid,
@@ -140,6 +183,12 @@ impl Patch<'_> {
     /// Largest vertical distance, in codes, from a level-0 sample under triangle `t` to
     /// its plane.
     fn error(&self, t: &[Vertex; 3]) -> f64 {
+        self.error_within(t, f64::INFINITY)
+    }
+
+    /// [`Patch::error`] where it is at most `limit`; past it, some distance past it (the
+    /// samples left are not measured).
+    fn error_within(&self, t: &[Vertex; 3], limit: f64) -> f64 {
         let p = t.map(|v| {
             let [sx, sy] = quadtree::sample_of(
                 self.tree,
@@ -165,35 +214,97 @@ impl Patch<'_> {
             return 0.0;
         }
         let eps = 1e-9;
+        // The weights of corners 1 and 2 are linear along a row: `w1 = (x - p0x) e2y / det
+        // - c1`, `w2 = c2 - (x - p0x) e1y / det`, and `w0 = 1 - w1 - w2`. Each bounds the
+        // row's samples inside the triangle; the bounds are widened by a sample, so that
+        // rounding cannot drop one, and every sample between them is tested as before.
+        let (e1x, e1y) = (p[1][0] - p[0][0], p[1][1] - p[0][1]);
+        let (e2x, e2y) = (p[2][0] - p[0][0], p[2][1] - p[0][1]);
+        // Dividing by a power of two is multiplying by its exact inverse: the same bits,
+        // without a division per sample.
+        let inverse = (det.to_bits() & ((1 << 52) - 1) == 0).then(|| 1.0 / det);
         let mut worst: f64 = 0.0;
         for sy in y0..=y1 as usize {
-            for sx in x0..=x1 as usize {
-                let (fx, fy) = (sx as f64, sy as f64);
-                let w1 = ((fx - p[0][0]) * (p[2][1] - p[0][1])
-                    - (p[2][0] - p[0][0]) * (fy - p[0][1]))
-                    / det;
-                let w2 = ((p[1][0] - p[0][0]) * (fy - p[0][1])
-                    - (fx - p[0][0]) * (p[1][1] - p[0][1]))
-                    / det;
-                let w0 = 1.0 - w1 - w2;
-                if w0 < -eps || w1 < -eps || w2 < -eps {
-                    continue;
+            let fy = sy as f64;
+            // Each weight as `slope * (x - p0x) + at_p0x`, from its formula below.
+            let weights = [
+                (e2y / det, -(e2x * (fy - p[0][1])) / det),
+                (-e1y / det, (e1x * (fy - p[0][1])) / det),
+            ];
+            let (mut from, mut to) = (x0 as f64, x1);
+            let mut sum = (0.0, 1.0);
+            for (slope, at) in weights {
+                // slope * (x - p0x) + at >= -eps
+                if slope > 0.0 {
+                    from = from.max(p[0][0] + (-eps - at) / slope - 1.0);
+                } else if slope < 0.0 {
+                    to = to.min(p[0][0] + (-eps - at) / slope + 1.0);
                 }
-                let z = w0 * p[0][2] + w1 * p[1][2] + w2 * p[2][2];
-                worst = worst.max((self.pyramid.sample(sx, sy) - z).abs());
+                sum = (sum.0 + slope, sum.1 - at);
+            }
+            // w0 = 1 - w1 - w2 >= -eps: (s1 + s2) (x - p0x) <= 1 - a1 - a2 + eps
+            let (slope, rest) = sum;
+            if slope > 0.0 {
+                to = to.min(p[0][0] + (rest + eps) / slope + 1.0);
+            } else if slope < 0.0 {
+                from = from.max(p[0][0] + (rest + eps) / slope - 1.0);
+            }
+            if from > to {
+                continue;
+            }
+            let (c1, c2) = (e2x * (fy - p[0][1]), e1x * (fy - p[0][1]));
+            let row = self.pyramid.row(sy);
+            let (from, to) = (
+                from.ceil() as usize,
+                (to.floor() as usize).min(row.len() - 1),
+            );
+            if from > to {
+                continue;
+            }
+            let span = Span {
+                samples: &row[from..=to],
+                first: from,
+                p: &p,
+                c: [c1, c2],
+                e: [e1y, e2y],
+            };
+            worst = match inverse {
+                Some(inverse) => span.worst(worst, |n| n * inverse),
+                None => span.worst(worst, |n| n / det),
+            };
+            if worst > limit {
+                return worst;
             }
         }
         worst
+    }
+
+    /// The largest error of the full cut's triangles, for a patch of the finest meta
+    /// level. Only the cells along the border have a ring vertex; every other triangle
+    /// joins three adjacent samples, has no other sample under it and passes through its
+    /// own, so its error is 0 and it is not measured.
+    fn full_cut_error(&self) -> f64 {
+        let cut = Cut::full(self.tree);
+        let p = self.tree.side();
+        [
+            (0..p + 1, 0..1),
+            (0..p + 1, p..p + 1),
+            (0..1, 1..p),
+            (p..p + 1, 1..p),
+        ]
+        .into_iter()
+        .flat_map(|(a, b)| quadtree::triangles_in(&cut, a, b))
+        .map(|t| self.error(&t))
+        .fold(0.0, f64::max)
     }
 
     /// Merges nodes finest level first while the triangles a merge makes stay within
     /// `tolerance` codes; returns the cut and the largest error of its triangles.
     fn simplify(&self, mut cut: Cut, start_error: f64, tolerance: f64) -> (Cut, f64) {
         let n = self.tree.n;
-        let p = self.tree.side();
         let mut error = start_error;
+        let mut made = Vec::new();
         for l in (0..n).rev() {
-            let s = 1u32 << (n - l);
             for j in 0..1u32 << l {
                 for i in 0..1u32 << l {
                     if !cut.is_split(l, i, j)
@@ -202,20 +313,19 @@ impl Patch<'_> {
                     {
                         continue;
                     }
-                    let a = i * s..((i + 1) * s + 1).min(p + 1);
-                    let b = j * s..((j + 1) * s + 1).min(p + 1);
-                    let before: quadtree::FastSet<[Vertex; 3]> =
-                        quadtree::triangles_in(&cut, a.clone(), b.clone())
-                            .into_iter()
-                            .collect();
                     cut.set_split(l, i, j, false);
-                    let worst = quadtree::triangles_in(&cut, a, b)
-                        .into_iter()
-                        .filter(|t| !before.contains(t))
-                        .map(|t| self.error(&t))
-                        .fold(0.0, f64::max);
                     // Floating-point noise is not an error (a plane merges at tolerance 0).
-                    if worst <= tolerance + 1e-6 {
+                    let limit = tolerance + 1e-6;
+                    // The merge is undone at the first triangle past the limit.
+                    let mut worst: f64 = 0.0;
+                    quadtree::triangles_of_leaf(&cut, (l, i, j), &mut made);
+                    for t in &made {
+                        worst = worst.max(self.error_within(t, limit));
+                        if worst > limit {
+                            break;
+                        }
+                    }
+                    if worst <= limit {
                         error = error.max(worst);
                     } else {
                         cut.set_split(l, i, j, true);
@@ -329,9 +439,8 @@ pub fn build(
                 let made = if level == 0 {
                     // The full patch is exact but where its ring lies on the terrain's
                     // last sample (a raster of 2^k + 1 samples): measured all the same.
-                    let start = Cut::full(tree);
-                    let e = start_error(&start);
-                    patch.simplify(start, e, tolerance.max(e))
+                    let e = patch.full_cut_error();
+                    patch.simplify(Cut::full(tree), e, tolerance.max(e))
                 } else {
                     let below = &manifest.levels[level as usize - 1].grid;
                     let children: [Option<&Cut>; 4] = std::array::from_fn(|q| {
@@ -410,9 +519,15 @@ pub fn build(
                 let far = quadtree::far_edge(tree, level, id.x, id.y, [w as u32, h as u32], grid);
                 let snapped = far.map(|f| f > tree.extent() as f32);
                 let height = |v: Vertex| pyramid.vertex(tree, id, snapped, v);
-                let body =
-                    quadtree::encode_patch(cut, parent.as_ref(), height, level == 0, zstd_level);
                 let triangles = quadtree::triangulate(cut);
+                let body = quadtree::encode_triangulated_patch(
+                    cut,
+                    &triangles,
+                    parent.as_ref(),
+                    height,
+                    level == 0,
+                    zstd_level,
+                );
                 let (lo, hi) = triangles
                     .iter()
                     .flatten()
@@ -579,5 +694,148 @@ mod tests {
                 assert!(error <= tol + 1e-9);
             }
         }
+    }
+
+    /// The full cut's error from its border cells is its error from every triangle, on
+    /// rasters of `2^k + 1` samples (the ring on the last sample) and of other sizes (the
+    /// far patches past the terrain), because every other triangle's error is exactly 0.
+    #[test]
+    fn the_full_cuts_error_from_its_border_is_its_error_from_every_triangle() {
+        let tree = Tree { n: 3 };
+        let p = tree.side();
+        let mut inner = 0;
+        for (w, h) in [(33usize, 33usize), (21, 17), (9, 30), (40, 12)] {
+            let codes: Vec<i32> = (0..h)
+                .flat_map(|y| {
+                    (0..w).map(move |x| ((x * 37 + y * 91) % 23) as i32 * 4 + (x * y) as i32)
+                })
+                .collect();
+            let pyramid = Pyramid::new(&codes, w, h, 6);
+            let g = super::super::tiles::Grid::covering(w as u32, h as u32, p + 1);
+            let grid = [g.columns, g.rows];
+            for y in 0..grid[1] {
+                for x in 0..grid[0] {
+                    let id = TileId::at(0, x, y);
+                    let far = quadtree::far_edge(tree, 0, x, y, [w as u32, h as u32], grid);
+                    let patch = Patch {
+                        pyramid: &pyramid,
+                        tree,
+                        id,
+                        far,
+                        raster: [w, h],
+                    };
+                    let full = Cut::full(tree);
+                    for t in quadtree::triangles_in(&full, 1..p, 1..p) {
+                        assert_eq!(patch.error(&t), 0.0, "{w}x{h} patch {x},{y}: {t:?}");
+                        inner += 1;
+                    }
+                    let every = brute_error(&pyramid, tree, id, &full, [w, h], grid);
+                    assert_eq!(patch.full_cut_error(), every, "{w}x{h} patch {x},{y}");
+                }
+            }
+        }
+        assert!(inner > 1000, "{inner} inner triangles");
+    }
+
+    /// The measure before the spans, kept as the reference: every sample of the triangle's
+    /// bounding box, tested by its barycentric weights.
+    fn reference_error(patch: &Patch, t: &[Vertex; 3]) -> f64 {
+        let p = t.map(|v| {
+            let [sx, sy] = quadtree::sample_of(
+                patch.tree,
+                patch.id.level,
+                patch.id.x,
+                patch.id.y,
+                v.position(patch.tree, patch.far),
+            );
+            [sx, sy, f64::from(patch.height(v))]
+        });
+        let det =
+            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
+        if det.abs() < 1e-12 {
+            return 0.0;
+        }
+        let lo = |a: usize| p.iter().map(|q| q[a]).fold(f64::INFINITY, f64::min);
+        let hi = |a: usize| p.iter().map(|q| q[a]).fold(f64::NEG_INFINITY, f64::max);
+        let x0 = lo(0).ceil().max(0.0) as usize;
+        let y0 = lo(1).ceil().max(0.0) as usize;
+        let x1 = hi(0).floor().min(patch.raster[0] as f64 - 1.0);
+        let y1 = hi(1).floor().min(patch.raster[1] as f64 - 1.0);
+        if x1 < 0.0 || y1 < 0.0 {
+            return 0.0;
+        }
+        let mut worst: f64 = 0.0;
+        for sy in y0..=y1 as usize {
+            for sx in x0..=x1 as usize {
+                let (fx, fy) = (sx as f64, sy as f64);
+                let w1 = ((fx - p[0][0]) * (p[2][1] - p[0][1])
+                    - (p[2][0] - p[0][0]) * (fy - p[0][1]))
+                    / det;
+                let w2 = ((p[1][0] - p[0][0]) * (fy - p[0][1])
+                    - (fx - p[0][0]) * (p[1][1] - p[0][1]))
+                    / det;
+                let w0 = 1.0 - w1 - w2;
+                if w0 < -1e-9 || w1 < -1e-9 || w2 < -1e-9 {
+                    continue;
+                }
+                let z = w0 * p[0][2] + w1 * p[1][2] + w2 * p[2][2];
+                worst = worst.max((patch.pyramid.row(sy)[sx] - z).abs());
+            }
+        }
+        worst
+    }
+
+    /// A triangle's error, measured over the samples of each row's span, is the error
+    /// over every sample of its bounding box, to the bit; within a limit, it is that
+    /// error where it is at most the limit and past the limit where it is past it. On
+    /// patches of three meta levels, with their rings on and off the terrain's edge.
+    #[test]
+    fn the_error_of_a_triangle_is_every_sample_under_it_measured() {
+        let tree = Tree { n: 3 };
+        let p = tree.side();
+        let mut measured = 0;
+        for (w, h) in [(33usize, 33usize), (21, 17), (40, 12)] {
+            let codes: Vec<i32> = (0..h)
+                .flat_map(|y| {
+                    (0..w).map(move |x| ((x * 37 + y * 91) % 23) as i32 * 40 + (x * y) as i32)
+                })
+                .collect();
+            let pyramid = Pyramid::new(&codes, w, h, 6);
+            let g = super::super::tiles::Grid::covering(w as u32, h as u32, p + 1);
+            for level in 0..3u32 {
+                let grid = [g.columns, g.rows].map(|c| c.div_ceil(1 << level));
+                for y in 0..grid[1] {
+                    for x in 0..grid[0] {
+                        let patch = Patch {
+                            pyramid: &pyramid,
+                            tree,
+                            id: TileId::at(level, x, y),
+                            far: quadtree::far_edge(tree, level, x, y, [w as u32, h as u32], grid),
+                            raster: [w, h],
+                        };
+                        let mut cuts = vec![Cut::full(tree), Cut::root(tree)];
+                        for tol in [0.0, 30.0, 300.0] {
+                            cuts.push(patch.simplify(Cut::full(tree), 0.0, tol).0);
+                        }
+                        for cut in &cuts {
+                            for t in quadtree::triangulate(cut) {
+                                let reference = reference_error(&patch, &t);
+                                assert_eq!(patch.error(&t), reference, "{t:?}");
+                                for limit in [reference / 2.0, reference, reference * 2.0 + 1.0] {
+                                    let within = patch.error_within(&t, limit);
+                                    if reference <= limit {
+                                        assert_eq!(within, reference, "{t:?} within {limit}");
+                                    } else {
+                                        assert!(within > limit, "{t:?}: {within} within {limit}");
+                                    }
+                                }
+                                measured += usize::from(reference > 0.0);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(measured > 1000, "{measured} triangles with an error");
     }
 }
