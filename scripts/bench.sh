@@ -21,6 +21,9 @@ for tool in nginx wrk; do
 done
 source scripts/gpu-env.sh
 source scripts/stamp.sh
+# Read before the first document is written: the run's own outputs are not its changes.
+STAMP_COMMIT=$(stamp_commit)
+export STAMP_COMMIT
 cargo build --release --workspace --locked
 
 # capture NAME LABEL COMMAND...: runs COMMAND, shows its output and writes it, stamped with

@@ -73,81 +73,100 @@ pub fn cell_height<T: Height>(h00: T, h10: T, h01: T, h11: T, u: T, v: T) -> T {
 /// `level`, over every sample of the tile. `samples` is row-major `tile_size^2`.
 ///
 /// Panics if `samples.len() != tile_size^2` (a caller bug, never data-dependent).
+///
+/// The builder measures every level of every tile (128 levels of 129^2 samples each), so
+/// the loop runs over whole rows of samples, each column's cell read from per-column
+/// arrays, and is compiled also for AVX2 and AVX-512, the CPU choosing at run time
+/// (`multiversion`): built for the baseline x86-64 (SSE2) alone, it is slower than the
+/// per-cell loop it replaced. Rust never fuses a multiplication and an addition, so every
+/// version computes the reference's operations in its order; the tests hold the version
+/// this CPU picks to the reference, bit for bit.
+#[multiversion::multiversion(targets("x86_64+avx+avx2+avx512f", "x86_64+avx+avx2"))]
 pub fn max_vertical_error(samples: &[f32], tile_size: u32, level: u32) -> f32 {
     let n = tile_size as usize;
     assert_eq!(samples.len(), n * n, "samples must be tile_size^2");
-    if level == 0 {
+    if level == 0 || n < 2 {
         return 0.0;
     }
-    let kept = kept_indices(tile_size, level);
-    // `u` of each sample across a cell, per cell width (there are at most two: the step,
-    // and what is left before the last column).
-    let u_of = |du: usize| -> Vec<f32> { (0..=du).map(|i| i as f32 / du as f32).collect() };
-    let step = kept.get(1).map_or(1, |&k| k as usize);
-    let (u_step, mut u_last) = (u_of(step), Vec::new());
-    // Lanes of the running maximum, so that the loop over a cell's row vectorises; the
-    // maximum of finite values is exact in any order.
-    const LANES: usize = 8;
-    let mut worst = [0.0f32; LANES];
+    let kept: Vec<usize> = kept_indices(tile_size, level)
+        .into_iter()
+        .map(|k| k as usize)
+        .collect();
+    // Each column's cell (its corners' columns) and `u` across it. A kept column inside
+    // the tile is the first of the cell on its right here, and the last of the cell on
+    // its left in `edges`: every cell measures both its sides, as the reference does.
+    let mut cell = vec![(0usize, 0usize); n];
+    let mut u = vec![0.0f32; n];
+    let mut edges = Vec::new();
+    for cols in kept.windows(2) {
+        let (c0, c1) = (cols[0], cols[1]);
+        let du = (c1 - c0) as f32;
+        for x in c0..c1 {
+            cell[x] = (c0, c1);
+            u[x] = (x - c0) as f32 / du;
+        }
+        if c1 < n - 1 {
+            edges.push((c0, c1));
+        }
+    }
+    let last = kept[kept.len() - 2];
+    cell[n - 1] = (last, n - 1);
+    u[n - 1] = 1.0; // `du / du`, which is exactly 1, as in the reference
+    // Per column, what `cell_height` reads of a band of rows: the corners and their
+    // differences, in its operations and order (so the same bits).
+    let mut corner = [vec![0.0f32; n], vec![0.0f32; n]]; // h00, h11
+    let mut diff = [
+        vec![0.0f32; n], // h10 - h00
+        vec![0.0f32; n], // h01 - h00
+        vec![0.0f32; n], // h01 - h11
+        vec![0.0f32; n], // h10 - h11
+    ];
+    // A running maximum per column, so that the loop over a row vectorises; the maximum of
+    // finite values is exact in any order.
+    let mut worst = vec![0.0f32; n];
+    let mut edge_worst = 0.0f32;
     for rows in kept.windows(2) {
-        let (r0, r1) = (rows[0] as usize, rows[1] as usize);
+        let (r0, r1) = (rows[0], rows[1]);
         let dv = (r1 - r0) as f32;
         let (top, bottom) = (
             &samples[r0 * n..(r0 + 1) * n],
             &samples[r1 * n..(r1 + 1) * n],
         );
+        for x in 0..n {
+            let (c0, c1) = cell[x];
+            let (h00, h10, h01, h11) = (top[c0], top[c1], bottom[c0], bottom[c1]);
+            corner[0][x] = h00;
+            corner[1][x] = h11;
+            diff[0][x] = h10 - h00;
+            diff[1][x] = h01 - h00;
+            diff[2][x] = h01 - h11;
+            diff[3][x] = h10 - h11;
+        }
         for y in r0..=r1 {
             let v = (y - r0) as f32 / dv;
             let row = &samples[y * n..(y + 1) * n];
-            for cols in kept.windows(2) {
-                let (c0, c1) = (cols[0] as usize, cols[1] as usize);
-                let du = c1 - c0;
-                let us: &[f32] = if du == step {
-                    &u_step
-                } else {
-                    if u_last.len() != du + 1 {
-                        u_last = u_of(du);
-                    }
-                    &u_last
-                };
+            let columns = row
+                .iter()
+                .zip(&u)
+                .zip(corner[0].iter().zip(&corner[1]))
+                .zip(diff[0].iter().zip(&diff[1]))
+                .zip(diff[2].iter().zip(&diff[3]))
+                .zip(worst.iter_mut());
+            for (((((&h, &u), (&h00, &h11)), (&d1, &g)), (&e1, &k)), worst) in columns {
+                // `cell_height`: both triangles computed and one chosen, which vectorises.
+                let north_west = h00 + u * d1 + v * g;
+                let south_east = h11 + (1.0 - u) * e1 + (1.0 - v) * k;
+                let surface = if u + v <= 1.0 { north_west } else { south_east };
+                *worst = larger(*worst, (h - surface).abs());
+            }
+            for &(c0, c1) in &edges {
                 let (h00, h10, h01, h11) = (top[c0], top[c1], bottom[c0], bottom[c1]);
-                let heights = &row[c0..=c1];
-                // `cell_height`'s two triangles with the same operations in the same order
-                // (so the same bits), the parts that do not change along the row hoisted,
-                // both computed and one chosen, which vectorises.
-                let (d1, d2) = (h10 - h00, v * (h01 - h00));
-                let (e1, e2) = (h01 - h11, (1.0 - v) * (h10 - h11));
-                let len = heights.len();
-                if len < LANES {
-                    for (&h, &u) in heights.iter().zip(us) {
-                        let surface = cell_height(h00, h10, h01, h11, u, v);
-                        worst[0] = larger(worst[0], (h - surface).abs());
-                    }
-                    continue;
-                }
-                // Whole chunks of LANES samples, the last one ending at the cell's edge (it
-                // may measure samples again: a maximum does not mind).
-                let mut start = 0;
-                loop {
-                    let at = start.min(len - LANES);
-                    let hs: &[f32; LANES] = heights[at..at + LANES].try_into().expect("a chunk");
-                    let us: &[f32; LANES] = us[at..at + LANES].try_into().expect("a chunk");
-                    for lane in 0..LANES {
-                        let u = us[lane];
-                        let north_west = h00 + u * d1 + d2;
-                        let south_east = h11 + (1.0 - u) * e1 + e2;
-                        let surface = if u + v <= 1.0 { north_west } else { south_east };
-                        worst[lane] = larger(worst[lane], (hs[lane] - surface).abs());
-                    }
-                    if at == len - LANES {
-                        break;
-                    }
-                    start += LANES;
-                }
+                let surface = cell_height(h00, h10, h01, h11, 1.0, v);
+                edge_worst = larger(edge_worst, (row[c1] - surface).abs());
             }
         }
     }
-    worst.into_iter().fold(0.0, larger)
+    worst.into_iter().fold(edge_worst, larger)
 }
 
 /// The larger of two distances: `f32::max` for the finite numbers heights are, in the

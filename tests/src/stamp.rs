@@ -3,8 +3,13 @@
 
 use std::process::Command;
 
-/// The commit the workspace is at (short hash), `-dirty` when it has changes.
+/// The commit the workspace is at (short hash), `-dirty` when it has changes; or
+/// `STAMP_COMMIT`, which a script that writes tracked files as it runs reads before its
+/// first write (`scripts/stamp.sh`).
 pub fn commit() -> String {
+    if let Some(commit) = std::env::var("STAMP_COMMIT").ok().filter(|c| !c.is_empty()) {
+        return commit;
+    }
     let git = |args: &[&str]| {
         Command::new("git")
             .args(args)
