@@ -63,12 +63,15 @@ STAGES = [
     ("reading the DEM (PNG decode)", r"png::decoder|fdeflate|build::input|inflate"),
     ("no-data voids", r"build::voids"),
     ("levels: the pyramid", r"build::levels"),
-    ("quadtree patches", r"build::patches|terrain_shared::quadtree"),
+    ("quadtree patches: errors of triangles against the samples", r"patches::(Patch::error|Span)"),
+    ("quadtree patches: triangles of merges and cuts", r"quadtree::(triangles_|representative|canonical|Cut::)"),
+    ("quadtree patches: the rest (merging, the pyramid, bodies, index)", r"build::patches|terrain_shared::quadtree"),
     ("hashing (blake3)", r"blake3"),
     ("writing the database", r"db::|DbWriter|std::fs|std::io::Write"),
     ("kernel", r"_\[k\]$"),
 ]
 compiled = [(stage, re.compile(p)) for stage, p in STAGES]
+PATCHES = re.compile(r"build::patches|terrain_shared::quadtree")
 total = 0
 shares = Counter()
 for line in open(sys.argv[1]):
@@ -76,11 +79,16 @@ for line in open(sys.argv[1]):
     count = int(count)
     total += count
     stage = "other (allocation, rayon's scheduling, the rest)"
-    for frame in reversed(stack.split(";")):
-        hit = next((s for s, p in compiled if p.search(frame)), None)
+    frames = stack.split(";")
+    for depth in range(len(frames) - 1, -1, -1):
+        hit = next((s for s, p in compiled if p.search(frames[depth])), None)
         if hit:
             stage = hit
             break
+    # zstd compresses the patches' bodies too (the heights use it only with
+    # `--heights-codec zstd`): a zstd sample under the patches is theirs.
+    if stage == "heights codec: zstd" and any(PATCHES.search(f) for f in frames[:depth]):
+        stage = "quadtree patches: zstd of the bodies"
     shares[stage] += count
 print("| stage | share of the CPU time |")
 print("|---|---:|")
