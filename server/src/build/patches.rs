@@ -160,6 +160,10 @@ impl Span<'_> {
     }
 }
 
+/// A triangle in samples ([`Patch::placed`]): corners, determinant, and its bounding box's
+/// first column and row and last column and row.
+type Placed = ([[f64; 3]; 3], f64, [usize; 2], [f64; 2]);
+
 /// One patch while it is built.
 struct Patch<'a> {
     pyramid: &'a Pyramid,
@@ -186,9 +190,10 @@ impl Patch<'_> {
         self.error_within(t, f64::INFINITY)
     }
 
-    /// [`Patch::error`] where it is at most `limit`; past it, some distance past it (the
-    /// samples left are not measured).
-    fn error_within(&self, t: &[Vertex; 3], limit: f64) -> f64 {
+    /// Triangle `t` in samples: its corners (column, row, height), its determinant and the
+    /// raster's samples in its bounding box (first column and row, last column and row);
+    /// `None` when it is flat or has no sample under it.
+    fn placed(&self, t: &[Vertex; 3]) -> Option<Placed> {
         let p = t.map(|v| {
             let [sx, sy] = quadtree::sample_of(
                 self.tree,
@@ -202,7 +207,7 @@ impl Patch<'_> {
         let det =
             (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
         if det.abs() < 1e-12 {
-            return 0.0;
+            return None;
         }
         let lo = |a: usize| p.iter().map(|q| q[a]).fold(f64::INFINITY, f64::min);
         let hi = |a: usize| p.iter().map(|q| q[a]).fold(f64::NEG_INFINITY, f64::max);
@@ -211,8 +216,17 @@ impl Patch<'_> {
         let x1 = hi(0).floor().min(self.raster[0] as f64 - 1.0);
         let y1 = hi(1).floor().min(self.raster[1] as f64 - 1.0);
         if x1 < 0.0 || y1 < 0.0 {
-            return 0.0;
+            return None;
         }
+        Some((p, det, [x0, y0], [x1, y1]))
+    }
+
+    /// [`Patch::error`] where it is at most `limit`; past it, some distance past it (the
+    /// samples left are not measured).
+    fn error_within(&self, t: &[Vertex; 3], limit: f64) -> f64 {
+        let Some((p, det, [x0, y0], [x1, y1])) = self.placed(t) else {
+            return 0.0;
+        };
         let eps = 1e-9;
         // The weights of corners 1 and 2 are linear along a row: `w1 = (x - p0x) e2y / det
         // - c1`, `w2 = c2 - (x - p0x) e1y / det`, and `w0 = 1 - w1 - w2`. Each bounds the
@@ -570,6 +584,33 @@ pub fn build(
 mod tests {
     use super::*;
 
+    /// Rough codes for a `w x h` raster: a saw of steps of `step` over a saddle.
+    fn rough_codes(w: usize, h: usize, step: i32) -> Vec<i32> {
+        (0..h)
+            .flat_map(|y| {
+                (0..w).map(move |x| ((x * 37 + y * 91) % 23) as i32 * step + (x * y) as i32)
+            })
+            .collect()
+    }
+
+    /// Patch `id` of a `grid` of patches over a `raster` of `pyramid`.
+    fn patch_at(
+        pyramid: &Pyramid,
+        tree: Tree,
+        id: TileId,
+        raster: [usize; 2],
+        grid: [u32; 2],
+    ) -> Patch<'_> {
+        let size = raster.map(|r| r as u32);
+        Patch {
+            pyramid,
+            tree,
+            id,
+            far: quadtree::far_edge(tree, id.level, id.x, id.y, size, grid),
+            raster,
+        }
+    }
+
     /// Brute force: the triangulation's surface against every level-0 sample in the patch.
     fn brute_error(
         pyramid: &Pyramid,
@@ -705,25 +746,13 @@ mod tests {
         let p = tree.side();
         let mut inner = 0;
         for (w, h) in [(33usize, 33usize), (21, 17), (9, 30), (40, 12)] {
-            let codes: Vec<i32> = (0..h)
-                .flat_map(|y| {
-                    (0..w).map(move |x| ((x * 37 + y * 91) % 23) as i32 * 4 + (x * y) as i32)
-                })
-                .collect();
-            let pyramid = Pyramid::new(&codes, w, h, 6);
+            let pyramid = Pyramid::new(&rough_codes(w, h, 4), w, h, 6);
             let g = super::super::tiles::Grid::covering(w as u32, h as u32, p + 1);
             let grid = [g.columns, g.rows];
             for y in 0..grid[1] {
                 for x in 0..grid[0] {
                     let id = TileId::at(0, x, y);
-                    let far = quadtree::far_edge(tree, 0, x, y, [w as u32, h as u32], grid);
-                    let patch = Patch {
-                        pyramid: &pyramid,
-                        tree,
-                        id,
-                        far,
-                        raster: [w, h],
-                    };
+                    let patch = patch_at(&pyramid, tree, id, [w, h], grid);
                     let full = Cut::full(tree);
                     for t in quadtree::triangles_in(&full, 1..p, 1..p) {
                         assert_eq!(patch.error(&t), 0.0, "{w}x{h} patch {x},{y}: {t:?}");
@@ -740,30 +769,9 @@ mod tests {
     /// The measure before the spans, kept as the reference: every sample of the triangle's
     /// bounding box, tested by its barycentric weights.
     fn reference_error(patch: &Patch, t: &[Vertex; 3]) -> f64 {
-        let p = t.map(|v| {
-            let [sx, sy] = quadtree::sample_of(
-                patch.tree,
-                patch.id.level,
-                patch.id.x,
-                patch.id.y,
-                v.position(patch.tree, patch.far),
-            );
-            [sx, sy, f64::from(patch.height(v))]
-        });
-        let det =
-            (p[1][0] - p[0][0]) * (p[2][1] - p[0][1]) - (p[2][0] - p[0][0]) * (p[1][1] - p[0][1]);
-        if det.abs() < 1e-12 {
+        let Some((p, det, [x0, y0], [x1, y1])) = patch.placed(t) else {
             return 0.0;
-        }
-        let lo = |a: usize| p.iter().map(|q| q[a]).fold(f64::INFINITY, f64::min);
-        let hi = |a: usize| p.iter().map(|q| q[a]).fold(f64::NEG_INFINITY, f64::max);
-        let x0 = lo(0).ceil().max(0.0) as usize;
-        let y0 = lo(1).ceil().max(0.0) as usize;
-        let x1 = hi(0).floor().min(patch.raster[0] as f64 - 1.0);
-        let y1 = hi(1).floor().min(patch.raster[1] as f64 - 1.0);
-        if x1 < 0.0 || y1 < 0.0 {
-            return 0.0;
-        }
+        };
         let mut worst: f64 = 0.0;
         for sy in y0..=y1 as usize {
             for sx in x0..=x1 as usize {
@@ -795,24 +803,14 @@ mod tests {
         let p = tree.side();
         let mut measured = 0;
         for (w, h) in [(33usize, 33usize), (21, 17), (40, 12)] {
-            let codes: Vec<i32> = (0..h)
-                .flat_map(|y| {
-                    (0..w).map(move |x| ((x * 37 + y * 91) % 23) as i32 * 40 + (x * y) as i32)
-                })
-                .collect();
-            let pyramid = Pyramid::new(&codes, w, h, 6);
+            let pyramid = Pyramid::new(&rough_codes(w, h, 40), w, h, 6);
             let g = super::super::tiles::Grid::covering(w as u32, h as u32, p + 1);
             for level in 0..3u32 {
                 let grid = [g.columns, g.rows].map(|c| c.div_ceil(1 << level));
                 for y in 0..grid[1] {
                     for x in 0..grid[0] {
-                        let patch = Patch {
-                            pyramid: &pyramid,
-                            tree,
-                            id: TileId::at(level, x, y),
-                            far: quadtree::far_edge(tree, level, x, y, [w as u32, h as u32], grid),
-                            raster: [w, h],
-                        };
+                        let id = TileId::at(level, x, y);
+                        let patch = patch_at(&pyramid, tree, id, [w, h], grid);
                         let mut cuts = vec![Cut::full(tree), Cut::root(tree)];
                         for tol in [0.0, 30.0, 300.0] {
                             cuts.push(patch.simplify(Cut::full(tree), 0.0, tol).0);
