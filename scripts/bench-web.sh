@@ -40,8 +40,10 @@ for _ in $(seq 100); do
 done
 [ -n "$url" ] || { cat "$work/server.log" >&2; echo "error: the server did not start" >&2; exit 1; }
 mkdir -p docs/benchmarks docs/images
-# The commit measured, read before this run writes its figures into the tree.
-stamp=$(stamp_line)
+# The commit measured, read before this run writes its figures into the tree
+# (scripts/stamp.sh).
+STAMP_COMMIT=$(stamp_commit)
+export STAMP_COMMIT
 page="$url/view/client/index.html?mode=flight&wall_clock=1&loop=1&memory=$MEMORY"
 echo "flying for $SECONDS_RUN s in headless Chromium with WebGPU ..."
 node tests/browser/client.mjs --page "$page" \
@@ -50,7 +52,7 @@ cp "$work/shot.png" docs/images/web-client.png
 echo "flying for $SECONDS_RUN s in headless Chromium without WebGPU (WebGL2) ..."
 node tests/browser/client.mjs --page "$page" --no-webgpu \
   --run-seconds "$SECONDS_RUN" --timeout-s $((SECONDS_RUN + 120)) --ui --out "$work/webgl2"
-python3 - "$work/webgpu/result.json" "$work/webgl2/result.json" "$stamp" "$SECONDS_RUN" "$MEMORY" "$(basename "$dem")" > docs/benchmarks/web-client.md <<'PY'
+python3 - "$work/webgpu/result.json" "$work/webgl2/result.json" "$(stamp_line)" "$SECONDS_RUN" "$MEMORY" "$(basename "$dem")" > docs/benchmarks/web-client.md <<'PY'
 import json, statistics, sys
 paths, (stamp, seconds, memory, dem) = sys.argv[1:3], sys.argv[3:]
 mib = lambda b: f"{b / 1048576:.1f}"
